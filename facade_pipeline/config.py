@@ -1,0 +1,196 @@
+"""One config system: ``configs/default.toml`` holds every parameter of every stage; a building's
+``configs/buildings/<name>.toml`` overrides some of them. Each stage reads its section into one frozen
+dataclass. An unknown key, a missing key or a wrong type is a ``ConfigError`` naming the key and the file.
+
+Merging: tables merge key by key; any other value (arrays of tables included) replaces the default whole.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tomllib
+import types
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, TypeVar, get_args, get_origin
+
+from facade_pipeline.errors import ConfigError
+
+CONFIG_DIR_ENV = "FACADE_CONFIG_DIR"
+T = TypeVar("T")
+
+
+def config_dir() -> Path:
+    """``$FACADE_CONFIG_DIR`` or the ``configs/`` folder beside the package (the checkout)."""
+    env = os.environ.get(CONFIG_DIR_ENV)
+    return Path(env) if env else Path(__file__).resolve().parents[1] / "configs"
+
+
+@dataclass(frozen=True)
+class BuildingParams:
+    """The ``[building]`` section: what kind of building this is."""
+
+    kind: Literal["real", "synthetic"]
+    """``synthetic`` buildings are made by the ``synthesize`` stage and have ground truth in gt/."""
+    description: str
+    """One line for people."""
+
+
+@dataclass(frozen=True)
+class BuildingConfig:
+    """The merged configuration of one building, with the files it came from."""
+
+    name: str
+    tables: dict[str, Any]
+    """The merged tables."""
+    default_tables: dict[str, Any]
+    """default.toml alone, to tell which file a bad value came from."""
+    files: tuple[Path, Path]
+    """(default.toml, buildings/<name>.toml)"""
+
+    @property
+    def building(self) -> BuildingParams:
+        return self.section("building", BuildingParams)
+
+    def section(self, name: str, cls: type[T]) -> T:
+        """Section ``name`` as an instance of the frozen dataclass ``cls``."""
+        if name not in self.default_tables:
+            raise ConfigError(self.files[0], f"a [{name}] section", "none")
+        _build(cls, self.default_tables[name], name, (self.files[0],))
+        # default.toml is valid on its own, so whatever fails now came from the building's file.
+        return _build(cls, self.tables[name], name, (self.files[1],))
+
+
+def available_buildings(directory: Path | None = None) -> list[str]:
+    directory = directory or config_dir()
+    return sorted(p.stem for p in (directory / "buildings").glob("*.toml"))
+
+
+def load_building_config(building: str, directory: Path | None = None) -> BuildingConfig:
+    """Read ``default.toml`` and ``buildings/<building>.toml`` and merge them (building wins)."""
+    directory = directory or config_dir()
+    default_file = directory / "default.toml"
+    building_file = directory / "buildings" / f"{building}.toml"
+    if not building_file.is_file():
+        names = ", ".join(available_buildings(directory)) or "none"
+        raise ConfigError(building_file, f"a config for building {building!r} (one of: {names})", "no file")
+    default = _read_toml(default_file)
+    override = _read_toml(building_file)
+    _check_known_keys(override, default, building_file, "")
+    return BuildingConfig(building, _merge(default, override), default, (default_file, building_file))
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(path, "a TOML config file", "no file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(path, "valid TOML", f"a syntax error ({e})") from None
+
+
+def _check_known_keys(override: dict, default: dict, file: Path, prefix: str) -> None:
+    """Every key of a building file must exist in default.toml (catches typos before anything runs)."""
+    for key, value in override.items():
+        where = f"{prefix}{key}"
+        if key not in default:
+            raise ConfigError(file, "only keys that configs/default.toml defines", f"unknown key '{where}'")
+        if isinstance(value, dict) and isinstance(default[key], dict):
+            _check_known_keys(value, default[key], file, where + ".")
+
+
+def _merge(default: dict, override: dict) -> dict:
+    out = dict(default)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def from_dict(cls: type[T], table: dict[str, Any], where: str = "", file: Path | None = None) -> T:
+    """Build the frozen dataclass ``cls`` from a plain dict (as read from TOML or JSON), checking types."""
+    return _build(cls, table, where, (file,) if file else ())
+
+
+def to_dict(params: Any) -> dict[str, Any]:
+    """The plain-dict form of a params dataclass (tuples become lists), for manifests and doit."""
+    return _plain(dataclasses.asdict(params))
+
+
+def _plain(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _build(cls: type, table: Any, where: str, files: tuple[Path | None, ...]) -> Any:
+    file = _file_label(files)
+    if not isinstance(table, dict):
+        raise ConfigError(file, f"a table at '{where}'", type(table).__name__)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key in table:
+        if key not in fields:
+            raise ConfigError(file, f"one of the keys of [{where}] ({', '.join(fields)})", f"unknown key '{key}'")
+    kwargs = {}
+    for name, field in fields.items():
+        key = f"{where}.{name}" if where else name
+        if name not in table:
+            if field.default is not dataclasses.MISSING or field.default_factory is not dataclasses.MISSING:
+                continue
+            raise ConfigError(file, f"a value for '{key}'", "none")
+        kwargs[name] = _convert(hints[name], table[name], key, files)
+    return cls(**kwargs)
+
+
+def _file_label(files: tuple[Path | None, ...]) -> Path | None:
+    real = [f for f in files if f is not None]
+    return real[-1] if real else None
+
+
+def _convert(tp: Any, value: Any, key: str, files: tuple[Path | None, ...]) -> Any:
+    origin = get_origin(tp)
+    file = _file_label(files)
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, key, files)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise ConfigError(file, f"'{key}' one of {list(get_args(tp))}", repr(value))
+        return value
+    if origin in (types.UnionType, typing.Union):
+        errors = []
+        for arg in get_args(tp):
+            try:
+                return _convert(arg, value, key, files)
+            except ConfigError as e:
+                errors.append(e.expected)
+        raise ConfigError(file, " or ".join(errors), repr(value))
+    if origin is tuple:
+        args = get_args(tp)
+        if not isinstance(value, list | tuple):
+            raise ConfigError(file, f"'{key}' an array", repr(value))
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{key}[{i}]", files) for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(file, f"'{key}' an array of {len(args)} values", f"{len(value)} values")
+        return tuple(_convert(a, v, f"{key}[{i}]", files) for i, (a, v) in enumerate(zip(args, value, strict=True)))
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(file, f"'{key}' a number", repr(value))
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(file, f"'{key}' an integer", repr(value))
+        return value
+    if tp is bool or tp is str:
+        if not isinstance(value, tp):
+            raise ConfigError(file, f"'{key}' a {tp.__name__}", repr(value))
+        return value
+    raise TypeError(f"config type {tp!r} of '{key}' is not supported")  # a programming error, not a user one

@@ -1,0 +1,1 @@
+"""Geometry: cameras, frames, transforms."""

@@ -1,0 +1,1 @@
+"""Reading and writing: atomic files, COLMAP models, meshes, images, EXR maps, manifests."""

@@ -1,0 +1,77 @@
+"""Atomic output files: write to a temporary name in the same folder, then ``os.replace``.
+
+A crash, ``kill -9`` or Ctrl-C therefore leaves either the old file, the complete new file, or a stray
+temporary file (``.tmp-*``) that no reader trusts and that the next run of the stage removes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+TMP_PREFIX = ".tmp-"
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success rename it to ``path``, on error delete it.
+
+    The temporary name keeps the suffix so that writers that pick a format from the extension work.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX + path.stem + "-", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        if not tmp_path.exists() or (tmp_path.stat().st_size == 0 and not _allow_empty(path)):
+            raise OSError(f"{path}: writer produced no data in {tmp_path}")
+        _fsync(tmp_path)
+        os.replace(tmp_path, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+def _allow_empty(path: Path) -> bool:
+    return path.suffix in {".txt", ".log"}
+
+
+def _fsync(path: Path) -> None:
+    with open(path, "rb") as f:
+        os.fsync(f.fileno())
+
+
+def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | Path, obj: object) -> None:
+    """Write ``obj`` as indented JSON to ``path`` atomically (NaN and Inf are refused)."""
+    write_text(path, json.dumps(obj, indent=2, sort_keys=False, allow_nan=False) + "\n")
+
+
+def remove_stale_temporaries(folder: str | Path) -> int:
+    """Delete temporary files left by an interrupted writer under ``folder``; return how many."""
+    folder = Path(folder)
+    if not folder.exists():
+        return 0
+    count = 0
+    for p in folder.rglob(TMP_PREFIX + "*"):
+        if p.is_file():
+            p.unlink()
+            count += 1
+    return count

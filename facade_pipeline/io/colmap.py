@@ -1,0 +1,115 @@
+"""COLMAP models through pycolmap: the one adapter between pycolmap's types and ours.
+
+pycolmap 4.x stores rigs and frames beside cameras, images and points; models written by older COLMAP
+versions, Metashape or DJI Terra (binary or text) are read the same way.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from facade_pipeline.errors import InputError
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.io.atomic import TMP_PREFIX
+
+MODEL_FILES = ("cameras", "images", "points3D")
+
+
+@dataclass(frozen=True)
+class ColmapView:
+    """One registered image of a model: its file name (relative to the image folder) and camera."""
+
+    name: str
+    camera: PinholeCamera
+
+
+def read_reconstruction(model_dir: str | Path) -> pycolmap.Reconstruction:
+    """Read a COLMAP model (``.bin`` or ``.txt``) or raise ``InputError`` naming the folder."""
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise InputError(model_dir, "a COLMAP model folder (cameras, images, points3D as .bin or .txt)", "no folder")
+    present = [f for f in MODEL_FILES if (model_dir / f"{f}.bin").is_file() or (model_dir / f"{f}.txt").is_file()]
+    missing = [f for f in MODEL_FILES if f not in present]
+    if missing:
+        raise InputError(model_dir, "COLMAP files cameras, images, points3D (.bin or .txt)",
+                         f"missing {', '.join(missing)}")
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises ValueError, IndexError, RuntimeError for damaged files
+        raise InputError(model_dir, "a readable COLMAP model", f"a damaged model ({type(e).__name__}: {e})") from None
+    if rec.num_reg_images() == 0:
+        raise InputError(model_dir, "a COLMAP model with registered images", "no registered image")
+    return rec
+
+
+def camera_model_name(camera: pycolmap.Camera) -> str:
+    return camera.model.name if hasattr(camera.model, "name") else str(camera.model)
+
+
+def pinhole_camera(camera: pycolmap.Camera, cam_from_world: pycolmap.Rigid3d) -> PinholeCamera:
+    """Our camera from a pycolmap camera whose model is SIMPLE_PINHOLE or PINHOLE."""
+    name = camera_model_name(camera)
+    if name not in ("SIMPLE_PINHOLE", "PINHOLE"):
+        raise ValueError(f"camera {camera.camera_id} is {name}; undistort it first")
+    T = np.eye(4)
+    T[:3, :4] = cam_from_world.matrix()
+    return PinholeCamera(camera.calibration_matrix(), T, camera.width, camera.height)
+
+
+def registered_images(rec: pycolmap.Reconstruction) -> list[pycolmap.Image]:
+    """Registered images sorted by name (a stable order for every stage)."""
+    return sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
+
+
+def write_pinhole_model(
+    model_dir: str | Path,
+    views: Sequence[ColmapView],
+    points_xyz: np.ndarray | None = None,  # [P, 3]
+    points_rgb: np.ndarray | None = None,  # [P, 3] uint8
+    binary: bool = True,
+) -> None:
+    """Write a COLMAP model with one PINHOLE camera per distinct intrinsics, atomically (the folder is
+    built under a temporary name and renamed into place)."""
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[tuple, int] = {}
+    for image_id, view in enumerate(views, start=1):
+        c = view.camera
+        key = (c.width, c.height, *np.round(c.K[[0, 1, 0, 1], [0, 1, 2, 2]], 9))
+        if key not in cam_ids:
+            cam_ids[key] = len(cam_ids) + 1
+            fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]
+            rec.add_camera_with_trivial_rig(pycolmap.Camera(
+                model="PINHOLE", width=c.width, height=c.height, params=[fx, fy, cx, cy], camera_id=cam_ids[key]))
+        image = pycolmap.Image(name=view.name, camera_id=cam_ids[key], image_id=image_id)
+        T = c.cam_from_world
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3].copy()))
+    if points_xyz is not None:
+        rgb = np.zeros_like(points_xyz, dtype=np.uint8) if points_rgb is None else np.asarray(points_rgb, np.uint8)
+        for xyz, col in zip(np.asarray(points_xyz, dtype=np.float64), rgb, strict=True):
+            rec.add_point3D(xyz, pycolmap.Track(), col)
+    write_reconstruction(rec, model_dir, binary=binary)
+
+
+def write_reconstruction(rec: pycolmap.Reconstruction, model_dir: str | Path, binary: bool = True) -> None:
+    """Write ``rec`` into ``model_dir`` atomically (replacing any previous model there)."""
+    model_dir = Path(model_dir)
+    model_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = model_dir.parent / f"{TMP_PREFIX}{model_dir.name}"
+    old = model_dir.parent / f"{TMP_PREFIX}old-{model_dir.name}"
+    for p in (tmp, old):
+        shutil.rmtree(p, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        (rec.write_binary if binary else rec.write_text)(str(tmp))
+        if model_dir.exists():
+            model_dir.rename(old)
+        tmp.rename(model_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)

@@ -1,0 +1,105 @@
+"""Stage manifests: the record a stage writes last, after all its outputs.
+
+A manifest lists the parameters, every input and output with its SHA-256, the code version, wall time,
+peak memory and the stage's metrics. Its presence is what makes a stage's outputs trustworthy: a stage
+deletes its old manifest before it starts, so an interrupted run leaves none.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from facade_pipeline import __version__
+from facade_pipeline.errors import InputError, UpstreamMissingError
+from facade_pipeline.layout import BuildingLayout
+
+MANIFEST_VERSION = 1
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def sources_digest(files: list[Path]) -> str:
+    """One SHA-256 over the given source files (names and contents), the stage's code version."""
+    h = hashlib.sha256()
+    for f in sorted(files):
+        h.update(f.as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def git_commit(repo: Path) -> str | None:
+    """The checkout's commit, with ``-dirty`` when it has local changes; None outside a git checkout."""
+    try:
+        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
+                             capture_output=True, text=True, timeout=10, check=True)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A stage's manifest as read back from disk. Paths are relative to the building folder."""
+
+    stage: str
+    path: Path
+    params: dict[str, Any]
+    inputs: dict[str, str]
+    outputs: dict[str, str]
+    metrics: dict[str, Any]
+    data: dict[str, Any]
+
+    def output_paths(self, layout: BuildingLayout) -> list[Path]:
+        return [layout.root / rel for rel in self.outputs]
+
+
+def build_manifest(
+    stage: str,
+    layout: BuildingLayout,
+    params: dict[str, Any],
+    inputs: list[Path],
+    outputs: list[Path],
+    metrics: dict[str, Any],
+    code: dict[str, Any],
+    wall_time_s: float,
+    peak_memory_mb: float,
+) -> dict[str, Any]:
+    """The manifest dict, hashing every input and output file."""
+    return {
+        "manifest_version": MANIFEST_VERSION,
+        "stage": stage,
+        "building": layout.building,
+        "params": params,
+        "inputs": {layout.relative(p): sha256_file(p) for p in sorted(set(inputs))},
+        "outputs": {layout.relative(p): sha256_file(p) for p in sorted(set(outputs))},
+        "code": {"package_version": __version__, "python": platform.python_version(), **code},
+        "wall_time_s": round(wall_time_s, 3),
+        "peak_memory_mb": round(peak_memory_mb, 1),
+        "metrics": metrics,
+    }
+
+
+def read_manifest(layout: BuildingLayout, stage: str) -> Manifest:
+    """Read ``stage``'s manifest; a missing one means the stage has not completed."""
+    path = layout.manifest(stage)
+    if not path.is_file():
+        raise UpstreamMissingError(path, f"the manifest of a completed '{stage}' stage (run `doit {stage}`)",
+                                   "no manifest")
+    try:
+        data = json.loads(path.read_text())
+        return Manifest(stage, path, data["params"], data["inputs"], data["outputs"], data["metrics"], data)
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise InputError(path, "a stage manifest (JSON with params, inputs, outputs, metrics)",
+                         f"{type(e).__name__}: {e}") from None

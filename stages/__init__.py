@@ -1,0 +1,29 @@
+"""Pipeline stages, one module each. A stage module exposes:
+
+- ``NAME``, ``DOC`` (one line), ``Params`` (a frozen dataclass, read from the config section ``NAME``);
+- ``UPSTREAM``: the stages whose outputs it reads; ``LIBRARY``: the library modules it runs (its code version);
+- ``inputs(layout, params)``: the exact files it reads, validated (missing ones raise ``InputError``);
+- ``targets(layout, params)``: the outputs whose names are known before it runs;
+- ``run(layout, params) -> StageReport``: does the work, writing every output atomically;
+- a CLI: ``python -m stages.<name> --building NAME``.
+
+``stages._runner.execute`` wraps ``run`` with the contract (manifest last, stale files removed) and is
+the one way a stage runs, from doit or from the command line.
+"""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+#: The DAG in pipeline order. A stage is listed here only once it really exists.
+PIPELINE: tuple[str, ...] = (
+    "synthesize",
+    "import_photogrammetry",
+)
+
+
+def load_stage(name: str) -> ModuleType:
+    if name not in PIPELINE:
+        raise KeyError(f"unknown stage {name!r}; stages: {', '.join(PIPELINE)}")
+    return importlib.import_module(f"stages.{name}")
