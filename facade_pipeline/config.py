@@ -194,3 +194,12 @@ def _convert(tp: Any, value: Any, key: str, files: tuple[Path | None, ...]) -> A
             raise ConfigError(file, f"'{key}' a {tp.__name__}", repr(value))
         return value
     raise TypeError(f"config type {tp!r} of '{key}' is not supported")  # a programming error, not a user one
+
+
+def default_params(section: str, cls: type[T], directory: Path | None = None) -> T:
+    """Section ``section`` of ``default.toml`` alone (no building overrides), as ``cls``."""
+    path = (directory or config_dir()) / "default.toml"
+    table = _read_toml(path)
+    if section not in table:
+        raise ConfigError(path, f"a [{section}] section", "none")
+    return _build(cls, table[section], section, (path,))

@@ -113,3 +113,36 @@ def write_reconstruction(rec: pycolmap.Reconstruction, model_dir: str | Path, bi
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(old, ignore_errors=True)
+
+
+def check_camera_supported(camera: pycolmap.Camera, model_dir: Path) -> None:
+    """Raise ``InputError`` for a camera model that cannot be undistorted to a pinhole camera."""
+    if camera.is_spherical() or not (camera.is_perspective() or camera.is_perspective_fisheye()):
+        raise InputError(model_dir / "cameras", "a perspective or fisheye camera model that COLMAP can undistort",
+                         f"camera {camera.camera_id} with model {camera_model_name(camera)}")
+    if camera.has_bogus_params(0.1, 10.0, 2.0):
+        raise InputError(model_dir / "cameras", "plausible camera parameters (focal length, distortion)",
+                         f"camera {camera.camera_id} ({camera_model_name(camera)}) with params {list(camera.params)}")
+
+
+def is_pinhole(camera: pycolmap.Camera) -> bool:
+    return camera_model_name(camera) in ("SIMPLE_PINHOLE", "PINHOLE")
+
+
+def undistort_options(blank_pixels: float, min_scale: float, max_scale: float) -> pycolmap.UndistortCameraOptions:
+    o = pycolmap.UndistortCameraOptions()
+    o.blank_pixels, o.min_scale, o.max_scale = blank_pixels, min_scale, max_scale
+    return o
+
+
+def undistort_camera(options: pycolmap.UndistortCameraOptions, camera: pycolmap.Camera) -> pycolmap.Camera:
+    """The pinhole camera that ``undistort_rgb`` maps ``camera``'s images to (identity for pinhole ones)."""
+    return camera if is_pinhole(camera) else pycolmap.undistort_camera(options, camera)
+
+
+def undistort_rgb(options: pycolmap.UndistortCameraOptions, rgb: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
+    """Resample an RGB uint8 image [H, W, 3] of ``camera`` into its undistorted pinhole camera."""
+    if is_pinhole(camera):
+        return rgb
+    bitmap, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(rgb)), camera)
+    return bitmap.to_array()
