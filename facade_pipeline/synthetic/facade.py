@@ -1,0 +1,169 @@
+"""Facade parts: the surface map of a planar or cylindrical part, its panel grid, and its true meshes.
+
+Surface coordinates of a part (all in metres): ``s`` along the glass surface, left to right as seen from
+outside (s = 0 at the facade frame origin; the arc length on a cylinder), ``z`` up from the origin, ``h``
+along the outward normal (h = 0 on the glass). In the facade frame (x = y cross z, y out, z up):
+
+- planar: (x, y, z) = (-s, h, z);
+- cylindrical, radius R, axis at (0, -R): phi = s / R, (x, y) = (-(R + h) sin phi, (R + h) cos phi - R).
+
+Mullions and transoms are bars of width ``frame_width_m`` centred on the grid lines, spanning h in
+[-frame_back_m, frame_depth_m]; the outermost bars lie inside the part's width and height. A panel's glass
+is the opening between bars at h = 0; its corners are the opening's corners.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from facade_pipeline.synthetic.mesh import Material, TriMesh, concat, prism, sheet
+from facade_pipeline.synthetic.params import FacadePart, FacadeStyle
+
+
+@dataclass(frozen=True, eq=False)
+class PartGeometry:
+    """The geometry of one facade part. ``world_from_facade`` [4, 4] is a rigid transform."""
+
+    index: int
+    part: FacadePart
+    world_from_facade: np.ndarray
+    frame_width_m: float
+
+    @property
+    def radius(self) -> float:
+        return self.part.radius_m if self.part.kind == "cylindrical" else math.inf
+
+    @property
+    def s_lines(self) -> np.ndarray:  # [cols + 1] s of the mullion centre lines
+        p, fw = self.part, self.frame_width_m
+        return -p.width_m / 2 + fw / 2 + np.arange(p.cols + 1) * (p.width_m - fw) / p.cols
+
+    @property
+    def z_lines(self) -> np.ndarray:  # [rows + 1] z of the transom centre lines
+        p, fw = self.part, self.frame_width_m
+        return fw / 2 + np.arange(p.rows + 1) * (p.height_m - fw) / p.rows
+
+    def facade_point(self, s: np.ndarray, z: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Surface coordinates -> facade-frame points [..., 3] (see the module docstring)."""
+        s, z, h = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (s, z, h)))
+        if self.part.kind == "planar":
+            return np.stack([-s, h, z], axis=-1)
+        R = self.part.radius_m
+        phi = s / R
+        return np.stack([-(R + h) * np.sin(phi), (R + h) * np.cos(phi) - R, z], axis=-1)
+
+    def surface(self, s: np.ndarray, z: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Surface coordinates -> world points [..., 3] (m)."""
+        T = self.world_from_facade
+        return self.facade_point(s, z, h) @ T[:3, :3].T + T[:3, 3]
+
+    def normal(self, s: np.ndarray) -> np.ndarray:
+        """World outward unit normal [..., 3] of the glass surface at ``s``."""
+        s = np.asarray(s, dtype=np.float64)
+        phi = np.zeros_like(s) if self.part.kind == "planar" else s / self.part.radius_m
+        n = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], axis=-1)
+        return n @ self.world_from_facade[:3, :3].T
+
+    def tangent(self, s: np.ndarray) -> np.ndarray:
+        """World unit vector [..., 3] of increasing ``s`` (to the right of a viewer outside)."""
+        return np.cross(np.array([0.0, 0.0, 1.0]), self.normal(s))
+
+    def surface_coords(self, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Inverse of ``surface``: world points [N, 3] -> (s, z, h) [N] each."""
+        T = self.world_from_facade
+        f = (np.asarray(world, dtype=np.float64) - T[:3, 3]) @ T[:3, :3]
+        if self.part.kind == "planar":
+            return -f[:, 0], f[:, 2], f[:, 1]
+        R = self.part.radius_m
+        phi = np.arctan2(-f[:, 0], f[:, 1] + R)
+        return R * phi, f[:, 2], np.hypot(f[:, 0], f[:, 1] + R) - R
+
+    def panel_bounds(self, row: int, col: int) -> tuple[float, float, float, float]:
+        """(s0, s1, z0, z1) of the glass opening of panel (row, col)."""
+        s, z, hw = self.s_lines, self.z_lines, self.frame_width_m / 2
+        return s[col] + hw, s[col + 1] - hw, z[row] + hw, z[row + 1] - hw
+
+
+def world_from_facade(part: FacadePart) -> np.ndarray:
+    """[4, 4] rigid transform of ``part``: y = outward normal at azimuth ``facing_deg``, z up, x = y x z."""
+    f = math.radians(part.facing_deg)
+    y = np.array([math.cos(f), math.sin(f), 0.0])
+    z = np.array([0.0, 0.0, 1.0])
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2] = np.cross(y, z), y, z
+    T[:3, 3] = part.origin_m
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class Panel:
+    """One glass panel: corners [4, 3] (bottom-left, bottom-right, top-right, top-left seen from outside,
+    world m, on the glass surface), outward unit normal [3] at its centre, and its diffuse colour D [3]."""
+
+    part: int
+    row: int
+    col: int
+    corners: np.ndarray
+    normal: np.ndarray
+    diffuse: np.ndarray
+
+
+def build_panels(geom: PartGeometry, style: FacadeStyle, rng: np.random.Generator) -> list[Panel]:
+    """The panels of one part, rows bottom to top then columns left to right. D = tint * interior * (1 + v u),
+    u uniform in [-1, 1] per panel (v = ``interior_variation``)."""
+    base = np.asarray(style.glass_tint) * np.asarray(style.interior_color)
+    out = []
+    for r in range(geom.part.rows):
+        for c in range(geom.part.cols):
+            s0, s1, z0, z1 = geom.panel_bounds(r, c)
+            corners = geom.surface(np.array([s0, s1, s1, s0]), np.array([z0, z0, z1, z1]), np.zeros(4))
+            shade = 1.0 + style.interior_variation * rng.uniform(-1.0, 1.0)
+            out.append(
+                Panel(
+                    geom.index,
+                    r,
+                    c,
+                    corners,
+                    geom.normal(np.array(0.5 * (s0 + s1))),
+                    np.clip(base * shade, 0.0, 1.0),
+                )
+            )
+    return out
+
+
+def part_meshes(
+    geom: PartGeometry, style: FacadeStyle, first_panel: int, ground_z: float
+) -> tuple[TriMesh, TriMesh, TriMesh]:
+    """(glass, frames, body) meshes of one part. Glass triangles carry their global panel index
+    (``first_panel`` + row * cols + col); the body reaches down to world height ``ground_z``."""
+    p, fw = geom.part, style.frame_width_m
+    seg = style.curve_segments_per_panel if p.kind == "cylindrical" else 1
+    h = (-style.frame_back_m, style.frame_depth_m)
+    glass, frames = [], []
+    for r in range(p.rows):
+        for c in range(p.cols):
+            s0, s1, z0, z1 = geom.panel_bounds(r, c)
+            glass.append(
+                sheet(geom.surface, (s0, s1), (z0, z1), seg, Material.GLASS, first_panel + r * p.cols + c)
+            )
+    for sk in geom.s_lines:
+        frames.append(
+            prism(geom.surface, (sk - fw / 2, sk + fw / 2), (0.0, p.height_m), h, 1, Material.FRAME)
+        )
+    for zk in geom.z_lines:
+        for c in range(p.cols):
+            s0, s1 = geom.s_lines[c] + fw / 2, geom.s_lines[c + 1] - fw / 2
+            frames.append(prism(geom.surface, (s0, s1), (zk - fw / 2, zk + fw / 2), h, seg, Material.FRAME))
+    z_floor = ground_z - geom.world_from_facade[2, 3]
+    body = prism(
+        geom.surface,
+        (-p.width_m / 2, p.width_m / 2),
+        (min(z_floor, 0.0), p.height_m),
+        (-style.body_depth_m, -style.frame_back_m),
+        seg * p.cols,
+        Material.WALL,
+    )
+    return concat(glass), concat(frames), body

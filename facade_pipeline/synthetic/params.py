@@ -1,0 +1,350 @@
+"""Parameters of the ``synthesize`` stage: one frozen dataclass per ``[synthesize.*]`` table.
+
+Units are in the field names: metres (``_m``), degrees (``_deg``, configs only; code uses radians), pixels
+(``_px``); colours are linear RGB triples in [0, 1]. The cross-field checks in ``SynthesizeParams`` raise
+``ConfigError`` naming the key, e.g. ``synthesize.parts[1].radius_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from facade_pipeline.errors import ConfigError
+
+Effect = Literal[
+    "curved",  # cylindrical facade parts
+    "near_field_reflection",  # glass reflects the ray-traced scene (one bounce); else only the sky lookup
+    "fresnel",  # Schlick's F (Eq. 8); else F = F0
+    "coarse_mesh_distortion",  # bumpy, holed glass in raw/coarse_mesh.ply, frames with small noise
+    "coarse_points_glass_artifacts",  # missing points on glass and ghost (mirrored) points behind it
+    "sensor_noise",  # Gaussian pixel noise in raw images
+    "exposure_change",  # a per-view exposure gain in raw images
+    "pose_noise",  # raw COLMAP poses perturbed (gt/ keeps the true ones)
+]
+ALL_EFFECTS: tuple[str, ...] = Effect.__args__  # type: ignore[attr-defined]
+
+RGB = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class FacadePart:
+    """One facade part (``[[synthesize.parts]]``). Facade frame (``world_from_facade``): origin at the
+    bottom centre of the glass surface, z up, y the outward normal there (toward the cameras), x = y cross z
+    (so +x points to the LEFT of a viewer outside; columns are indexed left to right as that viewer sees
+    them, i.e. toward -x)."""
+
+    name: str
+    """Unique name, used in panels.json."""
+    kind: Literal["planar", "cylindrical"]
+    """A plane, or a section of a vertical cylinder that is convex toward the cameras."""
+    origin_m: tuple[float, float, float]
+    """World position of the facade frame origin (m)."""
+    facing_deg: float
+    """Azimuth of the outward normal at the origin, counter-clockwise from world +x (deg)."""
+    width_m: float
+    """Length along the glass surface, frames included (m); the arc length for a cylindrical part."""
+    height_m: float
+    """Height, frames included (m)."""
+    rows: int
+    """Panel rows (bottom to top)."""
+    cols: int
+    """Panel columns (left to right seen from outside)."""
+    radius_m: float = 0.0
+    """Radius of the glass cylinder (m); cylindrical parts only, 0 for planar ones."""
+
+
+@dataclass(frozen=True)
+class FacadeStyle:
+    """``[synthesize.facade]``: frames and materials shared by every part."""
+
+    frame_width_m: float
+    """Width of mullions and transoms (m)."""
+    frame_depth_m: float
+    """How far frames stand proud of the glass (m)."""
+    frame_back_m: float
+    """How far frames reach behind the glass plane (m)."""
+    body_depth_m: float
+    """Depth of the opaque building body behind the glass (m)."""
+    curve_segments_per_panel: int
+    """Flat facets per panel column on cylindrical parts."""
+    glass_reflectivity: float
+    """refl of Eq. 7 on glass (0-1)."""
+    glass_f0: RGB
+    """Schlick F0 of glass (Eq. 8) (0-1)."""
+    glass_tint: RGB
+    """Transmission tint multiplying the interior colour (0-1)."""
+    interior_color: RGB
+    """Colour seen through the glass (diffuse D of Eq. 7) (0-1)."""
+    interior_variation: float
+    """Relative per-panel brightness variation of the interior (0-1)."""
+    frame_color: RGB
+    """Albedo of frames (0-1)."""
+    wall_color: RGB
+    """Albedo of the building body (0-1)."""
+
+
+@dataclass(frozen=True)
+class EnvironmentParams:
+    """``[synthesize.environment]``: the near field in front of the facade, in the site frame (origin at the
+    mean of the parts' origins on the ground, y the mean outward normal, z up)."""
+
+    ground_half_size_m: float
+    """Half the side of the square ground (m)."""
+    ground_tile_m: float
+    """Side of the ground mesh tiles (m)."""
+    grass_color: RGB
+    paving_color: RGB
+    road_color: RGB
+    marking_color: RGB
+    court_color: RGB
+    road_distance_m: float
+    """Site y of the road's centre line (m); the road runs parallel to the facade."""
+    road_width_m: float
+    plaza_depth_m: float
+    """Paved strip in front of the facade, site y in [0, this] (m)."""
+    court_center_m: tuple[float, float]
+    """Site (x, y) of the sports court centre (m)."""
+    court_size_m: tuple[float, float]
+    """Court length along site x and width along site y (m)."""
+    fountain_center_m: tuple[float, float]
+    """Site (x, y) of the fountain (m)."""
+    fountain_radius_m: float
+    fountain_height_m: float
+    """Height of the basin wall (m)."""
+    stone_color: RGB
+    water_color: RGB
+    building_count: int
+    building_distance_m: tuple[float, float]
+    """Site y range of the nearby buildings' front faces (m)."""
+    building_width_m: tuple[float, float]
+    building_depth_m: tuple[float, float]
+    building_height_m: tuple[float, float]
+    building_colors: tuple[RGB, ...]
+    """Wall colours the buildings pick from (0-1)."""
+    window_color: RGB
+    tree_count: int
+    tree_distance_m: tuple[float, float]
+    """Site y range of tree trunks (m)."""
+    tree_height_m: tuple[float, float]
+    trunk_color: RGB
+    crown_color: RGB
+    sky_zenith_color: RGB
+    sky_horizon_color: RGB
+    sun_azimuth_deg: float
+    """Counter-clockwise from world +x (deg)."""
+    sun_elevation_deg: float
+    sun_disc_deg: float
+    """Angular radius of the sun disc in the sky (deg)."""
+    sun_color: RGB
+    """Radiance of the sun disc (may exceed 1: it saturates)."""
+    sun_intensity: float
+    """Lambert term scale of direct sun light (-)."""
+    ambient: float
+    """Ambient light level (-)."""
+
+
+@dataclass(frozen=True)
+class CameraParams:
+    """``[synthesize.cameras]``: UAV views (raw/images) and close-range frontal views (raw/frontal)."""
+
+    width_px: int
+    height_px: int
+    fov_deg: float
+    """Horizontal field of view of UAV views (deg)."""
+    uav_count: int
+    uav_distance_m: tuple[float, float]
+    """Range of camera-to-target distances (m)."""
+    uav_elevation_deg: tuple[float, float]
+    """Range of view elevations above the facade's horizontal (deg)."""
+    uav_azimuth_deg: float
+    """Largest azimuth from the facade normal (deg); azimuths are spread over +- this (near 90: grazing)."""
+    uav_min_height_m: float
+    """Lowest camera height above the ground (m)."""
+    uav_max_tries: int
+    """Random draws per view before giving up on an unoccluded one."""
+    frontal_fov_deg: float
+    frontal_distance_m: float
+    """Distance of frontal views from the glass along its local normal (m)."""
+    frontal_margin_px: float
+    """Every panel of a frontal view's block lies this far inside its image (px)."""
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """``[synthesize.render]``."""
+
+    supersample: int
+    """Sub-pixel grid per pixel side (1: one ray through each pixel centre)."""
+    chunk_rays: int
+    """Rays cast per batch: bounds memory by this, not by image or view count."""
+    ray_offset_m: float
+    """Offset of secondary ray origins along the normal, against self-intersection (m)."""
+
+
+@dataclass(frozen=True)
+class CoarseParams:
+    """``[synthesize.coarse]``: the photogrammetry-like raw/coarse_mesh.ply and raw/coarse_points.ply."""
+
+    mesh_resolution_m: float
+    """Grid step of the coarse mesh over each part (m)."""
+    glass_bump_m: float
+    """Largest deviation of glass from the truth along the normal (m) (coarse_mesh_distortion)."""
+    glass_bump_scale_m: float
+    """Feature size of the glass bumps (m)."""
+    glass_hole_fraction: float
+    """Fraction of glass triangles removed as holes (0-1) (coarse_mesh_distortion)."""
+    frame_noise_m: float
+    """Largest deviation of frames from the truth along the normal (m) (coarse_mesh_distortion)."""
+    points_per_m2: float
+    """Facade point density of the coarse point cloud (1/m^2)."""
+    glass_points_keep_fraction: float
+    """Fraction of glass points kept (0-1) (coarse_points_glass_artifacts)."""
+    ghost_points_per_part: int
+    """Mirrored environment points put behind each part's glass (coarse_points_glass_artifacts)."""
+    environment_points: int
+    """Points sampled on the environment near the facade."""
+    environment_radius_m: float
+    """Environment points lie within this distance of the site origin (m)."""
+    sparse_points: int
+    """Points of the coarse cloud copied into the raw COLMAP model."""
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """``[synthesize.noise]``: amounts of the image and pose effects."""
+
+    pose_rotation_deg: float
+    """Std of the raw pose rotation error (deg) (pose_noise)."""
+    pose_translation_m: float
+    """Std of the raw camera centre error per axis (m) (pose_noise)."""
+    sensor_std: float
+    """Std of Gaussian pixel noise on [0, 1] intensities (sensor_noise)."""
+    exposure_stops: float
+    """Per-view exposure gain 2^u with u uniform in +- this (exposure_change)."""
+
+
+@dataclass(frozen=True)
+class SynthesizeParams:
+    """``[synthesize]``: a synthetic building. Only the declared ``effects`` are simulated."""
+
+    seed: int
+    """Same seed, same parameters -> bit-identical files."""
+    effects: tuple[Effect, ...]
+    parts: tuple[FacadePart, ...]
+    facade: FacadeStyle
+    environment: EnvironmentParams
+    cameras: CameraParams
+    render: RenderParams
+    coarse: CoarseParams
+    noise: NoiseParams
+
+    def __post_init__(self) -> None:
+        _check_effects(self)
+        for i, part in enumerate(self.parts):
+            _check_part(part, i, self.facade, "curved" in self.effects)
+        _check_ranges(self)
+
+    def has(self, effect: str) -> bool:
+        """Whether ``effect`` is declared."""
+        assert effect in ALL_EFFECTS, effect
+        return effect in self.effects
+
+
+def _fail(key: str, expected: str, found: object) -> None:
+    raise ConfigError(None, f"'synthesize.{key}' {expected}", repr(found))
+
+
+def _check_effects(p: SynthesizeParams) -> None:
+    if len(set(p.effects)) != len(p.effects):
+        _fail("effects", "without repeated effects", list(p.effects))
+    if not p.parts:
+        _fail("parts", "at least one facade part", [])
+    names = [part.name for part in p.parts]
+    if len(set(names)) != len(names):
+        _fail("parts", "parts with unique names", names)
+    curved = any(part.kind == "cylindrical" for part in p.parts)
+    if curved and "curved" not in p.effects:
+        _fail("effects", "to declare 'curved' (a part is cylindrical)", list(p.effects))
+    if "curved" in p.effects and not curved:
+        _fail("effects", "to declare 'curved' only with a cylindrical part", list(p.effects))
+
+
+def _check_part(part: FacadePart, i: int, style: FacadeStyle, curved_declared: bool) -> None:
+    key = f"parts[{i}]"
+    if part.rows < 1 or part.cols < 1:
+        _fail(f"{key}.rows", "and cols >= 1", (part.rows, part.cols))
+    if part.width_m <= 0 or part.height_m <= 0:
+        _fail(f"{key}.width_m", "and height_m > 0", (part.width_m, part.height_m))
+    fw = style.frame_width_m
+    if (part.width_m - fw) / part.cols <= 2 * fw or (part.height_m - fw) / part.rows <= 2 * fw:
+        _fail(
+            f"{key}.cols",
+            "few enough panels for a glass opening wider than the frames",
+            (part.rows, part.cols),
+        )
+    if part.kind == "planar" and part.radius_m != 0.0:
+        _fail(f"{key}.radius_m", "0 for a planar part", part.radius_m)
+    if part.kind == "cylindrical":
+        if part.radius_m <= style.body_depth_m:
+            _fail(f"{key}.radius_m", f"> facade.body_depth_m ({style.body_depth_m})", part.radius_m)
+        if part.width_m / part.radius_m >= math.pi:
+            _fail(f"{key}.width_m", f"an arc below 180 deg at radius {part.radius_m}", part.width_m)
+
+
+def _check_ranges(p: SynthesizeParams) -> None:
+    unit = {
+        "facade.glass_reflectivity": p.facade.glass_reflectivity,
+        "facade.interior_variation": p.facade.interior_variation,
+        "coarse.glass_hole_fraction": p.coarse.glass_hole_fraction,
+        "coarse.glass_points_keep_fraction": p.coarse.glass_points_keep_fraction,
+    }
+    for key, v in unit.items():
+        if not 0.0 <= v <= 1.0:
+            _fail(key, "in [0, 1]", v)
+    positive = {
+        "facade.frame_width_m": p.facade.frame_width_m,
+        "facade.frame_depth_m": p.facade.frame_depth_m,
+        "facade.body_depth_m": p.facade.body_depth_m,
+        "cameras.width_px": p.cameras.width_px,
+        "cameras.height_px": p.cameras.height_px,
+        "cameras.frontal_distance_m": p.cameras.frontal_distance_m,
+        "render.supersample": p.render.supersample,
+        "render.chunk_rays": p.render.chunk_rays,
+        "render.ray_offset_m": p.render.ray_offset_m,
+        "coarse.mesh_resolution_m": p.coarse.mesh_resolution_m,
+        "environment.ground_tile_m": p.environment.ground_tile_m,
+        "facade.curve_segments_per_panel": p.facade.curve_segments_per_panel,
+    }
+    for key, v in positive.items():
+        if v <= 0:
+            _fail(key, "> 0", v)
+    for key, v in {
+        "cameras.fov_deg": p.cameras.fov_deg,
+        "cameras.frontal_fov_deg": p.cameras.frontal_fov_deg,
+    }.items():
+        if not 1.0 <= v <= 170.0:
+            _fail(key, "in [1, 170] deg", v)
+    if not 0.0 <= p.cameras.uav_azimuth_deg < 90.0:
+        _fail("cameras.uav_azimuth_deg", "in [0, 90) deg", p.cameras.uav_azimuth_deg)
+    lo, hi = p.cameras.uav_elevation_deg
+    if not -10.0 <= lo <= hi < 90.0:
+        _fail("cameras.uav_elevation_deg", "(low, high) with -10 <= low <= high < 90", (lo, hi))
+    for key, (a, b) in {
+        "cameras.uav_distance_m": p.cameras.uav_distance_m,
+        "environment.building_distance_m": p.environment.building_distance_m,
+        "environment.tree_distance_m": p.environment.tree_distance_m,
+        "environment.tree_height_m": p.environment.tree_height_m,
+        "environment.building_height_m": p.environment.building_height_m,
+    }.items():
+        if not 0.0 < a <= b:
+            _fail(key, "(low, high) with 0 < low <= high", (a, b))
+    if p.environment.building_count > 0 and not p.environment.building_colors:
+        _fail("environment.building_colors", "at least one colour", [])
+    if p.environment.fountain_height_m <= 0 or p.environment.fountain_radius_m <= 0:
+        _fail(
+            "environment.fountain_radius_m",
+            "and fountain_height_m > 0",
+            (p.environment.fountain_radius_m, p.environment.fountain_height_m),
+        )
