@@ -59,7 +59,6 @@ def _stage_tasks(name):
     command = [sys.executable, "-m", f"stages.{name}", "--building", BUILDING, "--data-root", str(LAYOUT.data_root)]
     upstream = list(stage.UPSTREAM) + (["synthesize"] if SYNTHETIC and name == "import_photogrammetry" else [])
     yield {
-        "name": None,
         "basename": f"_inputs:{name}",
         "doc": f"(hidden) list the files {name} reads",
         "actions": [_inputs_action(stage, params)],

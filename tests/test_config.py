@@ -1,0 +1,114 @@
+"""The config system: every building loads, every parameter is commented, bad keys and types are errors."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import pytest
+
+from facade_pipeline.config import available_buildings, config_dir, from_dict, load_building_config
+from facade_pipeline.errors import ConfigError
+from stages import PIPELINE, load_stage
+
+EXPECTED_BUILDINGS = {"demo", "synthetic64", "synthetic64_curved", "shatin", "hkust_library"}
+
+
+def test_shipped_buildings_load_every_existing_stage():
+    assert EXPECTED_BUILDINGS <= set(available_buildings())
+    for building in available_buildings():
+        cfg = load_building_config(building)
+        for name in PIPELINE:
+            if name == "synthesize" and cfg.building.kind != "synthetic":
+                continue
+            stage = load_stage(name)
+            params = cfg.section(name, stage.Params)
+            assert params.__dataclass_params__.frozen
+
+
+def test_paper_settings_on_the_paper_buildings():
+    for building in ("shatin", "hkust_library"):
+        t = load_building_config(building).tables["train_gs"]
+        assert t["iterations"] == 200_000 and t["fourier_levels"] == 12
+        assert (t["mlp_depth"], t["mlp_width"], t["mlp_skip"]) == (8, 512, True)
+        assert (t["lambda_normal"], t["lambda_normal_prior"]) == (0.05, 1.0)
+        assert (t["lambda_hf_start"], t["lambda_hf_end"], t["hf_tau_start"], t["hf_tau_end"]) == (1, 10, 0.2, 0.09)
+
+
+def test_every_default_parameter_has_a_comment():
+    for i, line in enumerate((config_dir() / "default.toml").read_text().splitlines(), 1):
+        if re.match(r"^\s*[A-Za-z_][A-Za-z0-9_]*\s*=", line):
+            assert "#" in line.split("=", 1)[1], f"default.toml:{i} has no comment: {line}"
+
+
+@pytest.fixture
+def cfg_dir(tmp_path):
+    d = tmp_path / "configs"
+    shutil.copytree(config_dir(), d)
+    return d
+
+
+def _write(d: Path, building: str, text: str) -> Path:
+    p = d / "buildings" / f"{building}.toml"
+    p.write_text(text)
+    return p
+
+
+def test_unknown_key_names_key_and_file(cfg_dir):
+    p = _write(cfg_dir, "typo", '[building]\nkind = "real"\ndescription = "x"\n'
+               '[import_photogrammetry]\nup_axiz = "+z"\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("typo", cfg_dir)
+    assert "up_axiz" in str(e.value) and str(p) in str(e.value)
+
+
+def test_wrong_type_names_key_and_file(cfg_dir):
+    p = _write(cfg_dir, "bad", '[building]\nkind = "real"\ndescription = "x"\n'
+               '[import_photogrammetry]\ngeoref_threshold_m = "far"\n')
+    cfg = load_building_config("bad", cfg_dir)
+    stage = load_stage("import_photogrammetry")
+    with pytest.raises(ConfigError) as e:
+        cfg.section("import_photogrammetry", stage.Params)
+    assert "georef_threshold_m" in str(e.value) and str(p) in str(e.value) and "'far'" in str(e.value)
+
+
+def test_bad_choice_and_unknown_building(cfg_dir):
+    _write(cfg_dir, "bad", '[building]\nkind = "imaginary"\ndescription = "x"\n')
+    with pytest.raises(ConfigError, match="kind"):
+        _ = load_building_config("bad", cfg_dir).building
+    with pytest.raises(ConfigError, match="nosuch"):
+        load_building_config("nosuch", cfg_dir)
+
+
+def test_toml_syntax_error_names_file(cfg_dir):
+    p = _write(cfg_dir, "broken", "[building\nkind=")
+    with pytest.raises(ConfigError) as e:
+        load_building_config("broken", cfg_dir)
+    assert str(p) in str(e.value)
+
+
+@dataclass(frozen=True)
+class _Inner:
+    size_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class _Outer:
+    mode: Literal["a", "b"]
+    parts: tuple[_Inner, ...]
+    count: int = 3
+
+
+def test_from_dict_nested_and_strict():
+    o = from_dict(_Outer, {"mode": "a", "parts": [{"size_m": [1, 2.5]}]})
+    assert o == _Outer("a", (_Inner((1.0, 2.5)),), 3)
+    for bad, key in [({"mode": "c", "parts": []}, "mode"),
+                     ({"mode": "a", "parts": [{"size_m": [1]}]}, "parts[0].size_m"),
+                     ({"mode": "a", "parts": [], "count": 1.5}, "count"),
+                     ({"mode": "a", "parts": [], "count": True}, "count"),
+                     ({"mode": "a"}, "parts")]:
+        with pytest.raises(ConfigError, match=re.escape(key)):
+            from_dict(_Outer, bad)

@@ -1,0 +1,85 @@
+"""Drive the real dodo.py: list order, a second run executes nothing, a hand edit or a parameter change
+reruns exactly what depends on it, ``-s`` runs one stage alone."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from facade_pipeline.config import config_dir
+from facade_pipeline.layout import BuildingLayout
+from stages import PIPELINE
+from tests.helpers import make_raw
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def doit(args, env, data_root):
+    cmd = [sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), *args, f"data_root={data_root}"]
+    out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+def executed(stdout: str) -> list[str]:
+    """Task names doit reports as run ('.  name'), not up to date ('-- name')."""
+    return re.findall(r"^\.  (\S+)", stdout, flags=re.M)
+
+
+@pytest.fixture
+def real(tmp_path):
+    cfg = tmp_path / "configs"
+    shutil.copytree(config_dir(), cfg)
+    (cfg / "buildings" / "testreal.toml").write_text('[building]\nkind = "real"\ndescription = "test"\n')
+    layout = BuildingLayout(tmp_path / "data", "testreal")
+    make_raw(layout, frontal=True)
+    env = {**os.environ, "FACADE_CONFIG_DIR": str(cfg), "TQDM_DISABLE": "1"}
+    return layout, env, cfg
+
+
+def test_list_shows_existing_stages_in_pipeline_order(real):
+    layout, env, _ = real
+    out = doit(["list", "building=testreal"], env, layout.data_root)
+    names = [line.split()[0] for line in out.splitlines() if line.strip()]
+    assert names == [s for s in PIPELINE if s != "synthesize"]
+    assert all(len(line.split(None, 1)) == 2 for line in out.splitlines() if line.strip())  # each has a description
+    out = doit(["list", "building=synthetic64"], env, layout.data_root)
+    assert [line.split()[0] for line in out.splitlines() if line.strip()] == list(PIPELINE)
+
+
+def test_second_run_executes_nothing_and_edits_rerun_dependants(real):
+    layout, env, cfg = real
+    root = layout.data_root
+    assert executed(doit(["building=testreal"], env, root)) == ["import_photogrammetry"]
+    assert (layout.root / ".doit.db").exists()  # doit's state is per building
+    assert executed(doit(["building=testreal"], env, root)) == []
+    # (b) a file the stage read, edited by hand: the stage reruns
+    img = next(layout.raw_images_dir.iterdir())
+    img.write_bytes(img.read_bytes())  # same content: nothing to do
+    assert executed(doit(["building=testreal"], env, root)) == []
+    from facade_pipeline.io.images import read_image, write_image
+    pixels = read_image(img)
+    pixels[0, 0] = 255 - pixels[0, 0]
+    write_image(img, pixels)
+    assert executed(doit(["building=testreal"], env, root)) == ["import_photogrammetry"]
+    # (c) one parameter changed: that stage reruns
+    (cfg / "buildings" / "testreal.toml").write_text(
+        '[building]\nkind = "real"\ndescription = "test"\n[import_photogrammetry]\norigin_rounding_m = 10.0\n')
+    assert executed(doit(["building=testreal"], env, root)) == ["import_photogrammetry"]
+    assert executed(doit(["building=testreal"], env, root)) == []
+    # (d) one stage alone, forced after `doit forget`
+    doit(["forget", "import_photogrammetry", "building=testreal"], env, root)
+    assert executed(doit(["-s", "import_photogrammetry", "building=testreal"], env, root)) == ["import_photogrammetry"]
+
+
+def test_manifest_deleted_means_rerun(real):
+    layout, env, _ = real
+    doit(["building=testreal"], env, layout.data_root)
+    layout.manifest("import_photogrammetry").unlink()
+    assert executed(doit(["building=testreal"], env, layout.data_root)) == ["import_photogrammetry"]
