@@ -66,6 +66,10 @@ ENTRIES: dict[str, str] = {
     "import_frontal_sparse_dir": "01_import/frontal_sparse/0",
     "import_coarse_mesh": "01_import/coarse_mesh.ply",
     "import_coarse_points": "01_import/coarse_points.ply",
+    # 03_segment: panels found in each frontal view (formats in data_layout.md, "Hand-off formats")
+    "segment_corners": "03_segment/corners/{stem}.json",
+    "segment_mask": "03_segment/masks/{stem}.png",
+    "segment_overlay": "03_segment/overlays/{stem}.png",
     # every stage folder ends with its manifest
     "stage_dir": "{stage_dir}",
     "stage_manifest": "{stage_dir}/manifest.json",

@@ -83,3 +83,24 @@ def test_manifest_deleted_means_rerun(real):
     doit(["building=testreal"], env, layout.data_root)
     layout.manifest("import_photogrammetry").unlink()
     assert executed(doit(["building=testreal"], env, layout.data_root)) == ["import_photogrammetry"]
+
+
+def test_synthetic_building_hand_edit_reruns_only_downstream(tmp_path):
+    """On synthetic64: an image that `synthesize` wrote, edited by hand, reruns `import_photogrammetry` only;
+    a synthesize parameter reruns both."""
+    cfg = tmp_path / "configs"
+    shutil.copytree(config_dir(), cfg)
+    env = {**os.environ, "FACADE_CONFIG_DIR": str(cfg), "TQDM_DISABLE": "1"}
+    root = tmp_path / "data"
+    layout = BuildingLayout(root, "synthetic64")
+    assert executed(doit(["building=synthetic64"], env, root)) == ["synthesize", "import_photogrammetry"]
+    assert executed(doit(["building=synthetic64"], env, root)) == []
+    from facade_pipeline.io.images import read_image, write_image
+    img = sorted(layout.raw_images_dir.iterdir())[0]
+    pixels = read_image(img)
+    pixels[:4, :4] = 0
+    write_image(img, pixels)
+    assert executed(doit(["building=synthetic64"], env, root)) == ["import_photogrammetry"]
+    toml = cfg / "buildings" / "synthetic64.toml"
+    toml.write_text(re.sub(r"(?m)^seed = \d+", "seed = 12345", toml.read_text()))
+    assert executed(doit(["building=synthetic64"], env, root)) == ["synthesize", "import_photogrammetry"]
