@@ -1,0 +1,70 @@
+"""The coarse mesh and points look like photogrammetry of glass, by the declared amounts."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from facade_pipeline.synthetic.coarse import coarse_mesh, coarse_points, frame_flags
+from facade_pipeline.synthetic.mesh import Material
+from facade_pipeline.synthetic.scene import build_scene
+from tests.synthetic.conftest import replace_in, tiny
+
+
+@pytest.mark.parametrize("building", ["synthetic64", "synthetic64_curved"])
+def test_coarse_mesh_deviates_on_glass_and_not_on_frames_by_the_declared_amounts(building):
+    p = replace_in(tiny(building), "coarse", glass_bump_m=0.3, frame_noise_m=0.02, glass_hole_fraction=0.2)
+    scene = build_scene(p)
+    mesh, colors = coarse_mesh(scene)
+    assert colors.shape == mesh.vertices.shape and np.all((colors >= 0) & (colors <= 1))
+    g = scene.parts[0]
+    s, z, h = g.surface_coords(mesh.vertices)
+    frame = frame_flags(g, s, z)
+    glass_dev = np.abs(h[~frame])
+    frame_dev = np.abs(h[frame] - p.facade.frame_depth_m)
+    assert np.isclose(glass_dev.max(), 0.3, rtol=1e-9)  # the declared largest deviation, reached
+    assert np.median(glass_dev) > 0.05  # uneven over the whole glass, not at a few spikes
+    assert frame_dev.max() <= 0.02 + 1e-9 and frame_dev.max() > 0.005
+    # in 3D: coarse frame vertices are within the frame noise of the true frame surfaces
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(
+        o3d.core.Tensor(scene.frames.vertices.astype(np.float32)),
+        o3d.core.Tensor(scene.frames.triangles.astype(np.uint32)),
+    )
+    dist = rc.compute_distance(o3d.core.Tensor(mesh.vertices[frame].astype(np.float32))).numpy()
+    sag = 0.0  # true curved frames are flat facets: add the chord's sagitta to the tolerance
+    if g.part.kind == "cylindrical":
+        s0, s1, _, _ = g.panel_bounds(0, 0)
+        arc = (s1 - s0) / p.facade.curve_segments_per_panel / g.part.radius_m
+        sag = (g.part.radius_m + p.facade.frame_depth_m) * (1 - np.cos(arc / 2))
+    assert dist.max() <= 0.02 + sag + 1e-4
+
+
+def test_holes_remove_the_declared_fraction_of_glass():
+    p = replace_in(tiny(), "coarse", glass_hole_fraction=0.25)
+    mesh, _ = coarse_mesh(build_scene(p))
+    full, _ = coarse_mesh(build_scene(replace_in(p, "coarse", glass_hole_fraction=0.0)))
+    kept = (mesh.material == Material.GLASS).sum() / (full.material == Material.GLASS).sum()
+    assert abs(kept - 0.75) < 0.01
+    assert (mesh.material == Material.FRAME).sum() == (full.material == Material.FRAME).sum()
+
+
+def test_ghost_points_lie_behind_the_glass_as_mirror_images():
+    p = replace_in(tiny(), "coarse", ghost_points_per_part=300, environment_points=4000)
+    scene = build_scene(p)
+    xyz, rgb = coarse_points(scene)
+    g = scene.parts[0]
+    s, z, h = g.surface_coords(xyz[: len(xyz) - p.coarse.environment_points])
+    ghosts = h < -1e-6
+    assert 0 < ghosts.sum() <= 300
+    assert np.all(np.abs(s[ghosts]) < g.part.width_m / 2) and np.all(
+        (z[ghosts] > 0) & (z[ghosts] < g.part.height_m)
+    )
+    env = xyz[-p.coarse.environment_points :]
+    es, ez, eh = g.surface_coords(env)
+    mirror = np.stack([es, ez, -eh], 1)
+    ghost = np.stack([s[ghosts], z[ghosts], h[ghosts]], 1)
+    d = np.linalg.norm(ghost[:, None, :] - mirror[None], axis=2).min(axis=1)
+    assert d.max() < 1e-9  # every ghost is the mirror image of an environment point
+    assert np.all((rgb >= 0) & (rgb <= 1))
