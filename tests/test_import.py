@@ -196,3 +196,27 @@ def test_up_axis_estimated_from_level_cameras():
     T = [look_at([0, -30, h], [0, 0, h - 5]) for h in (5.0, 10.0, 15.0)]
     est = estimate_up_from_cameras(np.array([t[:3, :3] for t in T]), snap_deg=15.0)
     assert np.allclose(est.up, [0, 0, 1])
+
+
+def test_text_model_and_obj_mesh(layout):
+    """COLMAP text models and OBJ meshes, as Metashape and DJI Terra export them, import the same way."""
+    import open3d as o3d
+
+    rec = make_raw(layout)
+    for p in layout.raw_sparse_dir.iterdir():
+        p.unlink()
+    rec.write_text(str(layout.raw_sparse_dir))
+    ply = layout.raw_coarse_mesh_candidates[0]
+    assert o3d.io.write_triangle_mesh(str(layout.raw_coarse_mesh_candidates[1]), read_mesh(ply))
+    ply.unlink()
+    manifest = execute(stage, layout, PARAMS)
+    assert "raw/sparse/0/images.txt" in manifest["inputs"] and "raw/coarse_mesh.obj" in manifest["inputs"]
+    assert len(ImportedScene.load(layout).uav_views) == rec.num_reg_images()
+
+
+def test_two_meshes_is_ambiguous(layout):
+    make_raw(layout)
+    import shutil
+    shutil.copy(layout.raw_coarse_mesh_candidates[0], layout.raw_coarse_mesh_candidates[1])
+    with pytest.raises(InputError, match="exactly one coarse mesh"):
+        execute(stage, layout, PARAMS)
