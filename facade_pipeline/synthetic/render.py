@@ -108,8 +108,9 @@ def diffuse_radiance(scene: Scene, hits: Hits, d: np.ndarray) -> np.ndarray:
     """Radiance [N, 3] of hits seen along d [N, 3] without tracing further: the sky on misses, lit albedo on
     diffuse surfaces, and on glass (1 - refl) D + refl F0 sky(w_r) (the bounce budget is spent)."""
     p = scene.params
-    out = sky(d, p.environment)
     hit = hits.material != Material.NONE
+    out = np.empty((len(d), 3))
+    out[~hit] = sky(d[~hit], p.environment)
     glass = hits.material == Material.GLASS
     diff = hit & ~glass
     if diff.any():

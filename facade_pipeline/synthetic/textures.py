@@ -129,7 +129,6 @@ def albedo(
     """Albedo [N, 3] of non-glass hits: material ids mat [N], world points p [N, 3], normals n [N, 3],
     object ids obj [N], site-frame ground coordinates site_xy [N, 2]."""
     out = np.zeros((len(mat), 3))
-    mottle = fbm(p[:, 0] + p[:, 1] * 0.7, p[:, 2] + p[:, 1] * 0.3, seed + 5, 2)[:, None]
     uniform = {
         Material.FRAME: style.frame_color,
         Material.WALL: style.wall_color,
@@ -139,7 +138,14 @@ def albedo(
     }
     for m, color in uniform.items():
         sel = mat == m
-        out[sel] = np.asarray(color) * (1.0 if m == Material.FRAME else 0.8 + 0.4 * mottle[sel])
+        if m == Material.FRAME or not sel.any():
+            out[sel] = color
+            continue
+        q = p[sel]
+        out[sel] = (
+            np.asarray(color)
+            * (0.8 + 0.4 * fbm(q[:, 0] + q[:, 1] * 0.7, q[:, 2] + q[:, 1] * 0.3, seed + 5, 2))[:, None]
+        )
     sel = mat == Material.GROUND
     out[sel] = ground_albedo(site_xy[sel], env, seed)
     sel = mat == Material.WATER
