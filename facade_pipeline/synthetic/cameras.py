@@ -5,6 +5,7 @@ principal point at the image centre."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,7 +97,12 @@ def _check_block(g: PartGeometry, cam: PinholeCamera, rows, cols, margin: float,
         )
 
 
-def uav_views(parts: tuple[PartGeometry, ...], cams: CameraParams, seed: int, visible) -> list[View]:
+def uav_views(
+    parts: tuple[PartGeometry, ...],
+    cams: CameraParams,
+    seed: int,
+    visible: Callable[[np.ndarray, np.ndarray], bool],
+) -> list[View]:
     """``uav_count`` views spread over the parts (round robin). View k of a part has an azimuth from the
     local normal stratified over +-``uav_azimuth_deg`` (the extremes are near grazing), a random elevation
     and distance, and looks at a random point of the part. ``visible(eye, target) -> bool`` rejects views
@@ -148,6 +154,26 @@ def facade_visible(tracer, arrays):
         return arrays.material[prim[0]] in (Material.GLASS, Material.FRAME) and abs(t[0] - dist) < 0.01 * dist
 
     return visible
+
+
+def check_frontal_views(views: list[View], panels, tracer, arrays) -> None:
+    """Raise ConfigError if the centre of a panel of a frontal view's block is hidden from that view (a tree
+    or the fountain between the camera and the facade)."""
+    for view in (v for v in views if v.kind == "frontal"):
+        part, rows, cols = view.block
+        ids = [i for i, pn in enumerate(panels) if pn.part == part and pn.row in rows and pn.col in cols]
+        centres = np.array([panels[i].corners.mean(axis=0) for i in ids])
+        d = centres - view.camera.center
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        _, prim = tracer.cast(np.broadcast_to(view.camera.center, d.shape), d, "other")
+        seen = np.where(prim >= 0, arrays.object_id[np.maximum(prim, 0)], -1)
+        if not np.array_equal(seen, ids):
+            raise ConfigError(
+                None,
+                f"frontal view {view.index} to see its panels: 'synthesize.environment' objects "
+                "farther than 'synthesize.cameras.frontal_distance_m'",
+                f"panels {[i for i, j in zip(ids, seen, strict=True) if i != j]} hidden",
+            )
 
 
 def perturb_pose(

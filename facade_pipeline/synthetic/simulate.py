@@ -11,7 +11,14 @@ import numpy as np
 
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.io.images import to_uint8
-from facade_pipeline.synthetic.cameras import View, facade_visible, frontal_views, perturb_pose, uav_views
+from facade_pipeline.synthetic.cameras import (
+    View,
+    check_frontal_views,
+    facade_visible,
+    frontal_views,
+    perturb_pose,
+    uav_views,
+)
 from facade_pipeline.synthetic.facade import PartGeometry, world_from_facade
 from facade_pipeline.synthetic.noise import rng_for
 from facade_pipeline.synthetic.params import SynthesizeParams
@@ -44,7 +51,9 @@ def build_simulator(params: SynthesizeParams) -> Simulator:
     tracer = Tracer(scene.mesh)
     arrays = SceneArrays.of(scene)
     uav = uav_views(scene.parts, params.cameras, params.seed, facade_visible(tracer, arrays))
-    return Simulator(scene, tracer, arrays, tuple(uav + frontal_views(scene.parts, params.cameras)))
+    frontal = frontal_views(scene.parts, params.cameras)
+    check_frontal_views(frontal, scene.panels, tracer, arrays)
+    return Simulator(scene, tracer, arrays, tuple(uav + frontal))
 
 
 def raw_camera(params: SynthesizeParams, view: View) -> PinholeCamera:

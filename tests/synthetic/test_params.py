@@ -98,3 +98,24 @@ def test_frontal_distance_too_small_for_a_panel_is_a_config_error():
     p = replace_in(shipped("synthetic64"), "cameras", frontal_distance_m=1.0)
     with pytest.raises(ConfigError, match="frontal_distance_m"):
         planned_frontal_views(p)
+
+
+def test_a_tree_hiding_a_frontal_view_is_a_config_error():
+    from facade_pipeline.synthetic.cameras import check_frontal_views
+    from facade_pipeline.synthetic.render import SceneArrays, Tracer
+    from facade_pipeline.synthetic.scene import build_scene
+    from facade_pipeline.synthetic.simulate import planned_frontal_views
+    from tests.synthetic.conftest import tiny
+
+    for distance, hidden in (((12.0, 20.0), False), ((2.0, 4.0), True)):
+        p = replace_in(
+            tiny(), "environment", tree_count=30, tree_distance_m=distance, tree_height_m=(6.0, 8.0)
+        )
+        scene = build_scene(p)
+        tracer = Tracer(scene.mesh)
+        views = planned_frontal_views(p)
+        if hidden:
+            with pytest.raises(ConfigError, match="frontal view"):
+                check_frontal_views(views, scene.panels, tracer, SceneArrays.of(scene))
+        else:
+            check_frontal_views(views, scene.panels, tracer, SceneArrays.of(scene))
