@@ -66,6 +66,11 @@ ENTRIES: dict[str, str] = {
     "import_frontal_sparse_dir": "01_import/frontal_sparse/0",
     "import_coarse_mesh": "01_import/coarse_mesh.ply",
     "import_coarse_points": "01_import/coarse_points.ply",
+    # 02_rectify: curved facades unfolded into planar-facade images, per frontal view
+    "rectify_image": "02_rectify/images/{stem}.png",
+    "rectify_mapping": "02_rectify/mappings/{stem}.json",
+    "rectify_surface": "02_rectify/surfaces/{stem}.json",
+    "rectify_overlay": "02_rectify/overlays/{stem}.png",
     # 03_segment: panels found in each frontal view (formats in data_layout.md, "Hand-off formats")
     "segment_corners": "03_segment/corners/{stem}.json",
     "segment_mask": "03_segment/masks/{stem}.png",

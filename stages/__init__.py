@@ -20,6 +20,7 @@ from types import ModuleType
 PIPELINE: tuple[str, ...] = (
     "synthesize",
     "import_photogrammetry",
+    "rectify",
 )
 
 

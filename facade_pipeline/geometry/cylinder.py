@@ -1,0 +1,239 @@
+"""Robust fit of a cylindrical (or planar) facade surface to a cropped coarse point cloud (paper, 3.1.1).
+
+The surface is kept in a form that stays finite as the radius goes to infinity: a tangent point ``p0``, an
+orthonormal frame ``(a, b, n)`` (``a`` the cylinder axis, ``n`` the outward normal at ``p0``, ``b = n x a``)
+and a signed curvature ``kappa = 1 / R`` (1/m; > 0: convex toward ``n``, the axis lies at ``p0 - n / kappa``;
+0: a plane). For a point ``x`` with ``t = (x - p0) . b`` and ``w = (x - p0) . n`` the signed distance to the
+surface (positive on the ``n`` side) is
+
+    d(x) = (kappa (w^2 + t^2) + 2 w) / (sqrt((kappa w + 1)^2 + (kappa t)^2) + 1),
+
+which equals ``sqrt((w + 1/kappa)^2 + t^2) - 1/kappa`` for kappa != 0 and ``w`` for kappa = 0 (no division by
+kappa anywhere). All coordinates are world metres.
+
+Fit (``fit_surface``): (1) reject points on a line or too few points; (2) RANSAC plane with a generous
+threshold to drop far outliers (ghost points mirrored behind glass, ground, clutter); (3) a quadric height
+field ``w = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2`` over the plane, by iteratively reweighted least
+squares, whose Hessian gives the axis (the flat eigenvector) and kappa (minus the other eigenvalue);
+(4) least squares on ``d(x)`` over (frame rotation, offset along n, kappa) with a soft-L1 loss.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from facade_pipeline.errors import PipelineError
+
+
+class SurfaceFitError(PipelineError):
+    """The points cannot define a surface (too few, or all on one line)."""
+
+
+@dataclass(frozen=True)
+class SurfaceFitParams:
+    min_points: int
+    """Fewest points a fit accepts (-)."""
+    min_spread_m: float
+    """Points must spread at least this much (m, standard deviation) in two directions: else on one line."""
+    ransac_threshold_m: float
+    """Distance (m) within which a point supports a RANSAC plane: generous, it only drops far outliers."""
+    ransac_iterations: int
+    """RANSAC plane hypotheses (-)."""
+    max_normal_angle_deg: float
+    """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera."""
+    inlier_scale_m: float
+    """Scale (m) of the soft-L1 loss; points within 3x this of the surface are inliers (m)."""
+    seed: int
+    """Seed of the RANSAC sampler (-)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """A cylinder or plane (kappa = 0) in the stable tangent-point form of the module docstring."""
+
+    origin: np.ndarray  # [3] tangent point p0 (m, world)
+    axis: np.ndarray  # [3] unit axis a (any in-plane direction for a plane)
+    normal: np.ndarray  # [3] unit outward normal n at p0
+    curvature_per_m: float  # signed kappa (1/m)
+
+    @property
+    def binormal(self) -> np.ndarray:  # [3] b = n x a
+        return np.cross(self.normal, self.axis)
+
+    @property
+    def radius_m(self) -> float:
+        return float("inf") if self.curvature_per_m == 0.0 else 1.0 / abs(self.curvature_per_m)
+
+    def local(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(t, w) [N] of world points [N, 3] in the frame (b, n) about p0."""
+        q = np.asarray(points, dtype=np.float64) - self.origin
+        return q @ self.binormal, q @ self.normal
+
+    def signed_distance(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance [N] (m) of world points [N, 3] to the surface, positive on the normal side."""
+        t, w = self.local(points)
+        return _stable_distance(t, w, self.curvature_per_m)
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Ray parameter [N] of the first hit (lambda > 0) of rays o + lambda d ([N, 3] each); NaN: a miss."""
+        k = self.curvature_per_m
+        t0, w0 = self.local(origins)
+        dt, dw = np.asarray(directions) @ self.binormal, np.asarray(directions) @ self.normal
+        A = k * (dt**2 + dw**2)
+        B = 2.0 * k * (w0 * dw + t0 * dt) + 2.0 * dw
+        C = k * (w0**2 + t0**2) + 2.0 * w0
+        disc = B**2 - 4.0 * A * C
+        ok = disc >= 0
+        q = -0.5 * (B + np.copysign(np.sqrt(np.where(ok, disc, 0.0)), B))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r1 = np.where(A != 0, q / A, np.nan)
+            r2 = np.where(q != 0, C / q, np.nan)
+        roots = np.stack([r1, r2], axis=1)
+        roots[~(roots > 1e-9)] = np.inf
+        lam = roots.min(axis=1)
+        return np.where(ok & np.isfinite(lam), lam, np.nan)
+
+    def to_dict(self) -> dict:
+        k = self.curvature_per_m
+        return {
+            "kind": "plane" if k == 0.0 else "cylinder",
+            "origin_m": self.origin.tolist(), "axis": self.axis.tolist(), "normal": self.normal.tolist(),
+            "curvature_per_m": k, "radius_m": None if k == 0.0 else 1.0 / abs(k),
+            "axis_point_m": None if k == 0.0 else (self.origin - self.normal / k).tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Surface:
+        return cls(np.array(d["origin_m"]), np.array(d["axis"]), np.array(d["normal"]),
+                   float(d["curvature_per_m"]))
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceFit:
+    """A fitted surface with its quality: RMS distance of the inliers (m) and counts."""
+
+    surface: Surface
+    rms_m: float
+    n_points: int
+    n_inliers: int
+
+    def to_dict(self) -> dict:
+        return {**self.surface.to_dict(), "rms_m": self.rms_m, "n_points": self.n_points,
+                "n_inliers": self.n_inliers}
+
+
+def _stable_distance(t: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
+    """d(t, w; kappa) of the module docstring: finite for every kappa, exactly w at kappa = 0."""
+    return (k * (w * w + t * t) + 2.0 * w) / (np.sqrt((k * w + 1.0) ** 2 + (k * t) ** 2) + 1.0)
+
+
+def check_points(points: np.ndarray, params: SurfaceFitParams, source: str | Path | None = None) -> None:
+    """Raise ``SurfaceFitError`` for too few points or points on one line (second spread below min)."""
+    n = len(points)
+    if n < params.min_points:
+        raise SurfaceFitError(source, f"at least {params.min_points} coarse points in the view", f"{n}")
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(points.T)), 0.0))  # ascending
+    if spread[1] < params.min_spread_m:
+        raise SurfaceFitError(source, f"points spread over a surface (2nd spread >= {params.min_spread_m} m)",
+                              f"points along one line (spreads {spread[2]:.3g} m and {spread[1]:.3g} m)")
+
+
+def ransac_plane(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams,
+                 rng: np.random.Generator) -> np.ndarray:
+    """Inlier mask [N] of the facade plane among 3-point RANSAC hypotheses.
+
+    Priors of a frontal view: the facade faces the camera (normal within ``max_normal_angle_deg`` of the
+    direction to ``viewpoint``) and it is the first surface seen (points well in front of a plane count
+    against it; ghost points mirrored behind the glass lie behind the facade). Score = inliers - in front."""
+    n, thr = len(points), params.ransac_threshold_m
+    idx = rng.integers(0, n, size=(params.ransac_iterations, 3))
+    p = points[idx]  # [I, 3, 3]
+    normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    norm = np.linalg.norm(normals, axis=1)
+    good = norm > 1e-12
+    normals, p0 = normals[good] / norm[good, None], p[good, 0]
+    to_eye = viewpoint - p0
+    normals *= np.sign(np.einsum("id,id->i", normals, to_eye))[:, None]  # face the camera
+    facing = np.einsum("id,id->i", normals, to_eye / np.linalg.norm(to_eye, axis=1, keepdims=True))
+    keep = facing >= np.cos(np.radians(params.max_normal_angle_deg))
+    normals, p0 = normals[keep], p0[keep]
+    best, best_score = np.zeros(n, bool), -np.inf
+    for k in range(0, len(normals), 64):  # batches bound memory at [64, N]
+        d = np.einsum("ind,id->in", points[None] - p0[k:k + 64, None], normals[k:k + 64])
+        score = (np.abs(d) < thr).sum(axis=1) - (d > thr).sum(axis=1)
+        j = int(np.argmax(score))
+        if score[j] > best_score:
+            best, best_score = np.abs(d[j]) < thr, float(score[j])
+    return best
+
+
+def _pca_frame(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted centroid [3] and eigenvectors [3, 3] (columns, ascending eigenvalues)."""
+    c = (weights[:, None] * points).sum(0) / weights.sum()
+    q = points - c
+    _, vecs = np.linalg.eigh((weights[:, None] * q).T @ q)
+    return c, vecs
+
+
+def quadric_init(points: np.ndarray, viewpoint: np.ndarray, scale_m: float,
+                 iterations: int = 8) -> Surface:
+    """Initial surface from a robust (Huber IRLS) quadric height field over the points' plane."""
+    w8 = np.ones(len(points))
+    for _ in range(iterations):
+        c, vecs = _pca_frame(points, w8)
+        n, e1, e2 = vecs[:, 0], vecs[:, 2], vecs[:, 1]
+        if (viewpoint - c) @ n < 0:
+            n = -n
+        q = points - c
+        u, v, h = q @ e1, q @ e2, q @ n
+        A = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+        coef = np.linalg.lstsq(A * w8[:, None], h * w8, rcond=None)[0]
+        r = np.abs(A @ coef - h)
+        w8 = np.minimum(1.0, scale_m / np.maximum(r, 1e-12))
+    H = np.array([[2 * coef[3], coef[4]], [coef[4], 2 * coef[5]]])
+    evals, evecs = np.linalg.eigh(H)
+    flat = int(np.argmin(np.abs(evals)))
+    axis = evecs[0, flat] * e1 + evecs[1, flat] * e2
+    kappa = -float(evals[1 - flat])
+    p0 = c + coef[0] * n  # the height field at the centroid (slope is absorbed by the refinement)
+    return Surface(p0, axis / np.linalg.norm(axis), n, kappa)
+
+
+def refine_surface(surface: Surface, points: np.ndarray, scale_m: float) -> Surface:
+    """Least squares on the stable distance over (frame rotation [3], offset along n, kappa), soft-L1 loss."""
+    R0 = np.stack([surface.axis, surface.binormal, surface.normal], axis=1)  # columns a, b, n
+
+    def unpack(x: np.ndarray) -> Surface:
+        R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+        return Surface(surface.origin + x[3] * R[:, 2], R[:, 0], R[:, 2], float(x[4]))
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return unpack(x).signed_distance(points)
+
+    x0 = np.array([0.0, 0.0, 0.0, 0.0, surface.curvature_per_m])
+    sol = least_squares(residual, x0, loss="soft_l1", f_scale=scale_m, x_scale=[0.1, 0.1, 0.1, scale_m, 0.01])
+    return unpack(sol.x)
+
+
+def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams,
+                source: str | Path | None = None) -> SurfaceFit:
+    """Fit a cylinder (or plane) to world points [N, 3] seen from ``viewpoint`` [3] (the normal faces it).
+
+    Raises ``SurfaceFitError`` naming ``source`` for too few points or points on one line."""
+    points = np.asarray(points, dtype=np.float64)
+    check_points(points, params, source)
+    rng = np.random.default_rng(params.seed)
+    keep = ransac_plane(points, np.asarray(viewpoint, float), params, rng)
+    check_points(points[keep], params, source)
+    surface = quadric_init(points[keep], np.asarray(viewpoint, float), params.inlier_scale_m)
+    for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
+        surface = refine_surface(surface, points[keep], params.inlier_scale_m)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
+        check_points(points[keep], params, source)
+    d = surface.signed_distance(points[keep])
+    return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), len(points), int(keep.sum()))
