@@ -75,6 +75,12 @@ ENTRIES: dict[str, str] = {
     "segment_corners": "03_segment/corners/{stem}.json",
     "segment_mask": "03_segment/masks/{stem}.png",
     "segment_overlay": "03_segment/overlays/{stem}.png",
+    # 07_train: the trained Gaussians and what produced them
+    "train_ply": "07_train/gaussians.ply",
+    "train_reflection": "07_train/reflection.pt",
+    "train_split": "07_train/split.json",
+    "train_log": "07_train/train_log.jsonl",
+    "train_checkpoint": "07_train/checkpoint.pt",
     # every stage folder ends with its manifest
     "stage_dir": "{stage_dir}",
     "stage_manifest": "{stage_dir}/manifest.json",

@@ -1,0 +1,132 @@
+"""Reflection models: how the specular colour R of Eq. 7 is obtained. A strategy dataclass picks one:
+
+- ``SHOnly``: no reflection term (vanilla 2DGS: I = D); the baseline the paper calls 2DGS.
+- ``EnvMap``: R looked up in a learnable environment map by the reflection direction alone, the infinitely
+  distant light of GaussianShader and Ref-Gaussian (cannot represent near-field parallax).
+- ``ReflectionMLP``: the paper's network (section 3.2.2, Fig. 7): R = MLP(gamma(X_r), gamma(w_r)).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import assert_never
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from facade_pipeline.shading.fourier import fourier_dim, fourier_features
+
+
+@dataclass(frozen=True)
+class SHOnly:
+    """No specular term: I = D."""
+
+
+@dataclass(frozen=True)
+class EnvMap:
+    """A learnable equal-area (cylindrical) environment map, sigmoid-activated RGB."""
+
+    height_px: int = 64
+    """rows: the cosine of the polar angle (w_r.z from +1 at the top to -1 at the bottom)"""
+    width_px: int = 128
+    """columns: azimuth from -pi to pi"""
+
+
+@dataclass(frozen=True)
+class ReflectionMLP:
+    """The paper's reflection MLP (Table 3 varies all four)."""
+
+    fourier_levels: int = 12
+    """L of Eq. 10, for both X_r and w_r"""
+    depth: int = 8
+    """hidden ReLU layers; the first depth // 2 see the encoded position alone"""
+    width: int = 512
+    """hidden units per layer"""
+    skip: bool = True
+    """re-inject gamma(X_r) at the middle layer beside gamma(w_r)"""
+
+
+ReflectionModel = SHOnly | EnvMap | ReflectionMLP
+
+
+class EnvMapModule(nn.Module):
+    """R(w_r) = sigmoid(bilinear lookup of a [3, H, W] texture at (azimuth, w_r.z))."""
+
+    def __init__(self, cfg: EnvMap):
+        super().__init__()
+        if cfg.height_px < 2 or cfg.width_px < 2:
+            raise ValueError(f"environment map must be at least 2x2 px, got {cfg.height_px}x{cfg.width_px}")
+        self.logits = nn.Parameter(torch.zeros(1, 3, cfg.height_px, cfg.width_px))
+
+    def forward(self, x_norm: Tensor, w_r: Tensor) -> Tensor:  # [P, 3], [P, 3] unit -> [P, 3]
+        del x_norm  # an infinitely distant environment: the position does not matter
+        x, y, z = w_r.unbind(-1)
+        # atan2 has an unbounded gradient at x = y = 0 (straight up/down); nudge x there. Bounded, finite.
+        pole = (x.abs() + y.abs()) < 1e-6
+        x = torch.where(pole, torch.full_like(x, 1e-6), x)
+        u = torch.atan2(y, x) / math.pi  # [-1, 1]
+        v = -z.clamp(-1.0, 1.0)  # equal-area rows, +z on the top row
+        grid = torch.stack([u, v], dim=-1).view(1, 1, -1, 2)
+        out = F.grid_sample(self.logits, grid, mode="bilinear", padding_mode="border", align_corners=False)
+        return torch.sigmoid(out.view(3, -1).T)
+
+
+class ReflectionMLPModule(nn.Module):
+    """The reflection MLP of Fig. 7: gamma(X_r) through the first half; at the middle layer concatenate the
+    features with gamma(w_r) and (skip) gamma(X_r) again; ReLU hidden layers; sigmoid RGB out."""
+
+    def __init__(self, cfg: ReflectionMLP):
+        super().__init__()
+        if cfg.depth < 2 or cfg.width < 1:
+            raise ValueError(f"reflection MLP needs depth >= 2 and width >= 1, got {cfg.depth}x{cfg.width}")
+        self.cfg = cfg
+        enc = fourier_dim(cfg.fourier_levels)
+        self.n_first = cfg.depth // 2
+        first = [nn.Linear(enc, cfg.width)] + [
+            nn.Linear(cfg.width, cfg.width) for _ in range(self.n_first - 1)
+        ]
+        mid_in = cfg.width + enc + (enc if cfg.skip else 0)
+        second = [nn.Linear(mid_in, cfg.width)]
+        second += [nn.Linear(cfg.width, cfg.width) for _ in range(cfg.depth - self.n_first - 1)]
+        self.first = nn.ModuleList(first)
+        self.second = nn.ModuleList(second)
+        self.out = nn.Linear(cfg.width, 3)
+
+    def forward(self, x_norm: Tensor, w_r: Tensor) -> Tensor:  # [P, 3] in [-1, 1], [P, 3] unit -> [P, 3]
+        gx = fourier_features(x_norm, self.cfg.fourier_levels)  # [P, 6L]
+        gw = fourier_features(w_r, self.cfg.fourier_levels)  # [P, 6L]
+        h = gx
+        for layer in self.first:
+            h = F.relu(layer(h))
+        h = torch.cat([h, gw, gx] if self.cfg.skip else [h, gw], dim=-1)
+        for layer in self.second:
+            h = F.relu(layer(h))
+        return torch.sigmoid(self.out(h))
+
+
+def build_reflection_module(model: ReflectionModel, device: torch.device | str) -> nn.Module | None:
+    """The trainable module of a reflection model (None for ``SHOnly``), on ``device``, in float32."""
+    match model:
+        case SHOnly():
+            return None
+        case EnvMap():
+            return EnvMapModule(model).to(device)
+        case ReflectionMLP():
+            return ReflectionMLPModule(model).to(device)
+        case _:
+            assert_never(model)
+
+
+def model_name(model: ReflectionModel) -> str:
+    """The config name of a reflection model: ``sh``, ``envmap`` or ``mlp``."""
+    match model:
+        case SHOnly():
+            return "sh"
+        case EnvMap():
+            return "envmap"
+        case ReflectionMLP():
+            return "mlp"
+        case _:
+            assert_never(model)

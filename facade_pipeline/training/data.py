@@ -1,0 +1,76 @@
+"""Training data in memory: the views with their images, masks and normal priors, the held-out split, the
+facade bounds and the initial geometry. Built by the stage from the upstream hand-offs; tests build it from
+gt/."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facade_pipeline.geometry.camera import PinholeCamera
+
+
+@dataclass(frozen=True, eq=False)
+class TrainView:
+    """One view. Arrays are numpy, kept on the host; the trainer moves a window to its device per step."""
+
+    stem: str
+    camera: PinholeCamera
+    image: np.ndarray  # [H, W, 3] float32 in [0, 1]
+    facade_mask: np.ndarray  # [H, W] bool
+    glass_mask: np.ndarray  # [H, W] bool
+    normal_prior: np.ndarray  # [H, W, 3] float32 world-space unit normals (baked from the corrected mesh)
+    normal_valid: np.ndarray  # [H, W] bool
+
+    def __post_init__(self) -> None:
+        h, w = self.camera.height, self.camera.width
+        for name, shape in (
+            ("image", (h, w, 3)),
+            ("facade_mask", (h, w)),
+            ("glass_mask", (h, w)),
+            ("normal_prior", (h, w, 3)),
+            ("normal_valid", (h, w)),
+        ):
+            arr = getattr(self, name)
+            assert arr.shape == shape, f"{self.stem}.{name}: {arr.shape} != {shape}"
+
+
+@dataclass(frozen=True, eq=False)
+class InitGeometry:
+    """What the Gaussians start from (section 3.2): the coarse point cloud and the corrected mesh."""
+
+    points: np.ndarray  # [P, 3] coarse points (local frame, m)
+    colors: np.ndarray  # [P, 3] in [0, 1]
+    mesh_vertices: np.ndarray  # [V, 3] corrected mesh
+    mesh_triangles: np.ndarray  # [T, 3] int
+
+
+@dataclass(frozen=True, eq=False)
+class TrainData:
+    views: tuple[TrainView, ...]
+    train_idx: tuple[int, ...]
+    test_idx: tuple[int, ...]
+    init: InitGeometry
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The facade's axis-aligned bounds (m): those of the corrected mesh."""
+        v = self.init.mesh_vertices
+        return v.min(axis=0), v.max(axis=0)
+
+    @property
+    def extent(self) -> float:
+        """The scene extent 2DGS scales its rates and sizes by: 1.1 x the largest distance of a camera
+        centre from their mean (m), at least 1 m."""
+        c = np.array([v.camera.center for v in self.views])
+        return float(max(1.1 * np.linalg.norm(c - c.mean(axis=0), axis=1).max(), 1.0))
+
+
+def split_views(n_views: int, test_every: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(train, test) indices: every ``test_every``-th view (0, 8, 16, ...) is held out; 0 holds none out.
+    With fewer than two views nothing is held out (there would be nothing to train on)."""
+    if test_every <= 0 or n_views < 2:
+        return tuple(range(n_views)), ()
+    test = tuple(i for i in range(n_views) if i % test_every == 0)
+    return tuple(i for i in range(n_views) if i % test_every != 0), test

@@ -1,0 +1,151 @@
+"""Densification and pruning as 2DGS does it: splats whose mean view-space positional gradient is large are
+cloned (small ones) or split (large ones); transparent and oversized splats are pruned; opacities are reset
+periodically. Adam's moments follow the rows they belong to (new rows start at zero)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from facade_pipeline.training.model import GaussianModel, inverse_sigmoid, quat_to_rotmat
+from facade_pipeline.training.params import DensifyParams
+
+
+@dataclass
+class DensifyStats:
+    """Accumulated view-space gradient norms and visibility counts per splat since the last densification."""
+
+    grad_accum: Tensor  # [N]
+    count: Tensor  # [N]
+
+    @classmethod
+    def zeros(cls, n: int, device: torch.device | str) -> DensifyStats:
+        return cls(torch.zeros(n, device=device), torch.zeros(n, device=device))
+
+
+def view_space_grad(
+    means: Tensor,
+    grad: Tensor,
+    cam_from_world: Tensor,
+    K: Tensor,
+    size: tuple[int, int],
+    window: tuple[int, int, int, int],
+    near: float,
+) -> tuple[Tensor, Tensor]:
+    """The norm of the positional gradient in NDC units [N] and which splats project into ``window`` [N].
+
+    The loss gradient with respect to a splat's screen position is the world gradient's lateral camera
+    components times z / f (moving one pixel moves z / f metres); NDC units multiply by half the image size,
+    the units of the 2DGS threshold."""
+    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    pc = means.detach() @ R.T + t  # [N, 3]
+    gc = grad @ R.T  # [N, 3]
+    z = pc[:, 2].clamp_min(near)
+    w, h = size
+    gx = gc[:, 0] * z / K[0, 0] * (0.5 * w)
+    gy = gc[:, 1] * z / K[1, 1] * (0.5 * h)
+    px = K[0, 0] * pc[:, 0] / z + K[0, 2]
+    py = K[1, 1] * pc[:, 1] / z + K[1, 2]
+    x0, y0, ww, hh = window
+    visible = (pc[:, 2] > near) & (px >= x0) & (px < x0 + ww) & (py >= y0) & (py < y0 + hh)
+    return torch.sqrt(gx * gx + gy * gy), visible
+
+
+def accumulate(stats: DensifyStats, grad_norm: Tensor, visible: Tensor) -> None:
+    stats.grad_accum += torch.where(visible, grad_norm, torch.zeros_like(grad_norm))
+    stats.count += visible.to(stats.count.dtype)
+
+
+def _group(opt: torch.optim.Optimizer, name: str) -> dict:
+    return next(g for g in opt.param_groups if g["name"] == name)
+
+
+def _swap(opt: torch.optim.Optimizer, name: str, new: nn.Parameter, rows) -> None:
+    """Replace the parameter of group ``name`` by ``new``; its Adam moments become ``rows(old moment)``."""
+    group = _group(opt, name)
+    old = group["params"][0]
+    state = opt.state.pop(old, None)
+    group["params"][0] = new
+    if state:
+        opt.state[new] = {k: (rows(v) if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()}
+
+
+def select_rows(model: GaussianModel, opt: torch.optim.Optimizer, keep: Tensor) -> None:
+    """Keep the rows where ``keep`` [N] is True, in the model and in Adam's moments."""
+    tensors = {name: nn.Parameter(p.detach()[keep].contiguous()) for name, p in model.params().items()}
+    for name, p in tensors.items():
+        _swap(opt, name, p, lambda v: v[keep].contiguous())
+    model.replace(tensors)
+
+
+def append_rows(model: GaussianModel, opt: torch.optim.Optimizer, new: dict[str, Tensor]) -> None:
+    """Append rows (one tensor per parameter) to the model; their Adam moments start at zero."""
+    tensors = {}
+    for name, p in model.params().items():
+        tensors[name] = nn.Parameter(torch.cat([p.detach(), new[name].detach()]).contiguous())
+        extra = new[name].shape[0]
+        _swap(opt, name, tensors[name], lambda v, e=extra: torch.cat([v, v.new_zeros((e, *v.shape[1:]))]))
+    model.replace(tensors)
+
+
+def densify_and_prune(
+    model: GaussianModel,
+    opt: torch.optim.Optimizer,
+    stats: DensifyStats,
+    p: DensifyParams,
+    extent: float,
+    prune_big: bool,
+    generator: torch.Generator,
+) -> dict[str, int]:
+    """One densification step: clone, split, prune. Returns the counts of each."""
+    avg = torch.where(
+        stats.count > 0, stats.grad_accum / stats.count.clamp_min(1), torch.zeros_like(stats.count)
+    )
+    big = model.scales().detach().max(dim=-1).values > p.percent_dense * extent
+    hot = avg >= p.grad_threshold
+    budget = max(p.max_gaussians - model.n, 0) // max(p.split_count, 1)
+    if int(hot.sum()) > budget:  # keep the hottest within the budget
+        order = torch.argsort(torch.where(hot, avg, torch.full_like(avg, -1.0)), descending=True)
+        hot = torch.zeros_like(hot)
+        hot[order[:budget]] = True
+    clone, split = hot & ~big, hot & big
+    n_before = model.n
+    if clone.any():
+        append_rows(model, opt, {name: t.detach()[clone] for name, t in model.params().items()})
+    if split.any():
+        grown = torch.cat([split, split.new_zeros(model.n - n_before)])  # clones are never split
+        append_rows(model, opt, _split_rows(model, grown, p.split_count, generator))
+    split_full = torch.cat([split, split.new_zeros(model.n - n_before)])
+    keep = ~split_full & (model.opacities().detach() >= p.prune_opacity)
+    if prune_big:
+        keep &= model.scales().detach().max(dim=-1).values <= p.prune_world_size_fraction * extent
+    if not keep.any():  # never prune everything: keep the most opaque splat
+        keep[torch.argmax(model.opacities().detach())] = True
+    n_pruned = int((~keep).sum()) - int(split.sum())
+    select_rows(model, opt, keep)
+    return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": n_pruned}
+
+
+def _split_rows(model: GaussianModel, split: Tensor, k: int, generator: torch.Generator) -> dict[str, Tensor]:
+    """``k`` children per selected splat: centres drawn from the splat's own Gaussian in its plane, scales
+    divided by 0.8 k, everything else copied."""
+    rows = {name: t.detach()[split].repeat_interleave(k, dim=0) for name, t in model.params().items()}
+    s = rows["log_scales"].exp()  # [M, 2]
+    eps = torch.randn(s.shape, generator=generator, device="cpu").to(s.device) * s
+    R = quat_to_rotmat(rows["quats"] / rows["quats"].norm(dim=-1, keepdim=True))
+    rows["means"] = rows["means"] + (R[:, :, :2] @ eps.unsqueeze(-1)).squeeze(-1)
+    rows["log_scales"] = (s / (0.8 * k)).log()
+    return rows
+
+
+def reset_opacity(model: GaussianModel, opt: torch.optim.Optimizer, value: float) -> None:
+    """Clamp every opacity to at most ``value`` and zero its Adam moments (2DGS opacity reset)."""
+    new = nn.Parameter(
+        torch.minimum(
+            model.opacity_logits.detach(), inverse_sigmoid(torch.tensor(value, device=model.means.device))
+        )
+    )
+    _swap(opt, "opacity_logits", new, torch.zeros_like)
+    model.opacity_logits = new

@@ -1,0 +1,109 @@
+"""Training losses (Eq. 11-13) over a masked image window. Images are [H, W, 3] in [0, 1]; masks [H, W]
+bool. Every mean is over the pixels of its mask and returns 0 (not NaN) on an empty mask."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from facade_pipeline.shading.deferred import safe_normalize
+
+
+def masked_mean(x: Tensor, mask: Tensor) -> Tensor:  # [H, W] or [H, W, C], [H, W] -> []
+    """Mean of ``x`` over the pixels of ``mask`` (and its channels); 0 for an empty mask."""
+    m = mask.to(x.dtype)
+    if x.dim() == 3:
+        m = m.unsqueeze(-1).expand_as(x)
+    return (x * m).sum() / m.sum().clamp_min(1.0)
+
+
+def l1_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
+    """Mean absolute error over the masked pixels and channels."""
+    return masked_mean((pred - gt).abs(), mask)
+
+
+def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
+    g = torch.exp(-(x * x) / (2.0 * sigma * sigma))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(3, 1, size, size).contiguous()
+
+
+def ssim_map(pred: Tensor, gt: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:  # -> [H, W]
+    """SSIM per pixel (Gaussian window 11 x 11, sigma 1.5, C1 = 0.01^2, C2 = 0.03^2, zero padding), averaged
+    over the channels."""
+    x = pred.permute(2, 0, 1).unsqueeze(0)
+    y = gt.permute(2, 0, 1).unsqueeze(0)
+    w = _gaussian_window(window, sigma, x.dtype, x.device)
+    pad = window // 2
+    mu_x = F.conv2d(x, w, padding=pad, groups=3)
+    mu_y = F.conv2d(y, w, padding=pad, groups=3)
+    sxx = F.conv2d(x * x, w, padding=pad, groups=3) - mu_x * mu_x
+    syy = F.conv2d(y * y, w, padding=pad, groups=3) - mu_y * mu_y
+    sxy = F.conv2d(x * y, w, padding=pad, groups=3) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2))
+    return s[0].mean(0)
+
+
+def color_loss(pred: Tensor, gt: Tensor, mask: Tensor, lambda_dssim: float) -> Tensor:
+    """L_c = (1 - lambda) L1 + lambda (1 - SSIM) (2DGS, lambda = 0.2), both on the masked images (pixels
+    outside the mask are zeroed in both, as the paper masks its images)."""
+    m = mask.unsqueeze(-1).to(pred.dtype)
+    pm, gm = pred * m, gt * m
+    l1 = l1_loss(pred, gt, mask)
+    if lambda_dssim == 0.0:
+        return l1
+    dssim = masked_mean(1.0 - ssim_map(pm, gm), mask)
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * dssim
+
+
+def pixel_residual(pred: Tensor, gt: Tensor, reduce: str) -> Tensor:  # [H, W, 3] -> [H, W]
+    """Per-pixel L1 residual |C - C_gt|: the mean over channels (``mean``) or their sum (``sum``)."""
+    r = (pred - gt).abs()
+    return r.mean(-1) if reduce == "mean" else r.sum(-1)
+
+
+def high_frequency_loss(
+    pred: Tensor, gt: Tensor, mask: Tensor, tau: float, eps: float, reduce: str = "mean"
+) -> Tensor:
+    """Eq. 12: the mean L1 residual over the pixels whose residual exceeds ``tau``. The selection is a
+    constant indicator (no gradient through it); an empty selection gives exactly 0."""
+    r = pixel_residual(pred, gt, reduce)
+    sel = (mask & (r.detach() > tau)).to(r.dtype)
+    return (sel * r).sum() / (sel.sum() + eps)
+
+
+def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
+    """Eq. 11: mean over valid pixels of || n - n_hat ||_1 (rendered world normal vs baked normal)."""
+    return masked_mean((normal - prior).abs().sum(-1), valid)
+
+
+def depth_normals(points: Tensor) -> Tensor:  # [H, W, 3] surface points -> [H, W, 3]
+    """Normals of the surface given by per-pixel points, from central differences (the 2DGS 'surface
+    normal'); unit, oriented like the image axes' cross product (toward the camera for OpenCV axes);
+    zero on the border pixels and where the differences vanish."""
+    out = torch.zeros_like(points)
+    dx = points[1:-1, 2:] - points[1:-1, :-2]
+    dy = points[2:, 1:-1] - points[:-2, 1:-1]
+    n = safe_normalize(torch.cross(dy, dx, dim=-1))
+    out[1:-1, 1:-1] = n
+    return out
+
+
+def normal_consistency_loss(normal: Tensor, surf_normal: Tensor, mask: Tensor) -> Tensor:
+    """2DGS normal consistency: mean over the mask of 1 - n . N, with n the alpha-blended splat normal and
+    N the normal of the rendered depth (``surf_normal``, held as a target-free geometric quantity: the
+    gradient reaches both, as in 2DGS)."""
+    border = torch.zeros_like(mask)
+    border[1:-1, 1:-1] = True
+    return masked_mean(1.0 - (normal * surf_normal).sum(-1), mask & border)
+
+
+def psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
+    """PSNR (dB, peak 1) over the masked pixels; inf for a perfect match, nan for an empty mask."""
+    if not bool(mask.any()):
+        return float("nan")
+    mse = float(masked_mean((pred - gt) ** 2, mask))
+    return float("inf") if mse == 0.0 else -10.0 * float(torch.log10(torch.tensor(mse)))

@@ -1,0 +1,117 @@
+"""The parameters of the ``train_gs`` stage: one frozen dataclass read from ``[train_gs]``.
+
+Schedules are fractions of ``iterations`` so that a short CI run keeps the shape of the paper's schedule;
+intervals (densification, opacity reset, checkpoints) are in iterations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, assert_never
+
+from facade_pipeline.shading.reflection import EnvMap, ReflectionMLP, ReflectionModel, SHOnly
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam learning rates (2DGS defaults; ``position_*`` are multiplied by the scene extent)."""
+
+    position_init: float
+    position_final: float
+    sh_dc: float
+    sh_rest: float
+    opacity: float
+    scaling: float
+    rotation: float
+    reflectivity: float
+    f0: float
+    reflection_init: float
+    """of the reflection module (MLP weights or environment map), decayed exponentially to ..."""
+    reflection_final: float
+
+
+@dataclass(frozen=True)
+class DensifyParams:
+    """Densification and pruning as 2DGS does it (clone / split by view-space gradient, prune, reset)."""
+
+    start_fraction: float
+    end_fraction: float
+    interval: int
+    """iterations between densification steps"""
+    grad_threshold: float
+    """mean view-space (NDC) positional gradient above which a splat is cloned or split"""
+    percent_dense: float
+    """splats larger than this fraction of the scene extent are split, smaller ones cloned"""
+    split_count: int
+    opacity_reset_interval: int
+    """iterations between opacity resets (0: never)"""
+    opacity_reset_value: float
+    prune_opacity: float
+    prune_world_size_fraction: float
+    """after the first opacity reset, splats larger than this fraction of the extent are pruned"""
+    max_gaussians: int
+    """no densification beyond this many splats (bounds CPU time and memory)"""
+
+
+@dataclass(frozen=True)
+class TrainParams:
+    """``[train_gs]``: every number that changes the trained model."""
+
+    iterations: int
+    seed: int
+    device: Literal["cpu", "cuda", "auto"]
+    raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
+    near_m: float
+    reflection_model: Literal["sh", "envmap", "mlp"]
+    fourier_levels: int
+    mlp_depth: int
+    mlp_width: int
+    mlp_skip: bool
+    envmap_height_px: int
+    envmap_width_px: int
+    sh_degree: int
+    sh_degree_interval: int
+    refl_threshold: float
+    mlp_max_pixels: int
+    patch_px: int
+    test_every: int
+    mask_by_facade: bool
+    lambda_dssim: float
+    lambda_normal: float
+    normal_start_fraction: float
+    lambda_normal_prior: float
+    normal_prior_start_fraction: float
+    lambda_hf_start: float
+    lambda_hf_end: float
+    hf_tau_start: float
+    hf_tau_end: float
+    hf_steps: int
+    hf_start_fraction: float
+    hf_residual: Literal["mean", "sum"]
+    hf_eps: float
+    lambda_distortion: float
+    distortion_start_fraction: float
+    init_max_points: int
+    init_mesh_samples: int
+    init_bounds_margin_m: float
+    init_opacity: float
+    init_reflectivity: float
+    init_f0: float
+    init_knn: int
+    checkpoint_every: int
+    log_every: int
+    divergence_extent_factor: float
+    lr: LearningRates
+    densify: DensifyParams
+
+    def reflection(self) -> ReflectionModel:
+        """The reflection model strategy these parameters select."""
+        match self.reflection_model:
+            case "sh":
+                return SHOnly()
+            case "envmap":
+                return EnvMap(self.envmap_height_px, self.envmap_width_px)
+            case "mlp":
+                return ReflectionMLP(self.fourier_levels, self.mlp_depth, self.mlp_width, self.mlp_skip)
+            case _:
+                assert_never(self.reflection_model)

@@ -1,0 +1,216 @@
+"""One view through the model: per-splat colour terms -> rasterized maps -> deferred shading (Eq. 7-9).
+
+The rasterizer is injected (``Rasterizer``): the real one is ``facade_pipeline.splatting`` through
+``splatting_rasterizer``; tests pass a dense reference. It is called with crop windows so training can work
+on patches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor, nn
+
+from facade_pipeline.shading import deferred
+from facade_pipeline.shading.sh import eval_sh
+from facade_pipeline.training.model import GaussianModel
+
+Window = tuple[int, int, int, int]  # (x0, y0, width, height) in pixels of the full image
+
+
+@dataclass
+class RasterOutput:
+    """What the shading needs from a rasterizer, over a window of H x W pixels."""
+
+    features: Tensor  # [H, W, F] alpha-blended features (background 0)
+    alpha: Tensor  # [H, W]
+    depth: Tensor  # [H, W] depth along the camera z axis where the surface is (0 where alpha is 0)
+    normal: Tensor  # [H, W, 3] alpha-blended world normal, facing the camera (0 where alpha is 0)
+    distortion: Tensor  # [H, W] 2DGS depth distortion
+
+
+class Rasterizer(Protocol):
+    def __call__(
+        self,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        features: Tensor,
+        cam_from_world: Tensor,
+        K: Tensor,
+        width: int,
+        height: int,
+        near: float,
+        window: Window,
+    ) -> RasterOutput: ...
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A view's camera as tensors on the training device."""
+
+    K: Tensor  # [3, 3]
+    cam_from_world: Tensor  # [4, 4]
+    width: int
+    height: int
+
+    @property
+    def centre(self) -> Tensor:  # [3]
+        R, t = self.cam_from_world[:3, :3], self.cam_from_world[:3, 3]
+        return -(R.T @ t)
+
+
+@dataclass(frozen=True)
+class ShadingOptions:
+    refl_threshold: float
+    """R is evaluated only where the rendered reflectivity exceeds this"""
+    bounds_lo: Tensor  # [3] facade bounds, for normalising X_r to [-1, 1]
+    bounds_hi: Tensor  # [3]
+
+
+@dataclass
+class Render:
+    """A shaded window: the image and the maps the losses and the evaluation need."""
+
+    rgb: Tensor  # [H, W, 3] Eq. 7
+    diffuse: Tensor  # [H, W, 3] D
+    refl: Tensor  # [H, W]
+    fresnel: Tensor  # [H, W, 3] F (Eq. 8)
+    specular: Tensor  # [H, W, 3] R (0 where not evaluated)
+    spec_pixels: Tensor  # [H, W] bool: where R was evaluated
+    skipped: Tensor  # [H, W] bool: reflective pixels left out of this iteration's subsample
+    normal: Tensor  # [H, W, 3]
+    depth: Tensor  # [H, W]
+    alpha: Tensor  # [H, W]
+    distortion: Tensor  # [H, W]
+    points: Tensor  # [H, W, 3] X_r
+    n_features: int = 7
+
+
+def splatting_rasterizer(backend: str) -> Rasterizer:
+    """The pipeline's rasterizer (``facade_pipeline.splatting.render_2dgs``) with the given backend, as a
+    ``Rasterizer``. Its expected depth (alpha-normalised, camera z) is the depth used for X_r."""
+    from facade_pipeline.splatting import PixelWindow, render_2dgs
+
+    def rasterize(
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        features: Tensor,
+        cam_from_world: Tensor,
+        K: Tensor,
+        width: int,
+        height: int,
+        near: float,
+        window: Window,
+    ) -> RasterOutput:
+        out = render_2dgs(
+            means,
+            quats,
+            scales,
+            opacities,
+            features,
+            cam_from_world,
+            K,
+            width,
+            height,
+            near=near,
+            backend=backend,
+            crop=PixelWindow(*window),
+        )
+        return RasterOutput(out.features, out.alpha, out.depth_expected, out.normal, out.distortion)
+
+    return rasterize
+
+
+def splat_features(model: GaussianModel, centre: Tensor, sh_degree: int) -> Tensor:  # -> [N, 7]
+    """Per-splat channels blended by the rasterizer: D (SH evaluated toward the camera), r, F0."""
+    dirs = deferred.safe_normalize(model.means - centre)
+    diffuse = eval_sh(sh_degree, model.sh_coeffs(), dirs)
+    return torch.cat([diffuse, model.reflectivity().unsqueeze(-1), model.f0()], dim=-1)
+
+
+def render_view(
+    model: GaussianModel,
+    reflection: nn.Module | None,
+    camera: Camera,
+    window: Window,
+    rasterize: Rasterizer,
+    near: float,
+    sh_degree: int,
+    shading: ShadingOptions,
+    spec_mask: Tensor | None = None,  # [H, W] bool: where R may be evaluated (the facade mask)
+    select: Callable[[Tensor], Tensor] | None = None,  # [P] bool candidates -> [P] bool chosen
+    chunk: int = 0,
+) -> Render:
+    """Render ``window`` of a view and shade it (Eq. 7-9). ``reflection`` None means no specular term.
+    ``select`` subsamples the reflective pixels (CPU training); ``chunk`` > 0 evaluates R in chunks."""
+    centre = camera.centre
+    feats = splat_features(model, centre, sh_degree)
+    ras = rasterize(
+        model.means,
+        model.unit_quats(),
+        model.scales(),
+        model.opacities(),
+        feats,
+        camera.cam_from_world,
+        camera.K,
+        camera.width,
+        camera.height,
+        near,
+        window,
+    )
+    diffuse, refl, f0 = ras.features[..., :3], ras.features[..., 3], ras.features[..., 4:7]
+    _, rays = deferred.pixel_rays(camera.K, camera.cam_from_world, window)
+    points = deferred.surface_points(centre, rays, ras.depth)
+    w_o = deferred.directions_to_camera(rays)
+    n_unit = deferred.safe_normalize(ras.normal)
+    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
+    candidates = refl.detach() > shading.refl_threshold
+    if spec_mask is not None:
+        candidates = candidates & spec_mask
+    if reflection is None:
+        candidates = torch.zeros_like(candidates)
+    chosen = candidates if select is None else select(candidates)
+    specular = torch.zeros_like(diffuse)
+    if reflection is not None and bool(chosen.any()):
+        w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
+        x = deferred.normalize_to_bounds(points[chosen], shading.bounds_lo, shading.bounds_hi)
+        specular = specular.index_put((chosen,), _eval_chunked(reflection, x, w_r, chunk))
+    rgb = diffuse if reflection is None else deferred.composite(diffuse, refl, fresnel, specular)
+    return Render(
+        rgb,
+        diffuse,
+        refl,
+        fresnel,
+        specular,
+        chosen,
+        candidates & ~chosen,
+        ras.normal,
+        ras.depth,
+        ras.alpha,
+        ras.distortion,
+        points,
+    )
+
+
+def _eval_chunked(module: nn.Module, x: Tensor, w: Tensor, chunk: int) -> Tensor:  # [P, 3], [P, 3] -> [P, 3]
+    if chunk <= 0 or x.shape[0] <= chunk:
+        return module(x, w)
+    return torch.cat([module(x[i : i + chunk], w[i : i + chunk]) for i in range(0, x.shape[0], chunk)])
+
+
+def random_subset(candidates: Tensor, max_count: int, generator: torch.Generator) -> Tensor:  # [H, W] bool
+    """At most ``max_count`` of the True pixels of ``candidates``, uniformly at random (0: all of them)."""
+    idx = candidates.flatten().nonzero().squeeze(-1)
+    if max_count <= 0 or idx.numel() <= max_count:
+        return candidates
+    perm = torch.randperm(idx.numel(), generator=generator, device="cpu")[:max_count].to(idx.device)
+    out = torch.zeros(candidates.numel(), dtype=torch.bool, device=candidates.device)
+    out[idx[perm]] = True
+    return out.view_as(candidates)

@@ -1,0 +1,512 @@
+"""The trainer: ``build_trainer``, ``step``, ``evaluate``, ``save_checkpoint`` / ``load_checkpoint`` and
+``train`` (the loop that ties them together with checkpoints and a progress callback).
+
+Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf (+ lambda_d L_d), with L_c = 0.8 L1
++ 0.2 D-SSIM, the 2DGS normal consistency L_n, the normal prior L_np (Eq. 11) and the high-frequency loss
+L_hf (Eq. 12), all over the facade mask. Every random draw comes from one ``torch.Generator`` that is saved
+in checkpoints, so a resumed run equals an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from facade_pipeline.errors import PipelineError
+from facade_pipeline.io.atomic import atomic_path
+from facade_pipeline.shading.reflection import build_reflection_module
+from facade_pipeline.training import losses
+from facade_pipeline.training.data import TrainData, TrainView
+from facade_pipeline.training.densify import (
+    DensifyStats,
+    accumulate,
+    densify_and_prune,
+    reset_opacity,
+    view_space_grad,
+)
+from facade_pipeline.training.init import initial_model
+from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
+from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.render import (
+    Camera,
+    Rasterizer,
+    Render,
+    ShadingOptions,
+    Window,
+    random_subset,
+    render_view,
+)
+from facade_pipeline.training.schedule import at_fraction, exp_decay, step_schedule
+
+log = logging.getLogger(__name__)
+CHECKPOINT_FORMAT = 1
+EVAL_CHUNK = 65536
+
+
+class TrainingDivergedError(PipelineError):
+    """The optimisation produced NaN/Inf or splats flew off (an exploding learning rate, say)."""
+
+
+@dataclass
+class Trainer:
+    """Everything that changes during training, and what it is trained on."""
+
+    params: TrainParams
+    data: TrainData
+    device: torch.device
+    rasterize: Rasterizer
+    model: GaussianModel
+    reflection: nn.Module | None
+    opt: torch.optim.Adam
+    opt_refl: torch.optim.Adam | None
+    generator: torch.Generator
+    stats: DensifyStats
+    shading: ShadingOptions
+    cameras: list[Camera]
+    iteration: int = 0
+    log: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def extent(self) -> float:
+        return self.data.extent
+
+
+def resolve_device(choice: str) -> torch.device:
+    """``cpu``, ``cuda`` (an error without CUDA) or ``auto`` (CUDA when available)."""
+    if choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if choice == "cuda" and not torch.cuda.is_available():
+        raise PipelineError(None, 'a CUDA device (train_gs.device = "cuda")', 'none; use "cpu" or "auto"')
+    return torch.device(choice)
+
+
+def _gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> torch.optim.Adam:
+    lr = p.lr
+    rates = {
+        "means": lr.position_init * extent,
+        "quats": lr.rotation,
+        "log_scales": lr.scaling,
+        "opacity_logits": lr.opacity,
+        "sh_dc": lr.sh_dc,
+        "sh_rest": lr.sh_rest,
+        "refl_logits": lr.reflectivity,
+        "f0_logits": lr.f0,
+    }
+    groups = [{"params": [getattr(model, n)], "lr": rates[n], "name": n} for n in PARAM_NAMES]
+    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+
+def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: GaussianModel):
+    with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
+        torch.manual_seed(p.seed)
+        reflection = build_reflection_module(p.reflection(), device)
+    opt = _gaussian_optimizer(model, p, data.extent)
+    opt_refl = (
+        None if reflection is None else torch.optim.Adam(reflection.parameters(), lr=p.lr.reflection_init)
+    )
+    lo, hi = data.bounds
+    f32 = dict(dtype=torch.float32, device=device)
+    shading = ShadingOptions(p.refl_threshold, torch.as_tensor(lo, **f32), torch.as_tensor(hi, **f32))
+    cameras = [
+        Camera(
+            torch.as_tensor(v.camera.K, **f32),
+            torch.as_tensor(v.camera.cam_from_world, **f32),
+            v.camera.width,
+            v.camera.height,
+        )
+        for v in data.views
+    ]
+    return reflection, opt, opt_refl, shading, cameras
+
+
+def build_trainer(
+    p: TrainParams, data: TrainData, rasterize: Rasterizer, device: torch.device | str = "cpu"
+) -> Trainer:
+    """A trainer at iteration 0: the initial Gaussians (section 3.2), the reflection module, optimisers."""
+    if not data.train_idx:
+        raise PipelineError(None, "at least one training view", "none")
+    device = torch.device(device)
+    model = initial_model(
+        data.init,
+        data.bounds,
+        p.init_max_points,
+        p.init_mesh_samples,
+        p.init_bounds_margin_m,
+        p.init_knn,
+        p.init_opacity,
+        p.init_reflectivity,
+        p.init_f0,
+        p.sh_degree,
+        p.seed,
+        device,
+    )
+    reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
+    gen = torch.Generator(device="cpu")
+    gen.manual_seed(p.seed)
+    return Trainer(
+        p,
+        data,
+        device,
+        rasterize,
+        model,
+        reflection,
+        opt,
+        opt_refl,
+        gen,
+        DensifyStats.zeros(model.n, device),
+        shading,
+        cameras,
+    )
+
+
+def active_sh_degree(p: TrainParams, iteration: int) -> int:
+    """The SH degree in use: one more band every ``sh_degree_interval`` iterations (3DGS), up to the max."""
+    if p.sh_degree_interval <= 0:
+        return p.sh_degree
+    return min(p.sh_degree, iteration // p.sh_degree_interval)
+
+
+def _randint(gen: torch.Generator, high: int) -> int:
+    return int(torch.randint(high, (1,), generator=gen))
+
+
+def _window(tr: Trainer, index: int) -> Window:
+    """The whole image, or a random patch of ``patch_px`` centred on a random facade pixel (patches off the
+    facade would teach nothing when the loss is masked by it)."""
+    cam, p = tr.cameras[index], tr.params.patch_px
+    if p <= 0 or (p >= cam.width and p >= cam.height):
+        return (0, 0, cam.width, cam.height)
+    pw, ph = min(p, cam.width), min(p, cam.height)
+    mask = tr.data.views[index].facade_mask
+    ys, xs = np.nonzero(mask) if tr.params.mask_by_facade else (np.zeros(0), np.zeros(0))
+    if len(xs) == 0:
+        return (
+            _randint(tr.generator, cam.width - pw + 1),
+            _randint(tr.generator, cam.height - ph + 1),
+            pw,
+            ph,
+        )
+    k = _randint(tr.generator, len(xs))
+    x0 = int(np.clip(xs[k] - pw // 2, 0, cam.width - pw))
+    y0 = int(np.clip(ys[k] - ph // 2, 0, cam.height - ph))
+    return (x0, y0, pw, ph)
+
+
+@dataclass
+class ViewTensors:
+    """A window of a view's data on the device."""
+
+    image: Tensor  # [H, W, 3]
+    mask: Tensor  # [H, W] bool: facade mask (all True when not masking)
+    glass: Tensor  # [H, W] bool
+    prior: Tensor  # [H, W, 3]
+    prior_valid: Tensor  # [H, W] bool
+
+
+def view_tensors(view: TrainView, window: Window, mask_by_facade: bool, device: torch.device) -> ViewTensors:
+    x0, y0, w, h = window
+    sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+
+    def t(a: np.ndarray, dtype=torch.float32) -> Tensor:
+        return torch.as_tensor(np.ascontiguousarray(a[sl]), dtype=dtype, device=device)
+
+    mask = (
+        t(view.facade_mask, torch.bool)
+        if mask_by_facade
+        else torch.ones(h, w, dtype=torch.bool, device=device)
+    )
+    return ViewTensors(
+        t(view.image),
+        mask,
+        t(view.glass_mask, torch.bool),
+        t(view.normal_prior),
+        t(view.normal_valid, torch.bool),
+    )
+
+
+def _set_learning_rates(tr: Trainer) -> None:
+    p, it = tr.params, tr.iteration
+    for g in tr.opt.param_groups:
+        if g["name"] == "means":
+            g["lr"] = exp_decay(
+                p.lr.position_init * tr.extent, p.lr.position_final * tr.extent, it, p.iterations
+            )
+    if tr.opt_refl is not None:
+        for g in tr.opt_refl.param_groups:
+            g["lr"] = exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
+
+
+def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -> dict[str, Tensor]:
+    """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``)."""
+    zero = r.rgb.new_zeros(())
+    loss_mask = vt.mask & ~r.skipped
+    terms = {"color": losses.color_loss(r.rgb, vt.image, loss_mask, p.lambda_dssim)}
+    total = terms["color"]
+    if p.lambda_normal > 0 and iteration >= at_fraction(p.normal_start_fraction, p.iterations):
+        terms["normal"] = losses.normal_consistency_loss(r.normal, losses.depth_normals(r.points), loss_mask)
+        total = total + p.lambda_normal * terms["normal"]
+    if p.lambda_normal_prior > 0 and iteration >= at_fraction(p.normal_prior_start_fraction, p.iterations):
+        terms["normal_prior"] = losses.normal_prior_loss(r.normal, vt.prior, vt.prior_valid & vt.mask)
+        total = total + p.lambda_normal_prior * terms["normal_prior"]
+    if iteration >= at_fraction(p.hf_start_fraction, p.iterations):
+        tau = step_schedule(
+            p.hf_tau_start, p.hf_tau_end, p.hf_steps, p.hf_start_fraction, iteration, p.iterations
+        )
+        lam = step_schedule(
+            p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, p.hf_start_fraction, iteration, p.iterations
+        )
+        if lam > 0:
+            terms["hf"] = losses.high_frequency_loss(r.rgb, vt.image, loss_mask, tau, p.hf_eps, p.hf_residual)
+            total = total + lam * terms["hf"]
+    if p.lambda_distortion > 0 and iteration >= at_fraction(p.distortion_start_fraction, p.iterations):
+        terms["distortion"] = losses.masked_mean(r.distortion, vt.mask)
+        total = total + p.lambda_distortion * terms["distortion"]
+    terms["loss"] = total + zero
+    return terms
+
+
+def _check_finite(tr: Trainer, what: str, tensors: dict[str, Tensor | None]) -> None:
+    for name, t in tensors.items():
+        if t is not None and not bool(torch.isfinite(t).all()):
+            raise TrainingDivergedError(
+                None,
+                f"finite {what} at iteration {tr.iteration + 1}",
+                f"NaN or Inf in '{name}' (learning rates too high? lower train_gs.lr.*)",
+            )
+
+
+def _check_extent(tr: Trainer) -> None:
+    lo, hi = tr.shading.bounds_lo, tr.shading.bounds_hi
+    centre = 0.5 * (lo + hi)
+    far = float((tr.model.means.detach() - centre).norm(dim=-1).max()) if tr.model.n else 0.0
+    limit = tr.params.divergence_extent_factor * tr.extent
+    if far > limit:
+        raise TrainingDivergedError(
+            None,
+            f"splats within {limit:.1f} m of the facade at iteration {tr.iteration + 1}",
+            f"a splat {far:.3g} m away (exploding position learning rate? lower train_gs.lr.position_init)",
+        )
+
+
+def render_window(
+    tr: Trainer, index: int, window: Window, select=None, chunk: int = 0
+) -> tuple[Render, ViewTensors]:
+    """Render a window of view ``index`` with the current model; returns it with the view's data there."""
+    cam = tr.cameras[index]
+    vt = view_tensors(tr.data.views[index], window, tr.params.mask_by_facade, tr.device)
+    r = render_view(
+        tr.model,
+        tr.reflection,
+        cam,
+        window,
+        tr.rasterize,
+        tr.params.near_m,
+        active_sh_degree(tr.params, tr.iteration),
+        tr.shading,
+        spec_mask=vt.mask,
+        select=select,
+        chunk=chunk,
+    )
+    return r, vt
+
+
+def step(tr: Trainer) -> dict[str, float]:
+    """One optimisation step on a random training view (or patch). Returns the loss terms and the PSNR of
+    the window over its loss mask. Raises ``TrainingDivergedError`` on NaN/Inf or runaway splats."""
+    p = tr.params
+    _set_learning_rates(tr)
+    index = tr.data.train_idx[_randint(tr.generator, len(tr.data.train_idx))]
+    cam = tr.cameras[index]
+    window = _window(tr, index)
+    r, vt = render_window(
+        tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.generator)
+    )
+    terms = compute_losses(p, r, vt, tr.iteration)
+    _check_finite(tr, "loss terms", terms)
+    terms["loss"].backward()
+    _check_finite(tr, "gradients", {n: t.grad for n, t in tr.model.params().items()})
+    densify_end = at_fraction(p.densify.end_fraction, p.iterations)
+    if tr.iteration < densify_end and tr.model.means.grad is not None:
+        g, vis = view_space_grad(
+            tr.model.means,
+            tr.model.means.grad,
+            cam.cam_from_world,
+            cam.K,
+            (cam.width, cam.height),
+            window,
+            p.near_m,
+        )
+        accumulate(tr.stats, g, vis)
+    for opt in (tr.opt, tr.opt_refl):
+        if opt is not None:
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+    _check_finite(tr, "parameters", {n: t for n, t in tr.model.params().items()})
+    _check_extent(tr)
+    tr.iteration += 1
+    _densify_if_due(tr)
+    out = {k: float(v.detach()) for k, v in terms.items()}
+    out["psnr"] = losses.psnr(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
+    return out
+
+
+def _densify_if_due(tr: Trainer) -> None:
+    p, d, it = tr.params, tr.params.densify, tr.iteration
+    if not at_fraction(d.start_fraction, p.iterations) < it <= at_fraction(d.end_fraction, p.iterations):
+        return
+    if d.interval > 0 and it % d.interval == 0:
+        prune_big = d.opacity_reset_interval > 0 and it > d.opacity_reset_interval
+        counts = densify_and_prune(tr.model, tr.opt, tr.stats, d, tr.extent, prune_big, tr.generator)
+        tr.stats = DensifyStats.zeros(tr.model.n, tr.device)
+        log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.model.n)
+    if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
+        reset_opacity(tr.model, tr.opt, d.opacity_reset_value)
+
+
+@torch.no_grad()
+def evaluate(tr: Trainer, indices: tuple[int, ...] | list[int]) -> dict[str, Any]:
+    """Render whole views and measure them: PSNR and SSIM over the facade mask, PSNR over glass, and the
+    rendered normals' angle error (deg) on glass against the view's normal prior. Means over the views
+    (a view without glass pixels is left out of the glass means)."""
+    per_view = []
+    for i in indices:
+        cam = tr.cameras[i]
+        r, vt = render_window(tr, i, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK)
+        rgb = r.rgb.clamp(0, 1)
+        glass = vt.glass & vt.mask
+        n = torch.nn.functional.normalize(r.normal, dim=-1)
+        cos = (n * vt.prior).sum(-1).clamp(-1, 1)
+        ok = glass & vt.prior_valid
+        ang = torch.rad2deg(torch.arccos(cos[ok])) if bool(ok.any()) else None
+        per_view.append(
+            {
+                "view": tr.data.views[i].stem,
+                "psnr": losses.psnr(rgb, vt.image, vt.mask),
+                "ssim": float(
+                    losses.masked_mean(
+                        losses.ssim_map(rgb * vt.mask[..., None], vt.image * vt.mask[..., None]), vt.mask
+                    )
+                ),
+                "psnr_glass": losses.psnr(rgb, vt.image, glass),
+                "normal_error_glass_deg": None if ang is None else float(ang.mean()),
+            }
+        )
+    return {"views": per_view, **_means(per_view)}
+
+
+def _means(per_view: list[dict[str, Any]]) -> dict[str, float | None]:
+    out: dict[str, float | None] = {}
+    for key in ("psnr", "ssim", "psnr_glass", "normal_error_glass_deg"):
+        vals = [v[key] for v in per_view if v[key] is not None and math.isfinite(v[key])]
+        out[key] = float(np.mean(vals)) if vals else None
+    return out
+
+
+def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
+    """Everything needed to continue exactly, written atomically."""
+    state = {
+        "format": CHECKPOINT_FORMAT,
+        "fingerprint": fingerprint,
+        "iteration": tr.iteration,
+        "model": tr.model.state(),
+        "opt": tr.opt.state_dict(),
+        "reflection": None if tr.reflection is None else tr.reflection.state_dict(),
+        "opt_refl": None if tr.opt_refl is None else tr.opt_refl.state_dict(),
+        "generator": tr.generator.get_state(),
+        "stats": {"grad_accum": tr.stats.grad_accum, "count": tr.stats.count},
+        "log": tr.log,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(
+    path: str | Path,
+    p: TrainParams,
+    data: TrainData,
+    rasterize: Rasterizer,
+    device: torch.device | str,
+    fingerprint: str,
+) -> Trainer | None:
+    """The trainer saved at ``path``, or None when there is none or it belongs to other parameters or
+    inputs (its fingerprint differs) or an older format. A damaged file raises ``InputError``."""
+    from facade_pipeline.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for truncated or foreign files
+        raise InputError(
+            path, "a train_gs checkpoint", f"an unreadable file ({type(e).__name__}: {e})"
+        ) from None
+    if state.get("format") != CHECKPOINT_FORMAT or state.get("fingerprint") != fingerprint:
+        return None
+    device = torch.device(device)
+    model = GaussianModel.from_state(state["model"], device)
+    reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
+    opt.load_state_dict(state["opt"])
+    if reflection is not None:
+        reflection.load_state_dict(state["reflection"])
+        opt_refl.load_state_dict(state["opt_refl"])
+    gen = torch.Generator(device="cpu")
+    gen.set_state(state["generator"])
+    stats = DensifyStats(state["stats"]["grad_accum"].to(device), state["stats"]["count"].to(device))
+    return Trainer(
+        p,
+        data,
+        device,
+        rasterize,
+        model,
+        reflection,
+        opt,
+        opt_refl,
+        gen,
+        stats,
+        shading,
+        cameras,
+        state["iteration"],
+        list(state["log"]),
+    )
+
+
+ProgressCallback = Callable[[int, int, dict[str, float]], None]
+
+
+def train(
+    tr: Trainer,
+    checkpoint: Path | None = None,
+    fingerprint: str = "",
+    progress: ProgressCallback | None = None,
+    stop_at: int | None = None,
+) -> Trainer:
+    """Step until ``params.iterations`` (or ``stop_at``), logging every ``log_every`` iterations and saving
+    a checkpoint every ``checkpoint_every`` (and at the end) when ``checkpoint`` is given."""
+    p = tr.params
+    end = p.iterations if stop_at is None else min(stop_at, p.iterations)
+    while tr.iteration < end:
+        out = step(tr)
+        if p.log_every > 0 and (tr.iteration % p.log_every == 0 or tr.iteration == end):
+            tr.log.append(
+                {
+                    "iteration": tr.iteration,
+                    "n_gaussians": tr.model.n,
+                    **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in out.items()},
+                }
+            )
+        if checkpoint is not None and p.checkpoint_every > 0 and tr.iteration % p.checkpoint_every == 0:
+            save_checkpoint(tr, checkpoint, fingerprint)
+        if progress is not None:
+            progress(tr.iteration, p.iterations, {**out, "n": tr.model.n})
+    if checkpoint is not None:
+        save_checkpoint(tr, checkpoint, fingerprint)
+    return tr

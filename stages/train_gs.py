@@ -1,0 +1,192 @@
+"""Stage ``train_gs``: reflection-aware 2D Gaussian Splatting (the paper's section 3.2).
+
+Reads the imported views and coarse points (01_import), the corrected mesh (05_correct_mesh) and, per UAV
+view, the baked normal prior and the facade/glass masks (06_bake_normals). Trains on every view but the
+held-out ones (every ``test_every``-th), checkpointing atomically so that a killed run resumes where it
+stopped, and writes the Gaussians (3DGS-style PLY with reflectivity and F0), the reflection module's
+weights, the train/test split and the training log into 07_train/.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from facade_pipeline.config import to_dict
+from facade_pipeline.errors import InputError
+from facade_pipeline.io.atomic import atomic_path, write_json, write_text
+from facade_pipeline.io.exr import read_exr
+from facade_pipeline.io.images import read_image, read_mask
+from facade_pipeline.io.meshes import read_mesh, read_points
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
+from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.shading.reflection import model_name
+from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
+from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.ply import write_ply
+from facade_pipeline.training.render import splatting_rasterizer
+from facade_pipeline.training.trainer import (
+    Trainer,
+    build_trainer,
+    evaluate,
+    load_checkpoint,
+    resolve_device,
+    train,
+)
+from stages._runner import PACKAGE_DIR, StageReport, main
+
+NAME = "train_gs"
+DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
+UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
+LIBRARY = ("training", "shading", "splatting", "io", "scene.py", "geometry/camera.py")
+Params = TrainParams
+BAKED = ("normal_map", "facade_mask", "glass_mask")
+
+
+def _baked(layout: BuildingLayout, stem: str) -> dict[str, Path]:
+    return {k: layout.path(f"bake_{k}", stem=stem) for k in BAKED}
+
+
+def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
+    """The imported scene, images and points, the corrected mesh and every view's baked maps (checked)."""
+    for stage in ("bake_normals", "correct_mesh"):
+        read_manifest(layout, stage)
+    scene = ImportedScene.load(layout)
+    files = [layout.import_scene, layout.import_coarse_points, layout.path("correct_mesh")]
+    for view in scene.uav_views:
+        files += [layout.root / view.image, *_baked(layout, view.stem).values()]
+    for f in files:
+        if not f.is_file():
+            raise InputError(f, "a file written by an upstream stage", "no file")
+    if not scene.uav_views:
+        raise InputError(layout.import_scene, "at least one UAV view", "none")
+    return files
+
+
+def targets(layout: BuildingLayout, params: Params) -> list[Path]:
+    return [
+        layout.path(k)
+        for k in ("train_ply", "train_reflection", "train_log", "train_split", "train_checkpoint")
+    ]
+
+
+def _checked(path: Path, arr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    if arr.shape != shape:
+        raise InputError(path, f"a map of shape {shape} (the view's camera)", f"shape {arr.shape}")
+    return arr
+
+
+def load_view(layout: BuildingLayout, view: View) -> TrainView:
+    """One view's image, masks and normal prior, checked against its camera's size."""
+    cam = view.camera
+    hw = (cam.height, cam.width)
+    paths = _baked(layout, view.stem)
+    img_path = layout.root / view.image
+    image = _checked(img_path, read_image(img_path), (*hw, 3)).astype(np.float32) / 255.0
+    nmap = read_exr(paths["normal_map"])
+    if "N" not in nmap or "valid" not in nmap:
+        raise InputError(paths["normal_map"], "channels N.X/Y/Z and valid", f"channels {sorted(nmap)}")
+    normals = _checked(paths["normal_map"], nmap["N"], (*hw, 3))
+    valid = _checked(paths["normal_map"], nmap["valid"], hw) > 0.5
+    facade = _checked(paths["facade_mask"], read_mask(paths["facade_mask"]), hw)
+    glass = _checked(paths["glass_mask"], read_mask(paths["glass_mask"]), hw)
+    return TrainView(view.stem, cam, image, facade, glass, normals.astype(np.float32), valid)
+
+
+def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
+    scene = ImportedScene.load(layout)
+    views = tuple(load_view(layout, v) for v in scene.uav_views)
+    mesh = read_mesh(layout.path("correct_mesh"))
+    pcd = read_points(layout.import_coarse_points)
+    pts = np.asarray(pcd.points)
+    colors = np.asarray(pcd.colors) if pcd.has_colors() else np.full_like(pts, 0.5)
+    init = InitGeometry(pts, colors, np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    train_idx, test_idx = split_views(len(views), params.test_every)
+    return TrainData(views, train_idx, test_idx, init)
+
+
+def fingerprint(layout: BuildingLayout, params: Params) -> str:
+    """What a checkpoint must match to be resumed: the parameters, the inputs' contents and the code."""
+    h = hashlib.sha256(json.dumps(to_dict(params), sort_keys=True).encode())
+    for f in inputs(layout, params):
+        h.update(sha256_file(f).encode())
+    code = [p for d in ("training", "shading", "splatting") for p in (PACKAGE_DIR / d).rglob("*.py")]
+    h.update(sources_digest(code).encode())
+    return h.hexdigest()
+
+
+def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Path]:
+    write_ply(layout.path("train_ply"), tr.model)
+    refl = {
+        "model": model_name(tr.params.reflection()),
+        "config": asdict(tr.params.reflection()),
+        "bounds": [b.tolist() for b in tr.data.bounds],
+        "state_dict": {} if tr.reflection is None else tr.reflection.state_dict(),
+    }
+    with atomic_path(layout.path("train_reflection")) as tmp:
+        torch.save(refl, tmp)
+    lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": metrics})]
+    write_text(layout.path("train_log"), "\n".join(lines) + "\n")
+    views = tr.data.views
+    write_json(
+        layout.path("train_split"),
+        {
+            "train": [views[i].stem for i in tr.data.train_idx],
+            "test": [views[i].stem for i in tr.data.test_idx],
+        },
+    )
+    return targets(layout, tr.params)
+
+
+def run(layout: BuildingLayout, params: Params) -> StageReport:
+    data = load_train_data(layout, params)
+    device = resolve_device(params.device)
+    rasterize = splatting_rasterizer(params.raster_backend)
+    fp = fingerprint(layout, params)
+    ckpt = layout.path("train_checkpoint")
+    tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)
+    resumed_from = 0 if tr is None else tr.iteration
+    tr = tr or build_trainer(params, data, rasterize, device)
+    with tqdm(
+        total=params.iterations, initial=tr.iteration, desc="train_gs", unit="it", file=sys.stderr
+    ) as bar:
+
+        def progress(it: int, total: int, out: dict) -> None:
+            bar.update(it - bar.n)
+            bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", n=out["n"], refresh=False)
+
+        train(tr, ckpt, fp, progress)
+    metrics = evaluate(tr, data.test_idx)
+    outputs = _save_outputs(layout, tr, metrics)
+    last = tr.log[-1] if tr.log else {}
+    return StageReport(
+        outputs,
+        {
+            "iterations": tr.iteration,
+            "resumed_from_iteration": resumed_from,
+            "n_gaussians": tr.model.n,
+            "reflection_model": params.reflection_model,
+            "device": str(device),
+            "n_train_views": len(data.train_idx),
+            "n_test_views": len(data.test_idx),
+            "final_train_loss": last.get("loss"),
+            "final_train_psnr": last.get("psnr"),
+            "test_psnr": metrics["psnr"],
+            "test_ssim": metrics["ssim"],
+            "test_psnr_glass": metrics["psnr_glass"],
+            "test_normal_error_glass_deg": metrics["normal_error_glass_deg"],
+            "test_views": metrics["views"],
+        },
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.modules[__name__]))
