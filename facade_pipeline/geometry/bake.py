@@ -1,0 +1,137 @@
+"""Baking the geometry prior of one view: world-space normal map and depth map by ray casting the
+corrected mesh, and the facade and glass masks by projecting the 3D panels (the normal prior of Eq. 11).
+
+Rays go through pixel centres (i + 0.5, j + 0.5), a chunk of rows at a time, so memory depends on the image
+size and ``chunk_rays`` only. Normals are unit world vectors turned to face the camera (a camera inside or
+behind the mesh sees back faces; their normals are flipped too); depth is along the camera z axis (m).
+Pixels that hit nothing have ``valid`` False, a zero normal and zero depth: never NaN.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.panels import Panel, PanelSet, PartSurface
+
+POLY_SHIFT = 4  # cv2 fixed-point bits: polygons are filled at 1/16 px
+POLY_LIMIT_PX = 1 << 20  # projected polygon coordinates are clamped here (cv2 int32 fixed point)
+
+
+@dataclass(frozen=True, eq=False)
+class BakedView:
+    """``normal`` [H, W, 3] float32 (world, unit, facing the camera), ``depth`` [H, W] float32 (m, camera
+    z), ``valid`` [H, W] bool."""
+
+    normal: np.ndarray
+    depth: np.ndarray
+    valid: np.ndarray
+
+
+def bake_view(
+    rc: MeshRaycaster, camera: PinholeCamera, chunk_rays: int, progress: Callable[[int], None] | None = None
+) -> BakedView:
+    """Ray-cast every pixel of ``camera`` against the mesh of ``rc``, in bands of whole rows of about
+    ``chunk_rays`` rays. Rays are built by open3d through pixel centres with camera-z component 1, so the
+    hit distance is the depth along the camera axis."""
+    h, w = camera.height, camera.width
+    normal = np.zeros((h, w, 3), np.float32)
+    depth = np.zeros((h, w), np.float32)
+    valid = np.zeros((h, w), bool)
+    band = max(1, int(chunk_rays) // max(1, w))
+    extrinsic = o3d.core.Tensor(camera.cam_from_world)
+    for r0 in range(0, h, band):
+        rows = min(band, h - r0)
+        K = camera.K.copy()
+        K[1, 2] -= r0  # the band's first row becomes row 0
+        rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(o3d.core.Tensor(K), extrinsic, w, rows)
+        if not rc.empty:
+            t, n, _ = rc.cast_rays(rays)
+            hit = np.isfinite(t)
+            d = rays.numpy()[..., 3:].reshape(-1, 3)
+            n[
+                np.einsum("ij,ij->i", n, d) > 0
+            ] *= -1.0  # face the camera (back faces, cameras inside or behind)
+            valid[r0 : r0 + rows] = hit.reshape(rows, w)
+            depth[r0 : r0 + rows] = np.where(hit, t, 0.0).reshape(rows, w)
+            normal[r0 : r0 + rows] = n.reshape(rows, w, 3)
+        if progress is not None:
+            progress(rows * w)
+    return BakedView(normal, depth, valid)
+
+
+def _outline(surface: PartSurface, szh: np.ndarray, samples: int) -> np.ndarray:
+    """World points [4 * samples, 3] around the (s, z) rectangle-like outline ``szh`` [4, 3] on the
+    surface (edges sampled so that curved edges stay curved)."""
+    u = np.linspace(0.0, 1.0, samples, endpoint=False)[:, None]
+    edges = [szh[k] + u * (szh[(k + 1) % 4] - szh[k]) for k in range(4)]
+    return surface.points(np.concatenate(edges))
+
+
+def fill_polygon(camera: PinholeCamera, world: np.ndarray, near_m: float, out: np.ndarray) -> None:
+    """Set to True the pixels of ``out`` [H, W] whose centres lie inside the image of the planar-ish
+    polygon ``world`` [M, 3], clipped at ``near_m`` (m) in front of the camera."""
+    pc = camera.world_to_cam(world)
+    pc = _clip_near(pc, near_m)
+    if len(pc) < 3:
+        return
+    uv = (pc @ camera.K.T)[:, :2] / pc[:, 2:3]
+    uv = np.clip(uv - 0.5, -POLY_LIMIT_PX, POLY_LIMIT_PX)
+    pts = np.round(uv * (1 << POLY_SHIFT)).astype(np.int32).reshape(-1, 1, 2)
+    tmp = np.zeros(out.shape, np.uint8)
+    cv2.fillPoly(tmp, [pts], 1, lineType=cv2.LINE_8, shift=POLY_SHIFT)
+    out |= tmp.astype(bool)
+
+
+def _clip_near(pc: np.ndarray, near: float) -> np.ndarray:
+    """Sutherland-Hodgman clipping of a polygon [M, 3] (camera frame) to the half space z >= near."""
+    out = []
+    for k in range(len(pc)):
+        a, b = pc[k], pc[(k + 1) % len(pc)]
+        if a[2] >= near:
+            out.append(a)
+        if (a[2] >= near) != (b[2] >= near):
+            t = (near - a[2]) / (b[2] - a[2])
+            out.append(a + t * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+def part_outline(panels: tuple[Panel, ...], surface: PartSurface) -> np.ndarray:
+    """Surface coordinates [4, 3] of a part's facade: its panels' extent grown by one frame width (the
+    median gap between neighbouring panels; zero with a single panel)."""
+    szh = np.stack([surface.coords(p.corners) for p in panels])  # [P, 4, 3]
+    gaps = []
+    for axis, (lo_k, hi_k) in ((0, (1, 0)), (1, (2, 1))):  # s: right -> next left; z: top -> next bottom
+        lo = np.unique(np.round(szh[:, hi_k, axis], 6))
+        hi = np.unique(np.round(szh[:, lo_k, axis], 6))
+        d = lo[:, None] - hi[None]
+        d = d[d > 0]
+        if len(d):
+            gaps.append(float(d.min()))
+    fw = float(np.median(gaps)) if gaps else 0.0
+    s0, s1 = szh[..., 0].min() - fw, szh[..., 0].max() + fw
+    z0, z1 = szh[..., 1].min() - fw, szh[..., 1].max() + fw
+    return np.array([[s0, z0, 0.0], [s1, z0, 0.0], [s1, z1, 0.0], [s0, z1, 0.0]])
+
+
+def panel_masks(
+    panels: PanelSet, camera: PinholeCamera, edge_samples: int, near_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(facade, glass) masks [H, W] bool of the view: the projected parts (panels and frames around them)
+    and the projected panels."""
+    facade = np.zeros((camera.height, camera.width), bool)
+    glass = np.zeros_like(facade)
+    for k, surface in enumerate(panels.parts):
+        own = panels.of_part(k)
+        if not own:
+            continue
+        fill_polygon(camera, _outline(surface, part_outline(own, surface), edge_samples), near_m, facade)
+        for p in own:
+            fill_polygon(camera, _outline(surface, surface.coords(p.corners), edge_samples), near_m, glass)
+    return facade | glass, glass

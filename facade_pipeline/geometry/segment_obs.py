@@ -1,0 +1,139 @@
+"""The 2D panel observations of the frontal views (``03_segment``), read and reconciled with the panel mask.
+
+The corners JSON and the mask PNG are specified in data_layout.md ("Hand-off formats"). The mask is
+authoritative: a panel whose quadrilateral disagrees with its mask region is refitted from the region, a
+region with no panel becomes a panel, and a panel with no mask pixel is dropped. Pixels: x right, y down,
+pixel centres at (i + 0.5, j + 0.5); corners bottom-left, bottom-right, top-right, top-left seen from outside.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from facade_pipeline.errors import InputError
+
+
+@dataclass(frozen=True, eq=False)
+class Quad:
+    """One panel in one view: ``corners_px`` [4, 2] in the unrectified frontal image, and ``complete``
+    (False: cut by the border or occluded). ``source`` says where it came from: corners, mask refit, mask."""
+
+    corners_px: np.ndarray
+    complete: bool = True
+    source: str = "corners"
+
+
+@dataclass(frozen=True, eq=False)
+class ViewCorners:
+    """The contents of ``03_segment/corners/{stem}.json``."""
+
+    stem: str
+    width: int
+    height: int
+    rectified: bool
+    facade_found: bool
+    quads: tuple[Quad, ...]
+
+
+def read_view_corners(path: str | Path, width: int, height: int) -> ViewCorners:
+    """Read a corners JSON and check it against the view's size (``width`` x ``height`` px)."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+        quads = []
+        for i, p in enumerate(d["panels"]):
+            c = np.asarray(p["corners_px"], dtype=np.float64)
+            if c.shape != (4, 2) or not np.isfinite(c).all():
+                raise InputError(
+                    path, f"panel {i} with 4 finite [x, y] corners", f"corners of shape {c.shape}"
+                )
+            quads.append(Quad(c, bool(p.get("complete", True))))
+        vc = ViewCorners(
+            str(d["image"]),
+            int(d["width"]),
+            int(d["height"]),
+            bool(d["rectified"]),
+            bool(d["facade_found"]),
+            tuple(quads),
+        )
+    except FileNotFoundError:
+        raise InputError(path, "a panel corners JSON written by segment_panels", "no file") from None
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise InputError(
+            path, "a panel corners JSON (data_layout.md, Hand-off formats)", f"{type(e).__name__}: {e}"
+        ) from None
+    if (vc.width, vc.height) != (width, height):
+        raise InputError(
+            path, f"width x height {width}x{height} (the frontal view)", f"{vc.width}x{vc.height}"
+        )
+    return vc
+
+
+def quad_mask(corners_px: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """[H, W] bool: the pixels whose centre lies inside the quadrilateral ``corners_px`` [4, 2]."""
+    sub = 4  # cv2 fixed-point sub-pixel bits: polygons are filled at 1/16 px precision
+    pts = np.round((np.asarray(corners_px) - 0.5) * (1 << sub)).astype(np.int32)
+    out = np.zeros(shape, np.uint8)
+    cv2.fillPoly(out, [pts.reshape(-1, 1, 2)], 1, lineType=cv2.LINE_8, shift=sub)
+    return out.astype(bool)
+
+
+def fit_quad(region: np.ndarray) -> np.ndarray:
+    """The corners [4, 2] (BL, BR, TR, TL, px) of a roughly axis-aligned quadrilateral region [H, W] bool:
+    its extreme pixels along the two diagonals, taken at their outer pixel corners."""
+    ys, xs = np.nonzero(region)
+    picks = [np.argmin(xs - ys), np.argmax(xs + ys), np.argmax(xs - ys), np.argmin(xs + ys)]
+    outer = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]])
+    return np.array([[xs[i], ys[i]] for i in picks], dtype=np.float64) + outer
+
+
+def reconcile_with_mask(
+    quads: tuple[Quad, ...], mask: np.ndarray, min_region_px: int, refit_iou: float
+) -> tuple[list[Quad], dict[str, int]]:
+    """Make the view's panels agree with its authoritative ``mask`` [H, W] bool (8-connected regions of at
+    least ``min_region_px`` px). Returns the panels and counts: dropped (no mask pixel), refit (IoU with its
+    region below ``refit_iou``) and added (region without panel)."""
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    sizes = np.bincount(labels.ravel(), minlength=n)
+    owners: dict[int, list[int]] = {}
+    best: list[int] = []
+    for i, q in enumerate(quads):
+        inside = labels[quad_mask(q.corners_px, mask.shape)]
+        counts = np.bincount(inside, minlength=n)
+        counts[0] = 0
+        best.append(int(counts.argmax()) if counts.max() > 0 else 0)
+        if best[-1]:
+            owners.setdefault(best[-1], []).append(i)
+    out: list[Quad] = []
+    stats = {"dropped": 0, "refit": 0, "added": 0}
+    for i, q in enumerate(quads):
+        lab = best[i]
+        if lab == 0:
+            stats["dropped"] += 1
+            continue
+        region = labels == lab
+        poly = quad_mask(q.corners_px, mask.shape)
+        iou = (region & poly).sum() / max(1, (region | poly).sum())
+        if iou < refit_iou and len(owners[lab]) == 1 and sizes[lab] >= min_region_px:
+            out.append(Quad(fit_quad(region), q.complete, "mask_refit"))
+            stats["refit"] += 1
+        else:
+            out.append(q)
+    for lab in range(1, n):
+        if lab not in owners and sizes[lab] >= min_region_px:
+            region = labels == lab
+            ys, xs = np.nonzero(region)
+            border = (
+                xs.min() == 0
+                or ys.min() == 0
+                or xs.max() == mask.shape[1] - 1
+                or ys.max() == mask.shape[0] - 1
+            )
+            out.append(Quad(fit_quad(region), not border, "mask"))
+            stats["added"] += 1
+    return out, stats

@@ -1,0 +1,133 @@
+"""Stage ``bake_normals``: the geometry prior of every training (UAV) view (Eq. 11's normal prior).
+
+Reads ``05_correct_mesh/corrected_mesh.ply``, ``04_regularize/panels.json`` and the imported scene; writes
+per view a world-space normal map and a depth map (EXR float32, each with a ``valid`` channel; no NaN) by
+ray casting the corrected mesh, and the facade and glass masks (PNG) by projecting the 3D panels. One view
+at a time, ``chunk_rays`` rays at a time: memory does not grow with the number of views. On synthetic
+buildings the manifest compares the maps with gt/ (metrics only).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from facade_pipeline.geometry.bake import bake_view, panel_masks
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.io.exr import read_exr, write_exr
+from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.io.meshes import read_mesh
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.panels import PanelSet
+from facade_pipeline.scene import ImportedScene, View
+from stages._runner import StageReport, main
+
+NAME = "bake_normals"
+DOC = "bake world-space normal and depth maps (EXR) and facade/glass masks (PNG) for every training view"
+UPSTREAM: tuple[str, ...] = ("correct_mesh", "regularize_corners", "import_photogrammetry")
+LIBRARY = ("geometry/bake.py", "geometry/raycast.py", "geometry/camera.py", "io", "scene.py", "panels.py")
+
+
+@dataclass(frozen=True)
+class Params:
+    chunk_rays: int
+    """Rays cast per batch; bounds memory (-)."""
+    mask_edge_samples: int
+    """Points per panel edge when projecting panels into masks, so curved edges stay curved (-)."""
+    mask_near_m: float
+    """Panels are clipped this far (m) in front of the camera before projection."""
+
+
+def _outputs(layout: BuildingLayout, stem: str) -> dict[str, Path]:
+    return {
+        k: layout.path(f"bake_{k}", stem=stem)
+        for k in ("normal_map", "depth_map", "facade_mask", "glass_mask")
+    }
+
+
+def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
+    for stage in ("correct_mesh", "regularize_corners"):
+        read_manifest(layout, stage)
+    files = [layout.import_scene, layout.path("correct_mesh"), layout.path("regularize_panels")]
+    ImportedScene.load(layout)
+    PanelSet.load(files[-1])
+    return files
+
+
+def _truth(
+    layout: BuildingLayout,
+    local_from_georef: np.ndarray,
+    view: View,
+    normal: np.ndarray,
+    valid: np.ndarray,
+    glass: np.ndarray,
+) -> tuple[np.ndarray, float] | None:
+    """Normal angle errors (deg) on true glass pixels and the glass-mask IoU of one view (metrics only)."""
+    if not layout.gt("normal_map", view.stem).is_file():
+        return None
+    gt_n = read_exr(layout.gt("normal_map", view.stem))
+    gt_glass = read_mask(layout.gt("glass_mask", view.stem))
+    true_n = gt_n["N"] @ local_from_georef[:3, :3].T  # normals turn with the frame
+    sel = gt_glass & valid & (gt_n["valid"] > 0.5)
+    err = np.degrees(np.arccos(np.clip(np.sum(normal[sel] * true_n[sel], axis=1), -1.0, 1.0)))
+    iou = (glass & gt_glass).sum() / max(1, (glass | gt_glass).sum())
+    return err, float(iou)
+
+
+def run(layout: BuildingLayout, params: Params) -> StageReport:
+    scene = ImportedScene.load(layout)
+    mesh = read_mesh(layout.path("correct_mesh"))
+    rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    panels = PanelSet.load(layout.path("regularize_panels"))
+    views = scene.uav_views
+    local_from_georef = np.linalg.inv(scene.georef_from_local)
+    outputs: list[Path] = []
+    errs, ious, n_rays, n_valid, t_cast = [], [], 0, 0, 0.0
+    total = sum(v.camera.width * v.camera.height for v in views)
+    with tqdm(total=total, desc="bake: rays", unit="ray", unit_scale=True, file=sys.stderr) as bar:
+        for v in views:
+            t0 = time.perf_counter()
+            baked = bake_view(rc, v.camera, params.chunk_rays, bar.update)
+            t_cast += time.perf_counter() - t0
+            facade, glass = panel_masks(panels, v.camera, params.mask_edge_samples, params.mask_near_m)
+            out = _outputs(layout, v.stem)
+            valid = baked.valid.astype(np.float32)
+            write_exr(out["normal_map"], {"N": baked.normal, "valid": valid})
+            write_exr(out["depth_map"], {"depth": baked.depth, "valid": valid})
+            write_mask(out["facade_mask"], facade)
+            write_mask(out["glass_mask"], glass)
+            outputs += list(out.values())
+            n_rays += baked.valid.size
+            n_valid += int(baked.valid.sum())
+            truth = _truth(layout, local_from_georef, v, baked.normal, baked.valid, glass)
+            if truth is not None:
+                errs.append(truth[0])
+                ious.append(truth[1])
+    metrics = {
+        "n_views": len(views),
+        "rays": n_rays,
+        "valid_fraction": round(n_valid / max(1, n_rays), 4),
+        "rays_per_s": round(n_rays / max(t_cast, 1e-9)),
+    }
+    if ious:
+        e = np.concatenate(errs)
+        metrics["truth"] = {
+            "glass_normal_error_mean_deg": round(float(e.mean()), 4) if len(e) else None,
+            "glass_normal_error_p95_deg": round(float(np.percentile(e, 95)), 4) if len(e) else None,
+            "glass_mask_iou_mean": round(float(np.mean(ious)), 4),
+        }
+    return StageReport(outputs, metrics)
+
+
+def targets(layout: BuildingLayout, params: Params) -> list[Path]:
+    return []  # one set of maps per view: the views are known only once the import ran
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.modules[__name__]))

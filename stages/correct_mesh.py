@@ -1,0 +1,133 @@
+"""Stage ``correct_mesh``: geometric correction of the coarse facade mesh with the 3D panels (the paper,
+section 3.1.3, Fig. 6b).
+
+Reads ``01_import/coarse_mesh.ply`` and ``04_regularize/panels.json``; writes
+``05_correct_mesh/corrected_mesh.ply`` (inserted glass coloured ``panel_color``, coarse vertices keep theirs).
+On synthetic buildings the manifest compares the corrected and the coarse mesh with gt/ (surface distance on
+glass and frames, normal error on glass) and says whether the targets are met (gt is read for metrics only).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from facade_pipeline.geometry.frames import invert_rigid, transform_points
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.meshing.correct import correct_mesh
+from facade_pipeline.meshing.metrics import surface_errors
+from facade_pipeline.panels import PanelSet
+from facade_pipeline.scene import ImportedScene
+from stages._runner import StageReport, main
+
+NAME = "correct_mesh"
+DOC = "replace the coarse mesh inside each panel's cuboid by the shrunk 3D panel, keeping the frames"
+UPSTREAM: tuple[str, ...] = ("regularize_corners", "import_photogrammetry")
+LIBRARY = ("meshing", "geometry/raycast.py", "geometry/frames.py", "io", "scene.py", "panels.py")
+
+
+@dataclass(frozen=True)
+class Params:
+    shrink_factor: float
+    """Each panel is shrunk in its surface about its centre by this factor (0-1) before insertion."""
+    cuboid_half_depth_m: float
+    """The coarse mesh within this distance (m) of a shrunk panel along its normal is removed."""
+    removal: Literal["any_vertex", "centroid", "all_vertices"]
+    """A coarse triangle is inside a cuboid when any vertex, its centroid, or all vertices are."""
+    max_facet_deg: float
+    """Panels on cylindrical parts are split into flat facets spanning at most this angle (deg)."""
+    panel_color: tuple[float, float, float]
+    """Vertex colour of the inserted glass (0-1)."""
+    metric_samples: int
+    """Points sampled on a mesh for the metrics against gt/ (synthetic buildings) (-)."""
+    metric_max_match_m: float
+    """Samples farther than this (m) from every true surface are left out of the metrics."""
+    target_normal_error_deg: float
+    """Target: mean normal error on glass (deg) of the corrected mesh."""
+    target_distance_fraction: float
+    """Target: mean surface distance on glass as a fraction of the median panel width (-)."""
+
+
+def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
+    read_manifest(layout, "regularize_corners")
+    files = [layout.import_scene, layout.import_coarse_mesh, layout.path("regularize_panels")]
+    PanelSet.load(files[-1])
+    return files
+
+
+def truth_metrics(
+    layout: BuildingLayout,
+    params: Params,
+    meshes: dict[str, tuple[np.ndarray, np.ndarray]],
+    panel_width_m: float,
+) -> dict:
+    """Coarse vs corrected against gt/ (synthetic buildings only; metrics, never used to build a mesh)."""
+    if not (layout.gt("glass_mesh").is_file() and layout.gt("frame_mesh").is_file()):
+        return {}
+    local_from_georef = invert_rigid(ImportedScene.load(layout).georef_from_local)
+    truth = []
+    for key in ("glass_mesh", "frame_mesh"):
+        m = read_mesh(layout.gt(key))
+        truth.append(
+            MeshRaycaster(
+                transform_points(local_from_georef, np.asarray(m.vertices)), np.asarray(m.triangles)
+            )
+        )
+    out: dict = {
+        name: surface_errors(v, f, *truth, params.metric_samples, params.metric_max_match_m)
+        for name, (v, f) in meshes.items()
+    }
+    c = out["corrected"]
+    out["panel_width_m"] = round(panel_width_m, 4)
+    out["target_glass_normal_met"] = bool(
+        c["glass_normal_error_mean_deg"] is not None
+        and c["glass_normal_error_mean_deg"] <= params.target_normal_error_deg
+    )
+    out["target_glass_distance_met"] = bool(
+        c["glass_distance_mean_m"] is not None
+        and c["glass_distance_mean_m"] <= params.target_distance_fraction * panel_width_m
+    )
+    return {"truth": out}
+
+
+def run(layout: BuildingLayout, params: Params) -> StageReport:
+    coarse = read_mesh(layout.import_coarse_mesh)
+    panels = PanelSet.load(layout.path("regularize_panels"))
+    v, f = np.asarray(coarse.vertices), np.asarray(coarse.triangles)
+    fixed = correct_mesh(
+        v, f, panels, params.shrink_factor, params.cuboid_half_depth_m, params.max_facet_deg, params.removal
+    )
+    colors = np.tile(np.asarray(params.panel_color), (len(fixed.vertices), 1))
+    if coarse.has_vertex_colors():
+        colors[: len(v)] = np.asarray(coarse.vertex_colors)
+    mesh = make_mesh(fixed.vertices, fixed.triangles, colors)
+    mesh.remove_unreferenced_vertices()
+    mesh.compute_vertex_normals()
+    out = layout.path("correct_mesh")
+    write_mesh(out, mesh)
+    width = float(np.median([p.width_m for p in panels.panels])) if panels.panels else 0.0
+    metrics = {
+        "n_panels_inserted": len(panels.panels),
+        "coarse_triangles_removed": fixed.n_removed,
+        "panel_triangles": int(fixed.is_panel.sum()),
+        "triangles": len(mesh.triangles),
+        **truth_metrics(
+            layout, params, {"coarse": (v, f), "corrected": (fixed.vertices, fixed.triangles)}, width
+        ),
+    }
+    return StageReport([out], metrics)
+
+
+def targets(layout: BuildingLayout, params: Params) -> list[Path]:
+    return [layout.path("correct_mesh")]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.modules[__name__]))

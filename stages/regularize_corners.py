@@ -1,0 +1,148 @@
+"""Stage ``regularize_corners``: 3D glass panel models from the panels segmented in the frontal views (the
+paper, end of section 3.1.2).
+
+Reads the frontal views' panel corners and authoritative panel masks (``03_segment``), the imported
+scene, coarse mesh and coarse points (``01_import``); writes ``04_regularize/panels.json`` (a ``PanelSet``).
+Rejected rays (missed, grazing, ghost) and grid outliers are counted in the manifest; on synthetic
+buildings the 3D corner error against gt/panels.json is added (gt is read for that metric only).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from facade_pipeline.errors import InputError
+from facade_pipeline.geometry.frames import invert_rigid, transform_points
+from facade_pipeline.geometry.panel_grid import build_panel_set
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.geometry.regularize import RegularizeConfig
+from facade_pipeline.geometry.segment_obs import read_view_corners, reconcile_with_mask
+from facade_pipeline.io.images import image_size, read_mask
+from facade_pipeline.io.meshes import read_mesh, read_points
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.meshing.metrics import corner_errors
+from facade_pipeline.scene import ImportedScene
+from stages import PIPELINE
+from stages._runner import StageReport, main
+
+NAME = "regularize_corners"
+DOC = "3D panel models: ray-cast segmented corners onto the coarse mesh, merge, regularise rows and columns"
+# segment_panels writes the corners and masks; until it is part of the pipeline they are read as they are.
+UPSTREAM: tuple[str, ...] = (("segment_panels",) if "segment_panels" in PIPELINE else ()) + (
+    "import_photogrammetry",
+)
+LIBRARY = (
+    "geometry/camera.py",
+    "geometry/frames.py",
+    "geometry/raycast.py",
+    "geometry/regularize.py",
+    "geometry/panel_grid.py",
+    "geometry/segment_obs.py",
+    "io",
+    "scene.py",
+    "panels.py",
+    "meshing/metrics.py",
+)
+Params = RegularizeConfig
+
+
+def _segment_files(layout: BuildingLayout, scene: ImportedScene) -> list[tuple[Path, Path]]:
+    """(corners JSON, mask PNG) of every frontal view, as listed by segment_panels' manifest if it runs."""
+    pairs = [
+        (layout.path("segment_corners", stem=v.stem), layout.path("segment_mask", stem=v.stem))
+        for v in scene.frontal_views
+    ]
+    listed = set(read_manifest(layout, "segment_panels").outputs) if "segment_panels" in UPSTREAM else None
+    for pair in pairs:
+        for p in pair:
+            if listed is not None and layout.relative(p) not in listed:
+                raise InputError(
+                    layout.manifest("segment_panels"),
+                    f"{layout.relative(p)} among the outputs",
+                    "it is not listed",
+                )
+            if not p.is_file():
+                raise InputError(p, "a file of segment_panels (data_layout.md, Hand-off formats)", "no file")
+    return pairs
+
+
+def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
+    scene = ImportedScene.load(layout)
+    files = [layout.import_scene, layout.import_coarse_mesh, layout.import_coarse_points]
+    for (corners, mask), view in zip(_segment_files(layout, scene), scene.frontal_views, strict=True):
+        c = view.camera
+        if image_size(mask) != (c.width, c.height):
+            raise InputError(
+                mask, f"a {c.width}x{c.height} mask (the frontal view)", "{}x{}".format(*image_size(mask))
+            )
+        files += [corners, mask]
+    return files
+
+
+def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
+    """The reconciled panel quads of every frontal view and the mask reconciliation counts."""
+    quads, complete, view = [], [], []
+    counts = {"dropped": 0, "refit": 0, "added": 0}
+    views = scene.frontal_views
+    pairs = _segment_files(layout, scene)
+    for i, (v, (cpath, mpath)) in enumerate(
+        tqdm(list(zip(views, pairs, strict=True)), desc="regularize: views", unit="view", file=sys.stderr)
+    ):
+        vc = read_view_corners(cpath, v.camera.width, v.camera.height)
+        mask = read_mask(mpath)
+        found, stats = reconcile_with_mask(
+            vc.quads if vc.facade_found else (), mask, params.mask_min_region_px, params.mask_refit_iou
+        )
+        for k in counts:
+            counts[k] += stats[k]
+        for q in found:
+            quads.append(q.corners_px)
+            complete.append(q.complete)
+            view.append(i)
+    return quads, complete, view, counts
+
+
+def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels) -> dict:
+    """Corner error against gt/panels.json on synthetic buildings (metrics only)."""
+    if not layout.gt("panels").is_file():
+        return {}
+    local_from_georef = invert_rigid(scene.georef_from_local)
+    true = [
+        transform_points(local_from_georef, np.array(p["corners"]))
+        for p in json.loads(layout.gt("panels").read_text())["panels"]
+    ]
+    return {"truth": {**corner_errors(panels, np.array(true)), "true_panels": len(true)}}
+
+
+def run(layout: BuildingLayout, params: Params) -> StageReport:
+    scene = ImportedScene.load(layout)
+    mesh = read_mesh(layout.import_coarse_mesh)
+    rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    points = np.asarray(read_points(layout.import_coarse_points).points)
+    quads, complete, view, counts = _observations(layout, scene, params)
+    cameras = [v.camera for v in scene.frontal_views]
+    panels, metrics = build_panel_set(quads, complete, view, cameras, rc, points, params)
+    out = layout.path("regularize_panels")
+    panels.save(out)
+    metrics = {
+        "n_frontal_views": len(cameras),
+        "coarse_triangles_degenerate": rc.n_dropped,
+        **{f"mask_panels_{k}": n for k, n in counts.items()},
+        **metrics,
+        **_truth_metrics(layout, scene, panels),
+    }
+    return StageReport([out], metrics)
+
+
+def targets(layout: BuildingLayout, params: Params) -> list[Path]:
+    return [layout.path("regularize_panels")]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.modules[__name__]))

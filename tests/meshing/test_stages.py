@@ -1,0 +1,102 @@
+"""The three 3D stages on a small synthetic64: targets met, counts in the manifests, files in the layout,
+the authoritative mask, and bad inputs named."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from facade_pipeline.errors import InputError
+from facade_pipeline.io.exr import read_exr
+from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.panels import PanelSet
+from facade_pipeline.scene import ImportedScene
+from tests.meshing.conftest import run_stage
+
+
+def test_panels_match_truth_and_counts_are_reported(built64):
+    m = read_manifest(built64, "regularize_corners").metrics
+    assert m["n_panels"] == 12 and m["n_parts"] == 1
+    assert m["truth"]["corner_error_mean_m"] < 0.03  # 0.3 px noise at 6 m is 3 cm per corner before averaging
+    for key in ("rays_rejected_missed", "rays_rejected_grazing", "rays_rejected_ghost", "corner_outliers"):
+        assert isinstance(m[key], int)
+    panels = PanelSet.load(built64.path("regularize_panels"))
+    assert sorted((p.row, p.col) for p in panels.panels) == [(r, c) for r in range(3) for c in range(4)]
+    assert all(
+        p.n_views == 1 for p in panels.panels
+    )  # every panel of synthetic64 is seen by one frontal view
+
+
+def test_corrected_mesh_meets_targets_and_beats_coarse(built64):
+    t = read_manifest(built64, "correct_mesh").metrics["truth"]
+    assert t["target_glass_normal_met"] and t["target_glass_distance_met"]
+    assert t["corrected"]["glass_normal_error_mean_deg"] < 1.0 < t["coarse"]["glass_normal_error_mean_deg"]
+    assert (
+        t["corrected"]["glass_distance_mean_m"]
+        < 0.01 * t["panel_width_m"]
+        < t["coarse"]["glass_distance_mean_m"]
+    )
+    assert t["corrected"]["frame_distance_p95_m"] < 0.05  # frames were kept
+
+
+def test_bake_outputs_are_finite_and_face_the_camera(built64):
+    scene = ImportedScene.load(built64)
+    m = read_manifest(built64, "bake_normals")
+    assert m.metrics["n_views"] == len(scene.uav_views) == 4
+    assert m.metrics["truth"]["glass_normal_error_mean_deg"] < 1.0
+    for v in scene.uav_views:
+        n = read_exr(built64.path("bake_normal_map", stem=v.stem))
+        d = read_exr(built64.path("bake_depth_map", stem=v.stem))
+        assert n["N"].dtype == np.float32 and np.isfinite(n["N"]).all() and np.isfinite(d["depth"]).all()
+        valid = n["valid"] > 0.5
+        assert valid.any() and (d["valid"] == n["valid"]).all()
+        assert np.allclose(np.linalg.norm(n["N"][valid], axis=1), 1.0, atol=1e-5)
+        assert (n["N"][~valid] == 0).all() and (d["depth"][~valid] == 0).all()
+        o, dirs = v.camera.all_pixel_rays()
+        assert (np.sum(n["N"].reshape(-1, 3) * dirs, axis=1)[valid.ravel()] < 0).all()
+        glass = read_mask(built64.path("bake_glass_mask", stem=v.stem))
+        facade = read_mask(built64.path("bake_facade_mask", stem=v.stem))
+        assert glass.any() and not (glass & ~facade).any()
+
+
+@pytest.fixture
+def copy64(built64, tmp_path):
+    root = tmp_path / "data"
+    shutil.copytree(built64.root, root / "synthetic64")
+    return BuildingLayout(root, "synthetic64")
+
+
+def test_mask_is_authoritative(copy64):
+    """A panel erased from the mask is dropped; a mask region without corners becomes a panel."""
+    layout = copy64
+    stem = ImportedScene.load(layout).frontal_views[0].stem
+    cpath = layout.path("segment_corners", stem=stem)
+    d = json.loads(cpath.read_text())
+    removed = d["panels"].pop(0)  # corners gone, mask kept: the mask brings the panel back
+    cpath.write_text(json.dumps(d))
+    m = run_stage("regularize_corners", layout).get("metrics")
+    assert m["mask_panels_added"] >= 1 and m["n_panels"] == 12
+    mpath = layout.path("segment_mask", stem=stem)
+    mask = read_mask(mpath)
+    d["panels"].insert(0, removed)
+    cpath.write_text(json.dumps(d))
+    x, y = np.asarray(removed["corners_px"]).mean(axis=0).astype(int)
+    from scipy import ndimage
+
+    lab, _ = ndimage.label(mask)
+    mask[lab == lab[y, x]] = False  # the person erased that panel
+    write_mask(mpath, mask)
+    m = run_stage("regularize_corners", layout)["metrics"]
+    assert m["mask_panels_dropped"] == 1 and m["n_panels"] == 11
+
+
+def test_missing_segment_file_is_named(copy64):
+    stem = ImportedScene.load(copy64).frontal_views[1].stem
+    copy64.path("segment_mask", stem=stem).unlink()
+    with pytest.raises(InputError, match=f"masks/{stem}.png"):
+        run_stage("regularize_corners", copy64)
