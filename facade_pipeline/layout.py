@@ -75,6 +75,13 @@ ENTRIES: dict[str, str] = {
     "segment_corners": "03_segment/corners/{stem}.json",
     "segment_mask": "03_segment/masks/{stem}.png",
     "segment_overlay": "03_segment/overlays/{stem}.png",
+    # 04-06: 3D panels, corrected mesh, baked geometry prior of the training views
+    "regularize_panels": "04_regularize/panels.json",
+    "correct_mesh": "05_correct_mesh/corrected_mesh.ply",
+    "bake_normal_map": "06_bake_normals/normals/{stem}.exr",
+    "bake_depth_map": "06_bake_normals/depth/{stem}.exr",
+    "bake_facade_mask": "06_bake_normals/masks/facade/{stem}.png",
+    "bake_glass_mask": "06_bake_normals/masks/glass/{stem}.png",
     # 07_train: the trained Gaussians and what produced them
     "train_ply": "07_train/gaussians.ply",
     "train_reflection": "07_train/reflection.pt",
