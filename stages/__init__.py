@@ -21,6 +21,7 @@ PIPELINE: tuple[str, ...] = (
     "synthesize",
     "import_photogrammetry",
     "rectify",
+    "segment_panels",
 )
 
 

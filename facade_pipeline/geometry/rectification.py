@@ -147,3 +147,12 @@ def warp_image(image: np.ndarray, rect: ViewRectification) -> np.ndarray:
         return image.copy()
     mx, my = remap_maps(rect.inverse, rect.width, rect.height)
     return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def valid_region(rect: ViewRectification, width: int, height: int) -> np.ndarray:
+    """[height, width] bool of the rectified canvas: True where the inverse warp lands inside the
+    original W x H view (all True for identity warps)."""
+    if rect.kind != "curved":
+        return np.ones((rect.height, rect.width), bool)
+    mx, my = remap_maps(rect.inverse, rect.width, rect.height)
+    return (mx >= 0) & (mx <= width - 1) & (my >= 0) & (my <= height - 1)

@@ -1,0 +1,132 @@
+"""Accuracy of a segmentation against a synthetic building's truth (tests and benchmarks only: no stage
+reads gt/). Pure functions over arrays and the parsed ``gt/panels.json``.
+
+- corners: each predicted corner that is a true corner (not on the image border, where cut panels are
+  closed) against the nearest true panel corner projected into the view (Eq. 6), in pixels;
+- count: true panels visible in the view = connected components (4-connected) of the true glass mask with
+  at least ``min_area_px`` pixels, against the panels in the corners file;
+- mask IoU per predicted panel against the true glass component it overlaps most.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.geometry.frames import transform_points
+
+
+def true_corners_px(panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray) -> np.ndarray:
+    """[T, 2] pixel positions of every true panel corner in front of ``camera`` (world -> local frame first)."""
+    c = np.array([p["corners"] for p in panels_json["panels"]], dtype=np.float64).reshape(-1, 3)
+    uv, z = camera.project(transform_points(local_from_world, c))
+    return uv[z > 0]
+
+
+def true_edges_px(panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray,
+                  surface_point, samples: int = 9) -> list[np.ndarray]:
+    """Each true panel edge as [samples, 2] pixel positions along the true surface (``surface_point(a, b,
+    t) -> [n, 3]`` interpolates between corners a and b on the facade, curved where it is)."""
+    out = []
+    for p in panels_json["panels"]:
+        c = np.asarray(p["corners"], dtype=np.float64)
+        for i in range(4):
+            pts = surface_point(c[i], c[(i + 1) % 4], np.linspace(0.0, 1.0, samples))
+            uv, z = camera.project(transform_points(local_from_world, pts))
+            if np.all(z > 0):
+                out.append(uv)
+    return out
+
+
+def corner_errors(pred_panels: list[dict], true_px: np.ndarray, width: int, height: int,
+                  border_tol_px: float = 0.01) -> np.ndarray:
+    """Distances [C] (px) from each predicted corner off the image border to the nearest true corner."""
+    c = np.array([q for p in pred_panels for q in p["corners_px"]], dtype=np.float64).reshape(-1, 2)
+    off = ((c[:, 0] > border_tol_px) & (c[:, 0] < width - border_tol_px)
+           & (c[:, 1] > border_tol_px) & (c[:, 1] < height - border_tol_px))
+    c = c[off]
+    if len(c) == 0 or len(true_px) == 0:
+        return np.zeros(0)
+    return np.linalg.norm(c[:, None] - true_px[None], axis=2).min(axis=1)
+
+
+def glass_components(glass: np.ndarray, min_area_px: int) -> tuple[np.ndarray, list[int]]:
+    """Labels [H, W] of the 4-connected components of the true glass mask and the ids of those kept."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(glass.astype(np.uint8), connectivity=4)
+    return labels, [k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= min_area_px]
+
+
+def panel_ious(pred_labels: np.ndarray, glass: np.ndarray, min_area_px: int) -> np.ndarray:
+    """IoU [P] of each predicted panel (pred_labels == p) with the true glass component it overlaps most."""
+    labels, kept = glass_components(glass, min_area_px)
+    out = []
+    for p in range(int(pred_labels.max()) + 1):
+        mine = pred_labels == p
+        if not mine.any():
+            out.append(0.0)
+            continue
+        ids, counts = np.unique(labels[mine], return_counts=True)
+        counts = np.where(np.isin(ids, kept), counts, 0)
+        g = labels == ids[np.argmax(counts)] if counts.max() > 0 else np.zeros_like(mine)
+        out.append(float((mine & g).sum() / (mine | g).sum()))
+    return np.array(out)
+
+
+def line_deviation_px(points: np.ndarray) -> float:
+    """Largest distance (px) of points [N, 2] from their total-least-squares line."""
+    c = points - points.mean(axis=0)
+    normal = np.linalg.svd(c, full_matrices=False)[2][-1]
+    return float(np.abs(c @ normal).max())
+
+
+def surface_interpolator(part: dict):
+    """``f(a, b, t) -> [n, 3]``: points between corners a and b [3] on a part of gt/scene.json, along the
+    cylinder (about ``axis_point``/``axis_direction``) for cylindrical parts, straight for planar ones."""
+    if part["kind"] != "cylindrical":
+        return lambda a, b, t: a[None] + np.asarray(t)[:, None] * (b - a)[None]
+    o, u = np.asarray(part["axis_point"], float), np.asarray(part["axis_direction"], float)
+
+    def f(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
+        ha, hb = (a - o) @ u, (b - o) @ u
+        ra, rb = a - o - ha * u, b - o - hb * u
+        e1 = ra / np.linalg.norm(ra)
+        e2 = np.cross(u, e1)
+        phi = np.arctan2(rb @ e2, rb @ e1)
+        r = np.linalg.norm(ra) + np.asarray(t)[:, None] * (np.linalg.norm(rb) - np.linalg.norm(ra))
+        ang = np.asarray(t)[:, None] * phi
+        h = ha + np.asarray(t)[:, None] * (hb - ha)
+        return o + h * u + r * (np.cos(ang) * e1 + np.sin(ang) * e2)
+
+    return f
+
+
+def evaluate_view(layout, view, panels_json: dict, scene_json: dict, local_from_world: np.ndarray,
+                  min_area_px: int) -> dict:
+    """Every accuracy figure of one frontal view from the stage outputs and the truth (module docstring)."""
+    import json
+
+    from facade_pipeline.geometry.rectification import ViewRectification
+    from facade_pipeline.io.images import read_mask
+
+    cam, W, H = view.camera, view.camera.width, view.camera.height
+    corners = json.loads(layout.path("segment_corners", stem=view.stem).read_text())
+    rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
+    glass = read_mask(layout.gt("glass_mask", view.stem))
+    errors = corner_errors(corners["panels"], true_corners_px(panels_json, cam, local_from_world), W, H)
+    _, kept = glass_components(glass, min_area_px)
+    from facade_pipeline.segmentation.panels import Panel
+    from stages.segment_panels import panel_labels
+    panels = [Panel(p["row"], p["col"], np.array(p["corners_rectified_px"]), p["complete"], "")
+              for p in corners["panels"]]
+    ious = panel_ious(panel_labels(panels, rect, W, H), glass, min_area_px) if panels else np.zeros(0)
+    complete = np.array([p["complete"] for p in corners["panels"]], bool)
+    straight = []
+    for part in scene_json["parts"]:
+        sel = {"panels": [p for p in panels_json["panels"] if p["part_index"] == part["index"]]}
+        for uv in true_edges_px(sel, cam, local_from_world, surface_interpolator(part)):
+            if uv.min() >= 0 and uv[:, 0].max() <= W and uv[:, 1].max() <= H:
+                straight.append(line_deviation_px(rect.forward(uv) if rect.kind == "curved" else uv))
+    return {"corner_errors_px": errors, "n_true": len(kept), "n_pred": len(corners["panels"]),
+            "iou_complete": ious[complete], "iou_cut": ious[~complete], "edge_straightness_px": np.array(straight),
+            "rectify_residual_px": max(rect.forward.max_px, rect.inverse.max_px), "kind": rect.kind}

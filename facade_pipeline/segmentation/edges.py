@@ -1,0 +1,89 @@
+"""Sub-pixel frame edges: the two edges of each MAP bar, located per row and fitted as straight lines.
+
+Positions follow the pixel-centre convention (pixel i spans [i, i + 1], centre i + 0.5); a forward difference
+``d[i] = I[i + 1] - I[i]`` sits at the boundary position i + 1. Along a bar, the edge position in each row is
+the parabolic sub-pixel peak of the gradient projected on the edge's mean gradient direction (which fixes
+the polarity, so the bar's other edge is never taken). The per-row positions are fitted by weighted least
+squares (weights: peak strength) as ``x = a + b (y - mid)`` with two rounds of outlier rejection.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facade_pipeline.segmentation.grid import Gradients
+
+
+@dataclass(frozen=True)
+class EdgeLine:
+    """A straight edge ``pos = a + b (t - mid)``: ``pos`` across the bars, ``t`` along them (px).
+    ``strength`` [L] is the per-row peak strength along the bar (0 where no edge was found)."""
+
+    a: float
+    b: float
+    mid: float
+    strength: np.ndarray
+
+    def at(self, t: np.ndarray | float) -> np.ndarray:
+        return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
+
+
+def _row_peaks(q: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel peak positions [L] (px) and values [L] of q [L, N - 1] within columns [lo, hi)."""
+    win = q[:, lo:hi]
+    i = np.argmax(win, axis=1)
+    L = len(q)
+    val = win[np.arange(L), i]
+    left = win[np.arange(L), np.maximum(i - 1, 0)]
+    right = win[np.arange(L), np.minimum(i + 1, win.shape[1] - 1)]
+    den = left - 2 * val + right
+    inner = (i > 0) & (i < win.shape[1] - 1) & (den < 0)
+    off = np.where(inner, 0.5 * (left - right) / np.where(den < 0, den, -1.0), 0.0)
+    return lo + i + 1.0 + off, val
+
+
+def fit_edge(grad: Gradients, position: float, sign: float, rows: slice, search_px: float) -> EdgeLine | None:
+    """The edge near ``position`` (px) whose gradient, times ``sign``, points along the rows' mean gradient
+    there; None if there is no such edge."""
+    d = grad.d
+    n = d.shape[1]
+    j = int(np.clip(round(position - 1.0), 0, n - 1))
+    direction = sign * d[rows, j].mean(axis=0)
+    if np.linalg.norm(direction) < 1e-6:
+        return None
+    q = (d @ (direction / np.linalg.norm(direction))).astype(np.float64)  # [L, N - 1]
+    lo = int(max(0, np.floor(position - 1.0 - search_px)))
+    hi = int(min(n, np.ceil(position - 1.0 + search_px) + 1))
+    if hi - lo < 1:
+        return None
+    pos, val = _row_peaks(q, lo, hi)
+    t = np.arange(len(q)) + 0.5
+    use = np.zeros(len(q), bool)
+    use[rows] = True
+    use &= val > 0
+    if use.sum() < 2:
+        return None
+    mid = float(t[use].mean())
+    a, b = float(np.average(pos[use], weights=val[use])), 0.0
+    for tol in (1.0, 0.5):
+        res = np.abs(pos - (a + b * (t - mid)))
+        keep = use & (res <= tol)
+        if keep.sum() < 2:
+            break
+        A = np.stack([np.ones(keep.sum()), t[keep] - mid], axis=1) * val[keep, None]
+        a, b = np.linalg.lstsq(A, pos[keep] * val[keep], rcond=None)[0]
+    strength = np.where(np.abs(pos - (a + b * (t - mid))) <= 1.0, np.maximum(val, 0.0), 0.0)
+    return EdgeLine(float(a), float(b), mid, strength)
+
+
+def bar_edges(grad: Gradients, centre: float, width: float, rows: slice,
+              search_px: float) -> tuple[EdgeLine, EdgeLine] | None:
+    """The (low, high) edges of the bar centred at ``centre`` with ``width`` (px), or None. Each edge takes
+    the polarity of the mean gradient at its expected position."""
+    low = fit_edge(grad, centre - width / 2, 1.0, rows, search_px)
+    high = fit_edge(grad, centre + width / 2, 1.0, rows, search_px)
+    if low is None or high is None or high.a <= low.a:
+        return None
+    return low, high

@@ -1,0 +1,213 @@
+"""Maximum a posteriori panel grid of a (rectified) frontal view (paper, 3.1.2, after its reference [14]).
+
+Model. A curtain wall seen frontally is a grid of frame bars: mullions (vertical) and transoms (horizontal).
+Both families are estimated the same way, in 1D, along the axis across the bars (x for mullions). A family
+is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
+
+- prior (structural regularities of curtain walls): repeated spacing, ``c_k = c_0 + k p + delta_k`` with
+  one pitch ``p`` (panels of equal size) and small deviations ``delta_k ~ N(0, sigma^2)``,
+  ``sigma = max(sigma_min_px, sigma_frac p)``; the lines of the family run across the whole grid (corners
+  aligned in rows and columns); ``p`` uniform in [min_pitch_px, image size]; the bars form one contiguous
+  run of indices ``k`` (no holes in a facade); each line costs ``line_cost`` nats (prior odds against a
+  line, which also picks the number of lines);
+- likelihood (line and edge evidence): a frame bar has two parallel edges of opposite polarity ``w`` apart
+  along its whole length. Per row (for mullions) the bar response is ``sqrt(max(0, -g(c - w/2) . g(c + w/2)))``
+  with ``g`` the colour gradient across the bar; its mean over the grid's rows is E_g(c). LSD segments of the
+  family give the line support S(x) (summed length near x); E_l(c) = sqrt(S(c - w/2) S(c + w/2)) / length.
+  A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
+  is small (glass reflects a varying scene). The log-likelihood ratio of a bar at c is
+  ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / lsd_scale) - v(c) / uniformity_scale``,
+  ``w`` the best width in [min_bar_px, max_bar_px].
+
+MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) - line_cost]`` over ``p``,
+``c_0`` and the contiguous run (exhaustive on a 0.5 px lattice; the run by Kadane's algorithm). Reflections
+of buildings and trees in the glass, the main distractor, are single edges (no opposite-polarity partner at
+the bar width), cover only parts of the grid and are not periodic: they lose against the prior.
+
+Refinement: each bar's two edges are then located per row (sub-pixel, parabolic peak of the gradient
+magnitude) and fitted by robust weighted least squares as straight lines ``x = a + b (y - y_mid)``; panel
+corners are intersections of these edge lines (``panels.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+STEP_PX = 0.5  # lattice of bar-centre hypotheses (px)
+
+
+@dataclass(frozen=True)
+class GridParams:
+    min_pitch_px: float
+    """Smallest panel pitch (px) considered."""
+    sigma_frac: float
+    """Std of a bar's deviation from the regular grid, as a fraction of the pitch (-)."""
+    sigma_min_px: float
+    """... but at least this (px)."""
+    line_cost: float
+    """Prior cost of one grid line (nats): the evidence a bar must bring to be accepted."""
+    min_bar_px: int
+    """Narrowest frame bar (px)."""
+    max_bar_px: int
+    """Widest frame bar (px)."""
+    lsd_weight: float
+    """Weight of the LSD line-support term against the gradient term (-)."""
+    lsd_scale: float
+    """Line support (fraction of the grid's length covered by LSD segments) that counts as strong (-)."""
+    edge_search_px: float
+    """A bar edge is searched this far (px) around its MAP position."""
+    uniformity_scale: float
+    """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
+
+
+@dataclass(frozen=True, eq=False)
+class Gradients:
+    """An RGB float image [L, N, 3] transposed so one family's bars are vertical, with its forward
+    differences ``d`` [L, N - 1, 3] (``d[:, i]`` sits at the boundary position i + 1, px) set to 0 next to
+    invalid pixels (outside the original view in a rectified image); L rows run along the bars."""
+
+    img: np.ndarray
+    d: np.ndarray
+    valid: np.ndarray  # [L, N] bool
+
+    @classmethod
+    def of(cls, image: np.ndarray, axis: int, valid: np.ndarray | None = None) -> Gradients:
+        """axis 0: vertical bars (mullions, positions along x); axis 1: horizontal bars (transoms)."""
+        img = np.asarray(image, dtype=np.float32) / 255.0
+        ok = np.ones(img.shape[:2], bool) if valid is None else np.asarray(valid, bool)
+        if axis == 1:
+            img, ok = img.transpose(1, 0, 2), ok.T
+        d = np.diff(img, axis=1)
+        d[~(ok[:, 1:] & ok[:, :-1])] = 0.0
+        return cls(img, d, ok)
+
+    @property
+    def size(self) -> int:
+        return self.d.shape[1] + 1
+
+    def _interp(self, a: np.ndarray, first: float) -> np.ndarray:
+        """a [L, n, ...] sampled at positions first + i, linearly interpolated at the lattice, 0 outside."""
+        n = a.shape[1]
+        f = np.arange(int(self.size / STEP_PX) + 1) * STEP_PX - first
+        i0 = np.clip(np.floor(f).astype(int), 0, n - 1)
+        i1 = np.clip(i0 + 1, 0, n - 1)
+        t = np.clip(f - i0, 0.0, 1.0).reshape((1, -1) + (1,) * (a.ndim - 2))
+        out = (1 - t) * a[:, i0] + t * a[:, i1]
+        out[:, (f < 0) | (f > n - 1)] = 0.0
+        return out
+
+    def on_lattice(self) -> np.ndarray:
+        """[L, M, 3] gradients at the lattice positions ``j * STEP_PX``."""
+        return self._interp(self.d, 1.0)
+
+    def uniformity(self, rows: slice) -> np.ndarray:
+        """v(c) [M]: median over ``rows`` of the colour distance of the image at position c (interpolated
+        between pixel centres) from its median along the rows; small along a uniform frame bar."""
+        col = self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]  # [L, M, 3]
+        dev = np.linalg.norm(col - np.nanmedian(col, axis=0, keepdims=True), axis=2)
+        with np.errstate(all="ignore"):
+            v = np.nanmedian(dev, axis=0)
+        return np.where(np.isfinite(v), v, 1.0)
+
+
+def bar_evidence(grad: Gradients, rows: slice, params: GridParams) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px).
+
+    Per row, edges gL, gR (colour vectors) at the two sides of the bar give sqrt((|gL||gR| - gL.gR) / 2):
+    |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
+    agree, 0 for equal changes (a ramp, not a bar)."""
+    g = grad.on_lattice()[rows]
+    mag = np.linalg.norm(g, axis=2)
+    M = g.shape[1]
+    best, width = np.zeros(M), np.zeros(M)
+    for w in range(params.min_bar_px, params.max_bar_px + 1):
+        h = w  # half width in lattice steps (w / 2 / STEP_PX)
+        if 2 * h >= M:
+            break
+        dot = (g[:, : M - 2 * h] * g[:, 2 * h:]).sum(axis=2)
+        prod = mag[:, : M - 2 * h] * mag[:, 2 * h:]
+        e = np.pad(np.sqrt(np.maximum(prod - dot, 0.0) / 2).mean(axis=0), (h, h))
+        better = e > best
+        best[better], width[better] = e[better], w
+    return best, width
+
+
+def lsd_evidence(support: np.ndarray, width: np.ndarray, length_px: float) -> np.ndarray:
+    """E_l [M]: geometric mean of the line support at the two edges of a bar of ``width`` [M], per length."""
+    M = len(support)
+    idx = np.arange(M)
+    h = np.maximum(width.astype(int), 1)
+    left = support[np.clip(idx - h, 0, M - 1)]
+    right = support[np.clip(idx + h, 0, M - 1)]
+    return np.sqrt(left * right) / max(length_px, 1.0)
+
+
+def log_likelihood(e_grad: np.ndarray, e_lsd: np.ndarray, uniformity: np.ndarray,
+                   params: GridParams) -> np.ndarray:
+    """l(c) [M] of the module docstring."""
+    background = float(np.median(e_grad)) + 1e-6
+    return (np.log1p(e_grad / background) + params.lsd_weight * np.log1p(e_lsd / params.lsd_scale)
+            - uniformity / params.uniformity_scale)
+
+
+def _relaxed(ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """max over delta of l(c + delta) - delta^2 / (2 sigma^2), |delta| <= 3 sigma, and the best delta (px)."""
+    r = int(np.ceil(3 * sigma_px / STEP_PX))
+    M = len(ll)
+    padded = np.pad(ll, r, constant_values=-np.inf)
+    shifts = np.arange(-r, r + 1)
+    cand = np.stack([padded[r + s: r + s + M] for s in shifts]) - (shifts * STEP_PX)[:, None] ** 2 / (2 * sigma_px**2)
+    k = np.argmax(cand, axis=0)
+    return cand[k, np.arange(M)], shifts[k] * STEP_PX
+
+
+@dataclass(frozen=True)
+class FamilyFit:
+    """MAP bar centres [K] (px) of one family, their widths [K] (px), pitch (px) and the MAP score (nats)."""
+
+    centres: np.ndarray
+    widths: np.ndarray
+    pitch: float
+    score: float
+
+
+def _best_run(values: np.ndarray) -> tuple[float, int, int]:
+    """Kadane over one row of values (-inf = unusable): best sum of a contiguous run of >= 2 terms."""
+    best, lo, hi = -np.inf, 0, 0
+    for i in range(len(values) - 1):
+        s = values[i]
+        for j in range(i + 1, len(values)):
+            s += values[j]
+            if not np.isfinite(s):
+                break
+            if s > best:
+                best, lo, hi = s, i, j + 1
+    return best, lo, hi
+
+
+def map_family(ll: np.ndarray, widths: np.ndarray, size: int, params: GridParams) -> FamilyFit | None:
+    """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines."""
+    M = len(ll)
+    best: tuple[float, np.ndarray, float] | None = None
+    for pitch in np.arange(params.min_pitch_px, size + STEP_PX, STEP_PX):
+        sigma = max(params.sigma_min_px, params.sigma_frac * pitch)
+        relaxed, delta = _relaxed(ll, sigma)
+        k = np.arange(int(size / pitch) + 2)
+        phases = np.arange(0.0, pitch, STEP_PX)
+        pos = phases[:, None] + k[None, :] * pitch  # [P, K] px
+        idx = np.rint(pos / STEP_PX).astype(int)
+        vals = np.where(idx < M, relaxed[np.minimum(idx, M - 1)] - params.line_cost, -np.inf)
+        gain = np.where(vals > 0, vals, 0.0).sum(axis=1)
+        top = gain.argsort()[::-1][:8]  # only the most promising phases need the exact run
+        for p in top:
+            score, lo, hi = _best_run(vals[p])
+            if hi - lo >= 2 and (best is None or score > best[0]):
+                i = idx[p, lo:hi]
+                best = (score, pos[p, lo:hi] + delta[i], pitch)
+    if best is None or best[0] <= 0:
+        return None
+    score, centres, pitch = best
+    lat = np.clip(np.rint(centres / STEP_PX).astype(int), 0, M - 1)
+    return FamilyFit(centres, widths[lat].astype(float), float(pitch), float(score))

@@ -1,0 +1,227 @@
+"""Glass panels of a (rectified) frontal view: LSD segments -> MAP grid of frame bars (``grid``) -> sub-pixel
+bar edges (``edges``) -> panels with four corners, row and column indices, and completeness.
+
+A panel is the opening between two consecutive mullions and two consecutive transoms; its corners are the
+intersections of the four bar edges that face it, ordered bottom-left, bottom-right, top-right, top-left
+(as seen from outside, which is the image's left and right). Rows count from the lowest visible row.
+
+Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
+(``complete = False``) when it is at least ``min_partial_px`` wide and the bars of the other family continue
+into it (their edge strength there is at least ``continuation_ratio`` of that inside the grid); otherwise
+the facade ends at that bar. Partly occluded panels: a panel whose frame edges are supported (edge strength
+at least ``occlusion_support`` of the bar's median) over less than ``min_edge_support`` of any side's length
+is kept, with ``complete = False``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from facade_pipeline.segmentation.edges import EdgeLine, bar_edges
+from facade_pipeline.segmentation.grid import (
+    STEP_PX,
+    FamilyFit,
+    Gradients,
+    GridParams,
+    bar_evidence,
+    log_likelihood,
+    lsd_evidence,
+    map_family,
+)
+from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    upsample: int
+    """LSD runs on the image upsampled by this factor (-)."""
+    min_segment_px: float
+    """Shortest LSD segment kept (px of the view)."""
+    orientation_search_deg: float
+    """The dominant vertical and horizontal angles are searched this far (deg) from 90 and 0 deg."""
+    orientation_tolerance_deg: float
+    """A segment belongs to a family within this angle (deg) of its dominant angle."""
+    lsd_sigma_px: float
+    """Smoothing of the LSD line-support profile (px)."""
+    grid: GridParams
+    """The MAP grid model (``[segment_panels.grid]``)."""
+    min_partial_px: float
+    """A border strip narrower than this (px) holds no partial panel."""
+    continuation_ratio: float
+    """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
+    occlusion_support: float
+    """An edge position is supported at this fraction of its bar's median edge strength (-)."""
+    min_edge_support: float
+    """A panel side supported over less than this fraction of its length is occluded (-)."""
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One panel in the segmented image's pixels: corners [4, 2] (bottom-left, bottom-right, top-right,
+    top-left), indices, and whether it is whole (``reason``: "", "border" or "occluded")."""
+
+    row: int
+    col: int
+    corners: np.ndarray
+    complete: bool
+    reason: str
+
+
+@dataclass
+class Segmentation:
+    facade_found: bool
+    panels: list[Panel]
+    metrics: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Bars:
+    """One family's bars: edge lines (low, high) per bar, along-bar length, and the fit."""
+
+    edges: list[tuple[EdgeLine, EdgeLine]]
+    fit: FamilyFit
+
+
+def _family(image: np.ndarray, valid: np.ndarray | None, segments: np.ndarray, axis: int, span: slice,
+            params: SegmentParams) -> tuple[FamilyFit | None, Gradients]:
+    """MAP bars of one family (axis 0: mullions) with evidence taken over ``span`` along the bars."""
+    grad = Gradients.of(image, axis, valid)
+    e_grad, widths = bar_evidence(grad, span, params.grid)
+    lo, hi, _ = span.indices(grad.d.shape[0])
+    t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
+    inside = segments[(t >= lo) & (t <= hi)]
+    support = support_profile(inside, axis, grad.size, STEP_PX, params.lsd_sigma_px)[: len(e_grad)]
+    ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), grad.uniformity(span), params.grid)
+    return map_family(ll, widths, grad.size, params.grid), grad
+
+
+def _span(fit: FamilyFit | None, size: int) -> slice:
+    """Along-bar range of the other family: from the first to the last bar centre of ``fit``."""
+    if fit is None:
+        return slice(0, size)
+    return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
+
+
+def _edges(fit: FamilyFit, grad: Gradients, span: slice, search_px: float) -> _Bars | None:
+    edges = [bar_edges(grad, c, w, span, search_px) for c, w in zip(fit.centres, fit.widths, strict=True)]
+    edges = [e for e in edges if e is not None]
+    return _Bars(edges, fit) if len(edges) >= 2 else None
+
+
+def find_bars(image: np.ndarray, params: SegmentParams,
+              valid: np.ndarray | None = None) -> tuple[_Bars | None, _Bars | None, dict]:
+    """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
+    evidence over the other's extent only), then sub-pixel edges."""
+    H, W = image.shape[:2]
+    fam = group_segments(detect_segments(image, params.upsample, params.min_segment_px),
+                         params.orientation_tolerance_deg, params.orientation_search_deg)
+    vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
+    v, _ = _family(image, valid, vseg, 0, slice(0, H), params)
+    h, _ = _family(image, valid, hseg, 1, slice(0, W), params)
+    v, gv = _family(image, valid, vseg, 0, _span(h, H), params)
+    h, gh = _family(image, valid, hseg, 1, _span(v, W), params)
+    metrics = {"n_segments": len(fam.segments), "n_vertical_segments": len(vseg),
+               "n_horizontal_segments": len(hseg),
+               "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
+               "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal))}
+    if v is None or h is None:
+        return None, None, metrics
+    bars_v = _edges(v, gv, _span(h, H), params.grid.edge_search_px)
+    bars_h = _edges(h, gh, _span(v, W), params.grid.edge_search_px)
+    metrics.update({"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score,
+                    "map_score_y": h.score})
+    return bars_v, bars_h, metrics
+
+
+def _border(pos: float, length: int) -> EdgeLine:
+    """The image border at ``pos`` as an edge line (no strength)."""
+    return EdgeLine(float(pos), 0.0, 0.0, np.zeros(length))
+
+
+def intersect(v: EdgeLine, h: EdgeLine) -> np.ndarray:
+    """Intersection [2] (x, y) of a vertical edge x = a + b (y - mid) and a horizontal y = a + b (x - mid)."""
+    x = (v.a + v.b * (h.a - h.b * h.mid - v.mid)) / (1.0 - v.b * h.b)
+    return np.array([x, h.a + h.b * (x - h.mid)])
+
+
+def _mean(a: np.ndarray, lo: float, hi: float) -> float:
+    seg = a[int(max(0, np.ceil(lo))): int(max(0, np.floor(hi)))]
+    return float(seg.mean()) if len(seg) else 0.0
+
+
+def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], ratio: float) -> bool:
+    """Do the bars of ``other`` continue over [lo, hi) along them, with ``ratio`` of their strength over
+    ``inside``?"""
+    r = []
+    for e in other.edges:
+        s = np.minimum(e[0].strength, e[1].strength)
+        ref = _mean(s, *inside)
+        r.append(_mean(s, lo, hi) / ref if ref > 0 else 0.0)
+    return float(np.median(r)) >= ratio
+
+
+def openings(bars: _Bars, other: _Bars, size: int, length: int,
+             params: SegmentParams) -> list[tuple[EdgeLine, EdgeLine, bool]]:
+    """Openings across one family's bars, low to high: (low line, high line, cut by the border)."""
+    e = bars.edges
+    inside = (bars.fit.centres[0], bars.fit.centres[-1])
+    out = []
+    if e[0][0].a >= params.min_partial_px and _continues(other, 0, e[0][0].a, inside, params.continuation_ratio):
+        out.append((_border(0, length), e[0][0], True))
+    out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
+    top = e[-1][1].a
+    if size - top >= params.min_partial_px and _continues(other, top, size, inside, params.continuation_ratio):
+        out.append((e[-1][1], _border(size, length), True))
+    return out
+
+
+def _supported(line: EdgeLine, lo: float, hi: float, params: SegmentParams) -> float:
+    """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where the edge is present."""
+    s = line.strength[int(max(0, np.ceil(lo + 1))): int(max(0, np.floor(hi - 1)))]
+    ref = np.median(line.strength[line.strength > 0]) if (line.strength > 0).any() else 0.0
+    return float((s >= params.occlusion_support * ref).mean()) if len(s) and ref > 0 else 1.0
+
+
+def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: SegmentParams) -> list[Panel]:
+    """Panels of every opening of the grid (module docstring), rows counted from the bottom."""
+    cols = openings(bars_v, bars_h, width, height, params)
+    rows = openings(bars_h, bars_v, height, width, params)  # top to bottom in the image
+    panels = []
+    for i, (top, bottom, cut_r) in enumerate(rows):
+        for j, (left, right, cut_c) in enumerate(cols):
+            c = np.array([intersect(left, bottom), intersect(right, bottom), intersect(right, top),
+                          intersect(left, top)])
+            x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
+            if x1 - x0 < 1 or y1 - y0 < 1:
+                continue
+            support = min(_supported(left, y0, y1, params), _supported(right, y0, y1, params),
+                          _supported(top, x0, x1, params), _supported(bottom, x0, x1, params))
+            reason = "border" if cut_r or cut_c else ("occluded" if support < params.min_edge_support else "")
+            panels.append(Panel(len(rows) - 1 - i, j, c, reason == "", reason))
+    return panels
+
+
+def segment_image(image: np.ndarray, params: SegmentParams, valid: np.ndarray | None = None) -> Segmentation:
+    """The panels of an RGB image [H, W, 3] (a planar or rectified frontal view); ``valid`` [H, W] marks
+    the pixels that show the view (a rectified image has none outside the original)."""
+    H, W = image.shape[:2]
+    bars_v, bars_h, metrics = find_bars(image, params, valid)
+    if bars_v is None or bars_h is None:
+        return Segmentation(False, [], metrics)
+    panels = build_panels(bars_v, bars_h, W, H, params)
+    metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
+    return Segmentation(bool(panels), panels, metrics)
+
+
+def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Index [...] of the convex quad (corners [4, 2] each) containing each point (xs, ys), -1 for none."""
+    out = np.full(np.shape(xs), -1, dtype=np.int32)
+    for k, q in enumerate(quads):
+        cross = [(q[(i + 1) % 4, 0] - q[i, 0]) * (ys - q[i, 1]) - (q[(i + 1) % 4, 1] - q[i, 1]) * (xs - q[i, 0])
+                 for i in range(4)]
+        cross = np.stack(cross)
+        inside = (cross >= 0).all(axis=0) | (cross <= 0).all(axis=0)
+        out[inside & (out < 0)] = k
+    return out
