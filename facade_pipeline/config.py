@@ -59,8 +59,14 @@ class BuildingConfig:
         if name not in self.default_tables:
             raise ConfigError(self.files[0], f"a [{name}] section", "none")
         _build(cls, self.default_tables[name], name, (self.files[0],))
-        # default.toml is valid on its own, so whatever fails now came from the building's file.
-        return _build(cls, self.tables[name], name, (self.files[1],))
+        # default.toml is valid on its own, so whatever fails now came from the building's file
+        # (a dataclass's own cross-field check raises without a file: name it here).
+        try:
+            return _build(cls, self.tables[name], name, (self.files[1],))
+        except ConfigError as e:
+            if e.path is not None:
+                raise
+            raise ConfigError(self.files[1], e.expected, e.found) from None
 
 
 def available_buildings(directory: Path | None = None) -> list[str]:

@@ -94,3 +94,12 @@ def test_cli_reports_bad_input_in_one_line(real_building):
     assert "Traceback" not in err
     lines = [ln for ln in err.splitlines() if "import_photogrammetry:" in ln]
     assert len(lines) == 1 and "raw/images/" in lines[0] and "expected" in lines[0]
+
+
+def test_atomic_outputs_get_the_usual_file_mode(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644

@@ -31,12 +31,19 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp_path
         if not tmp_path.exists() or (tmp_path.stat().st_size == 0 and not _allow_empty(path)):
             raise OSError(f"{path}: writer produced no data in {tmp_path}")
+        os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600 files; give outputs the usual mode
         _fsync(tmp_path)
         os.replace(tmp_path, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _allow_empty(path: Path) -> bool:
