@@ -22,6 +22,9 @@ PIPELINE: tuple[str, ...] = (
     "import_photogrammetry",
     "rectify",
     "segment_panels",
+    "regularize_corners",
+    "correct_mesh",
+    "bake_normals",
 )
 
 

@@ -21,6 +21,7 @@ from facade_pipeline.geometry.regularize import (
     footprints_of,
     glass_offset,
     group_parts,
+    quad_flatness,
     quad_frames,
     robust_inliers,
 )
@@ -138,9 +139,9 @@ def build_panel_set(
     rays = corner_rays(quads_px, view, cameras)
     points, status = cast_corners(rc, rays, cfg.grazing_max_deg)
     complete_a = np.asarray(complete, bool)
-    part = group_parts(
-        points, complete_a & (status == OK).all(axis=1), cfg.part_link_factor, cfg.part_max_angle_deg
-    )
+    anchor = complete_a & (status == OK).all(axis=1)
+    anchor[anchor] = quad_flatness(points[anchor]) <= cfg.ghost_max_m / 2
+    part = group_parts(points, anchor, cfg.part_link_factor, cfg.part_max_angle_deg)
     surfaces, extents, offsets = [], [], []
     for p in range(int(part.max()) + 1):
         sel = part == p

@@ -112,6 +112,13 @@ def quad_frames(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return c, edges.mean(axis=1), n
 
 
+def quad_flatness(points: np.ndarray) -> np.ndarray:
+    """[Q] largest distance (m) of a 3D quad's corners [Q, 4, 3] from the plane through its centre spanned by
+    its diagonals: large when a corner landed on ghost geometry in front of or behind the facade."""
+    c, _, n = quad_frames(points)
+    return np.abs(np.einsum("qkj,qj->qk", points - c[:, None], n)).max(axis=1)
+
+
 def group_parts(
     points: np.ndarray, anchor: np.ndarray, link_factor: float, max_angle_deg: float
 ) -> np.ndarray:
@@ -248,6 +255,7 @@ def glass_offset(
     fs = footprints[:, None, None, :]
     s = fs[..., 0] + u[None, :, None] * (fs[..., 1] - fs[..., 0])
     z = fs[..., 2] + u[None, None, :] * (fs[..., 3] - fs[..., 2])
+    s, z = np.broadcast_arrays(s, z)
     szh = np.stack([s, z, np.full_like(s, cfg.depth_window_m)], axis=-1).reshape(-1, 3)
     start = surface.points(szh)
     hits = rc.cast(start, -surface.normals_at(start))

@@ -75,12 +75,24 @@ def read_view_corners(path: str | Path, width: int, height: int) -> ViewCorners:
 
 
 def quad_mask(corners_px: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """[H, W] bool: the pixels whose centre lies inside the quadrilateral ``corners_px`` [4, 2]."""
-    sub = 4  # cv2 fixed-point sub-pixel bits: polygons are filled at 1/16 px precision
-    pts = np.round((np.asarray(corners_px) - 0.5) * (1 << sub)).astype(np.int32)
-    out = np.zeros(shape, np.uint8)
-    cv2.fillPoly(out, [pts.reshape(-1, 1, 2)], 1, lineType=cv2.LINE_8, shift=sub)
-    return out.astype(bool)
+    """[H, W] bool: the pixels whose centre lies inside the polygon ``corners_px`` [K, 2] (even-odd rule,
+    evaluated on the polygon's bounding box only)."""
+    c = np.asarray(corners_px, dtype=np.float64)
+    out = np.zeros(shape, bool)
+    x0, y0 = np.clip(np.floor(c.min(axis=0)).astype(int), 0, [shape[1], shape[0]])
+    x1, y1 = np.clip(np.ceil(c.max(axis=0)).astype(int) + 1, 0, [shape[1], shape[0]])
+    if x1 <= x0 or y1 <= y0:
+        return out
+    ys, xs = np.mgrid[y0:y1, x0:x1] + 0.5
+    inside = np.zeros(xs.shape, bool)
+    for k in range(len(c)):
+        (ax, ay), (bx, by) = c[k], c[(k + 1) % len(c)]
+        crosses = (ay > ys) != (by > ys)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_at = ax + (ys - ay) * (bx - ax) / (by - ay)
+        inside ^= crosses & (xs < x_at)
+    out[y0:y1, x0:x1] = inside
+    return out
 
 
 def fit_quad(region: np.ndarray) -> np.ndarray:

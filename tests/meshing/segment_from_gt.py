@@ -13,6 +13,7 @@ from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import build_manifest
 from facade_pipeline.scene import ImportedScene
 
 
@@ -71,4 +72,25 @@ def write_segment_from_gt(
         )
         write_mask(layout.path("segment_mask", stem=v.stem), read_mask(layout.gt("glass_mask", v.stem)))
         stems.append(v.stem)
+    _stand_in_manifest(layout, stems)
     return stems
+
+
+def _stand_in_manifest(layout: BuildingLayout, stems: list[str]) -> None:
+    """A manifest for 03_segment listing these files, so that downstream stages accept them as the
+    completed segment_panels stage they stand in for (a test fixture, never a pipeline output)."""
+    outputs = [layout.path(k, stem=s) for s in stems for k in ("segment_corners", "segment_mask")]
+    write_json(
+        layout.manifest("segment_panels"),
+        build_manifest(
+            "segment_panels",
+            layout,
+            {"stand_in": "tests/meshing/segment_from_gt.py"},
+            [],
+            outputs,
+            {},
+            {},
+            0.0,
+            0.0,
+        ),
+    )
