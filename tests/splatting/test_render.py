@@ -1,0 +1,248 @@
+"""render_2dgs against the dense float64 reference, between backends, and on the issue's hard cases."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from facade_pipeline.splatting import PixelWindow, cpu_kernel, render_2dgs, resolve_backend
+from facade_pipeline.splatting.binning import bin_splats, pixel_support_bounds
+from facade_pipeline.splatting.blend_torch import BlendSettings, blend_torch
+from facade_pipeline.splatting.surfels import project_surfels
+from tests.splatting.dense_reference import render_dense
+from tests.splatting.scenes import HARD_CASES, MAP_NAMES, TOL, Scene, hard_case, random_scene
+
+needs_cpp = pytest.mark.skipif(cpu_kernel.load() is None, reason="C++ kernel could not be built")
+CPU_BACKENDS = ["torch", pytest.param("cpp", marks=needs_cpp)]
+
+
+def render(scene: Scene, backend: str, params=None, **kw) -> dict[str, torch.Tensor]:
+    params = scene.params() if params is None else params
+    r = render_2dgs(*params, scene.cam_from_world, scene.K, scene.width, scene.height, backend=backend, **kw)
+    return {k: getattr(r, k) for k in MAP_NAMES}
+
+
+def maps_and_grads(scene: Scene, fn, seed: int = 0):
+    """Maps and the gradients of every splat input for a random linear loss on all six maps."""
+    params = [p.detach().clone().requires_grad_() for p in scene.params()]
+    maps = fn(params)
+    g = torch.Generator().manual_seed(seed)
+    # weights drawn in float64 whatever the maps' dtype, so that float32 and float64 runs share the loss
+    weights = {k: torch.randn(v.shape, generator=g, dtype=torch.float64).to(v.dtype) for k, v in maps.items()}
+    loss = sum((maps[k] * weights[k]).sum() for k in maps)
+    grads = torch.autograd.grad(loss, params, allow_unused=True)
+    grads = [torch.zeros_like(p) if gr is None else gr for gr, p in zip(grads, params, strict=True)]
+    return {k: v.detach() for k, v in maps.items()}, grads
+
+
+def dense(scene: Scene):
+    return lambda p: render_dense(*p, scene.cam_from_world, scene.K, scene.width, scene.height)
+
+
+def assert_close(maps_a, grads_a, maps_b, grads_b, dtype):
+    atol, rtol, grad_rtol = TOL[dtype]
+    for k in MAP_NAMES:
+        a, b = maps_a[k].double(), maps_b[k].double()
+        assert a.shape == b.shape, k
+        excess = ((a - b).abs() - atol - rtol * b.abs()).max().item() if a.numel() else 0.0
+        assert excess <= 0, f"{k}: error exceeds {atol} + {rtol} |ref| by {excess:.3g}"
+    names = ("means", "quats", "scales", "opacities", "features")
+    for name, a, b in zip(names, grads_a, grads_b, strict=True):
+        scale = max(b.abs().max().item() if b.numel() else 0.0, 1e-3)
+        err = (a.double() - b.double()).abs().max().item() if a.numel() else 0.0
+        assert err <= grad_rtol * scale, f"d/d{name}: max error {err:.3g} > {grad_rtol} x {scale:.3g}"
+
+
+def assert_finite(maps, grads):
+    for k, v in maps.items():
+        assert torch.isfinite(v).all(), k
+    for g in grads:
+        assert torch.isfinite(g).all()
+
+
+# --- smoke and shapes -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_shapes_and_ranges(backend):
+    scene = random_scene(1, channels=6)
+    maps = render(scene, backend)
+    H, W = scene.height, scene.width
+    assert maps["features"].shape == (H, W, 6) and maps["normal"].shape == (H, W, 3)
+    for k in ("alpha", "depth_expected", "depth_median", "distortion"):
+        assert maps[k].shape == (H, W)
+    assert (maps["alpha"] >= 0).all() and (maps["alpha"] <= 1).all() and maps["alpha"].max() > 0.5
+    covered = maps["alpha"] > 0.5
+    assert (maps["depth_expected"][covered] > 0.2).all()
+    # normals face the camera (at the origin, looking down +z): n . (o - X) >= 0, i.e. n_z <= 0 mostly
+    assert (maps["normal"][covered][:, 2] <= 1e-9).all()
+
+
+# --- exactness: dense reference, between backends, gradcheck --------------------------------------------
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_float64_matches_dense_reference(backend, seed):
+    scene = random_scene(seed)
+    ref = maps_and_grads(scene, dense(scene))
+    got = maps_and_grads(scene, lambda p: render(scene, backend, p))
+    assert_close(*got, *ref, torch.float64)
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_float32_matches_dense_reference(backend):
+    scene = random_scene(3)
+    ref = maps_and_grads(scene, dense(scene))
+    s32 = scene.to(torch.float32)
+    got = maps_and_grads(s32, lambda p: render(s32, backend, p))
+    assert_close(*got, *ref, torch.float32)
+
+
+@needs_cpp
+def test_cpp_equals_torch_backend_float32():
+    scene = random_scene(5, n=150, width=70, height=45, channels=3).to(torch.float32)
+    a = maps_and_grads(scene, lambda p: render(scene, "torch", p))
+    b = maps_and_grads(scene, lambda p: render(scene, "cpp", p))
+    assert_close(*a, *b, torch.float32)
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_gradcheck_float64(backend):
+    scene = random_scene(11, n=5, width=14, height=11, channels=2)
+    scene = replace(scene, means=scene.means * 0.3 + torch.tensor([0, 0, -1.0], dtype=torch.float64))
+
+    def fn(*params):
+        return tuple(render(scene, backend, list(params)).values())
+
+    params = [p.detach().clone().requires_grad_() for p in scene.params()]
+    assert render(scene, backend)["alpha"].max() > 0.3  # the splats are in view
+    # fast mode (random projections of the Jacobian) keeps the slow pure-torch backend under a few seconds
+    assert torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=backend == "torch")
+
+
+def test_torch_backend_is_independent_of_chunking():
+    """Memory bounding (tile groups, depth chunks, carried state) does not change the result."""
+    scene = random_scene(4, n=90)
+    proj = project_surfels(*scene.params()[:3], scene.cam_from_world, scene.K)
+    bins = bin_splats(pixel_support_bounds(proj.ray_transform, scene.opacities, 0.2), proj.depth,
+                      PixelWindow(0, 0, scene.width, scene.height))
+    args = (proj.ray_transform, scene.opacities, scene.features, proj.normal_world, bins)
+    a = blend_torch(*args, BlendSettings(near=0.2, far=100.0))
+    b = blend_torch(*args, BlendSettings(near=0.2, far=100.0, chunk=3, pair_budget=256 * 3))
+    for x, y in zip(a, b, strict=True):
+        torch.testing.assert_close(x, y, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_crop_equals_window_of_full_render(backend):
+    scene = random_scene(2, width=45, height=38)
+    full = render(scene, backend)
+    win = PixelWindow(x0=7, y0=19, width=21, height=17)
+    crop = render(scene, backend, crop=win)
+    for k in MAP_NAMES:
+        torch.testing.assert_close(crop[k], full[k][19:36, 7:28], atol=1e-12, rtol=0)
+    ref = render_dense(*scene.params(), scene.cam_from_world, scene.K, scene.width, scene.height,
+                       x0=7, y0=19, crop_w=21, crop_h=17)
+    torch.testing.assert_close(crop["features"], ref["features"], atol=1e-9, rtol=0)
+
+
+# --- hard cases -------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("case", HARD_CASES)
+def test_hard_case_finite_and_exact(case, backend):
+    scene = hard_case(case)
+    got = maps_and_grads(scene, lambda p: render(scene, backend, p))
+    assert_finite(*got)
+    ref = maps_and_grads(scene, dense(scene))
+    assert_close(*got, *ref, torch.float64)
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_empty_scene(backend, dtype):
+    scene = random_scene(0, n=0).to(dtype)
+    maps = render(scene, backend)
+    assert maps["features"].shape == (scene.height, scene.width, 4)
+    for v in maps.values():
+        assert (v == 0).all()
+
+
+def test_hard_cases_show_expected_behaviour():
+    """Beyond finiteness: what the hard cases must look like."""
+    far = hard_case("far_outside")
+    # splat 0 lies far off to the side: removing it changes nothing (splat 1, 100 km ahead, is a low-pass dot)
+    without = replace(far, opacities=far.opacities * torch.tensor([0, 1, 1, 1, 1, 1.0], dtype=torch.float64))
+    for k, v in render(far, "torch").items():
+        torch.testing.assert_close(v, render(without, "torch")[k], atol=0, rtol=0)
+    assert (render(hard_case("covers_image"), "torch")["alpha"] > 0.5).all()
+    zero = hard_case("opacity_0_and_1")  # splat 0 has opacity 0: its features never show
+    loud = replace(zero, features=zero.features.index_fill(0, torch.tensor([0]), 100.0))
+    torch.testing.assert_close(render(zero, "torch")["features"], render(loud, "torch")["features"])
+    edge = hard_case("edge_on")  # seen exactly edge-on through the centre: only the low-pass blob remains
+    assert render(edge, "torch")["alpha"].max() > 0
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 10_000),
+    log_scale=st.floats(-12, 7),
+    tilt=st.floats(-1e-6, 1e-6) | st.floats(-1.0, 1.0),
+    depth=st.floats(-3.0, 6.0),
+    opacity=st.sampled_from([0.0, 1 / 255, 0.004, 0.5, 0.99, 1.0]),
+)
+def test_property_finite_forward_and_backward(backend, seed, log_scale, tilt, depth, opacity):
+    """Extreme scales, orientations near edge-on, centres behind the camera or across the near plane and
+    boundary opacities never produce NaN or Inf, and the backends agree with the dense reference."""
+    scene = random_scene(seed, n=4, width=20, height=18, channels=2)
+    means = scene.means.clone()
+    means[0] = torch.tensor([0.1, -0.2, depth], dtype=torch.float64)
+    scales = scene.scales.clone()
+    scales[0] = 10.0**log_scale
+    quats = scene.quats.clone()
+    quats[0] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    quats[1] = torch.tensor([2 ** -0.5, 2 ** -0.5 + tilt, 0.0, 0.0], dtype=torch.float64)
+    ops = scene.opacities.clone()
+    ops[0] = opacity
+    scene = replace(scene, means=means, scales=scales, quats=quats, opacities=ops)
+    got = maps_and_grads(scene, lambda p: render(scene, backend, p))
+    assert_finite(*got)
+    ref = maps_and_grads(scene, dense(scene))
+    assert_close(*got, *ref, torch.float64)
+
+
+# --- errors and backend choice ----------------------------------------------------------------------------
+
+
+def test_bad_inputs_raise():
+    s = random_scene(0, n=3)
+    args = s.params() + [s.cam_from_world, s.K, s.width, s.height]
+    with pytest.raises(ValueError, match="scales"):
+        render_2dgs(*args[:2], torch.ones(3, 3, dtype=torch.float64), *args[3:])
+    with pytest.raises(ValueError, match="features"):
+        render_2dgs(*args[:4], torch.ones(3, dtype=torch.float64), *args[5:])
+    with pytest.raises(ValueError, match="dtype"):
+        render_2dgs(args[0].float(), *args[1:])
+    with pytest.raises(ValueError, match="crop window"):
+        render_2dgs(*args, crop=PixelWindow(30, 0, 10, 5))
+    with pytest.raises(ValueError, match="near"):
+        render_2dgs(*args, near=0.0)
+    with pytest.raises(ValueError, match="gsplat"):
+        render_2dgs(*args, backend="gsplat")
+
+
+def test_auto_backend_on_cpu_falls_back_to_torch_with_warning(monkeypatch, caplog):
+    expected = "cpp" if cpu_kernel.load() is not None else "torch"
+    assert resolve_backend("auto", torch.device("cpu")) == expected
+    monkeypatch.setattr(cpu_kernel, "load", lambda: None)
+    with caplog.at_level(logging.WARNING):
+        assert resolve_backend("auto", torch.device("cpu")) == "torch"
+    assert "C++ kernel unavailable" in caplog.text
