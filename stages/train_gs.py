@@ -16,12 +16,11 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from facade_pipeline.config import to_dict
 from facade_pipeline.errors import InputError
-from facade_pipeline.io.atomic import atomic_path, write_json, write_text
+from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.exr import read_exr
 from facade_pipeline.io.images import read_image, read_mask
 from facade_pipeline.io.meshes import read_mesh, read_points
@@ -39,6 +38,7 @@ from facade_pipeline.training.trainer import (
     evaluate,
     load_checkpoint,
     resolve_device,
+    save_torch,
     train,
 )
 from stages._runner import PACKAGE_DIR, StageReport, main
@@ -131,8 +131,7 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Pa
         "bounds": [b.tolist() for b in tr.data.bounds],
         "state_dict": {} if tr.reflection is None else tr.reflection.state_dict(),
     }
-    with atomic_path(layout.path("train_reflection")) as tmp:
-        torch.save(refl, tmp)
+    save_torch(layout.path("train_reflection"), refl)
     lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": metrics})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")
     views = tr.data.views

@@ -9,6 +9,7 @@ in checkpoints, so a resumed run equals an uninterrupted one.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 from collections.abc import Callable
@@ -21,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from facade_pipeline.errors import PipelineError
-from facade_pipeline.io.atomic import atomic_path
+from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
 from facade_pipeline.training import losses
 from facade_pipeline.training.data import TrainData, TrainView
@@ -424,8 +425,15 @@ def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
         "stats": {"grad_accum": tr.stats.grad_accum, "count": tr.stats.count},
         "log": tr.log,
     }
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    save_torch(path, state)
+
+
+def save_torch(path: str | Path, obj: Any) -> None:
+    """``torch.save`` atomically and reproducibly (through memory: torch names the archive after the file,
+    and the temporary name is random)."""
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_bytes(path, buf.getvalue())
 
 
 def load_checkpoint(
@@ -493,9 +501,10 @@ def train(
     a checkpoint every ``checkpoint_every`` (and at the end) when ``checkpoint`` is given."""
     p = tr.params
     end = p.iterations if stop_at is None else min(stop_at, p.iterations)
+    start = tr.iteration
     while tr.iteration < end:
         out = step(tr)
-        if p.log_every > 0 and (tr.iteration % p.log_every == 0 or tr.iteration == end):
+        if p.log_every > 0 and (tr.iteration % p.log_every == 0 or tr.iteration == p.iterations):
             tr.log.append(
                 {
                     "iteration": tr.iteration,
@@ -507,6 +516,7 @@ def train(
             save_checkpoint(tr, checkpoint, fingerprint)
         if progress is not None:
             progress(tr.iteration, p.iterations, {**out, "n": tr.model.n})
-    if checkpoint is not None:
+    saved = p.checkpoint_every > 0 and tr.iteration % p.checkpoint_every == 0
+    if checkpoint is not None and tr.iteration > start and not saved:
         save_checkpoint(tr, checkpoint, fingerprint)
     return tr

@@ -1,0 +1,96 @@
+"""Fixtures for the training tests: synthetic64 made once per session, training data built from its gt/
+(standing in for the bake_normals outputs) and small parameters."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from facade_pipeline.config import load_building_config
+from facade_pipeline.io.exr import read_exr
+from facade_pipeline.io.images import read_image, read_mask
+from facade_pipeline.io.meshes import read_mesh, read_points
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.scene import ImportedScene
+from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
+from facade_pipeline.training.params import TrainParams
+from stages import load_stage
+from stages._runner import execute, load_params
+
+
+@pytest.fixture(scope="session")
+def synth64(tmp_path_factory) -> BuildingLayout:
+    """synthetic64 synthesized and imported into a session folder."""
+    layout = BuildingLayout(tmp_path_factory.mktemp("data"), "synthetic64")
+    for name in ("synthesize", "import_photogrammetry"):
+        stage = load_stage(name)
+        execute(stage, layout, load_params(stage, "synthetic64"))
+    return layout
+
+
+def gt_view(layout: BuildingLayout, view) -> TrainView:
+    """A training view whose normal prior and masks are the ground truth (what bake_normals approximates)."""
+    normals = read_exr(layout.gt("normal_map", view.stem))
+    return TrainView(
+        view.stem,
+        view.camera,
+        read_image(layout.root / view.image).astype(np.float32) / 255.0,
+        read_mask(layout.gt("facade_mask", view.stem)),
+        read_mask(layout.gt("glass_mask", view.stem)),
+        normals["N"],
+        normals["valid"] > 0.5,
+    )
+
+
+def gt_train_data(layout: BuildingLayout, test_every: int = 8, max_views: int | None = None) -> TrainData:
+    scene = ImportedScene.load(layout)
+    views = tuple(gt_view(layout, v) for v in scene.uav_views[:max_views])
+    mesh = read_mesh(layout.gt("facade_mesh"))
+    pcd = read_points(layout.import_coarse_points)
+    init = InitGeometry(
+        np.asarray(pcd.points), np.asarray(pcd.colors), np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    )
+    train, test = split_views(len(views), test_every)
+    return TrainData(views, train, test, init)
+
+
+@pytest.fixture(scope="session")
+def data64(synth64) -> TrainData:
+    return gt_train_data(synth64)
+
+
+def small_params(**changes) -> TrainParams:
+    """synthetic64's parameters made tiny: few splats, small patches, a small MLP."""
+    p = load_building_config("synthetic64").section("train_gs", TrainParams)
+    p = dataclasses.replace(
+        p,
+        iterations=20,
+        init_max_points=150,
+        init_mesh_samples=150,
+        patch_px=16,
+        mlp_max_pixels=128,
+        checkpoint_every=5,
+        log_every=5,
+        mlp_width=32,
+        mlp_depth=4,
+        fourier_levels=4,
+        normal_start_fraction=0.0,
+    )
+    densify = dict(interval=5, max_gaussians=400)
+    for key in list(changes):
+        if key.startswith("densify_"):
+            densify[key[len("densify_") :]] = changes.pop(key)
+    p = dataclasses.replace(p, densify=dataclasses.replace(p.densify, **densify))
+    return dataclasses.replace(p, **changes)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small tensors: one intra-op thread is much faster than two fighting other processes for 2 cores."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -1,0 +1,102 @@
+"""The train_gs stage under the contract, on synthetic64 with upstream outputs built from gt/ (the true
+mesh as the corrected mesh, true normals and masks as the baked maps)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from facade_pipeline.config import available_buildings, load_building_config
+from facade_pipeline.errors import InputError, UpstreamMissingError
+from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.exr import read_exr, write_exr
+from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.scene import ImportedScene
+from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.ply import read_ply
+from stages import train_gs
+from stages._runner import execute
+from tests.training.conftest import small_params
+
+
+def _fake_manifest(layout: BuildingLayout, stage: str) -> None:
+    write_json(
+        layout.manifest(stage), {"stage": stage, "params": {}, "inputs": {}, "outputs": {}, "metrics": {}}
+    )
+
+
+@pytest.fixture
+def upstream(synth64, tmp_path) -> BuildingLayout:
+    layout = BuildingLayout(tmp_path / "data", "synthetic64")
+    shutil.copytree(synth64.root, layout.root)
+    layout.path("correct_mesh").parent.mkdir(parents=True)
+    shutil.copy(layout.gt("facade_mesh"), layout.path("correct_mesh"))
+    _fake_manifest(layout, "correct_mesh")
+    for v in ImportedScene.load(layout).uav_views:
+        n = read_exr(layout.gt("normal_map", v.stem))
+        write_exr(layout.path("bake_normal_map", stem=v.stem), n)
+        for kind in ("facade", "glass"):
+            write_mask(
+                layout.path(f"bake_{kind}_mask", stem=v.stem), read_mask(layout.gt(f"{kind}_mask", v.stem))
+            )
+    _fake_manifest(layout, "bake_normals")
+    return layout
+
+
+def test_every_building_has_valid_train_gs_params():
+    for building in available_buildings():
+        p = load_building_config(building).section("train_gs", TrainParams)
+        assert p.__dataclass_params__.frozen and p.iterations > 0
+    ci = load_building_config("synthetic64").section("train_gs", TrainParams)
+    assert ci.iterations <= 500 and ci.mlp_width <= 128 and ci.patch_px > 0  # the CI run stays short
+
+
+def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
+    p = small_params(iterations=6, raster_backend="auto")
+    manifest = execute(train_gs, upstream, p)
+    m = read_manifest(upstream, "train_gs")
+    assert set(m.outputs) == {upstream.relative(t) for t in train_gs.targets(upstream, p)}
+    metrics = m.metrics
+    assert metrics["iterations"] == 6 and metrics["resumed_from_iteration"] == 0
+    assert np.isfinite(metrics["test_psnr"]) and metrics["n_test_views"] == 2
+    cols = read_ply(upstream.path("train_ply"))
+    assert len(cols["x"]) == metrics["n_gaussians"] and np.all(
+        (cols["reflectivity"] >= 0) & (cols["reflectivity"] <= 1)
+    )
+    split = json.loads(upstream.path("train_split").read_text())
+    assert split["test"] == ["uav_0000", "uav_0008"] and len(split["train"]) == 8
+    lines = [json.loads(x) for x in upstream.path("train_log").read_text().splitlines()]
+    assert [x["iteration"] for x in lines[:-1]] == [5, 6] and "evaluation" in lines[-1]
+    refl = torch.load(upstream.path("train_reflection"), weights_only=True)
+    assert refl["model"] == "mlp" and refl["config"]["width"] == p.mlp_width and refl["state_dict"]
+    ply_bytes = upstream.path("train_ply").read_bytes()
+    # a rerun with the same parameters and inputs resumes from the final checkpoint: same outputs
+    again = execute(train_gs, upstream, p)
+    assert again["metrics"]["resumed_from_iteration"] == 6
+    assert upstream.path("train_ply").read_bytes() == ply_bytes
+    assert again["outputs"] == manifest["outputs"]
+    # other parameters: the old checkpoint is not trusted, training starts over
+    other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3))
+    assert other["metrics"]["resumed_from_iteration"] == 0 and other["metrics"]["iterations"] == 3
+
+
+def test_stage_rejects_bad_or_missing_inputs(upstream):
+    p = small_params(iterations=2)
+    stem = ImportedScene.load(upstream).uav_views[3].stem
+    bad = upstream.path("bake_glass_mask", stem=stem)
+    write_mask(bad, np.ones((10, 12), bool))
+    with pytest.raises(InputError, match=stem):
+        execute(train_gs, upstream, p)
+    upstream.path("bake_normal_map", stem=stem).unlink()
+    with pytest.raises(InputError, match="normals"):
+        train_gs.inputs(upstream, p)
+    upstream.manifest("bake_normals").unlink()
+    with pytest.raises(UpstreamMissingError, match="bake_normals"):
+        train_gs.inputs(upstream, p)
