@@ -25,6 +25,7 @@ PIPELINE: tuple[str, ...] = (
     "regularize_corners",
     "correct_mesh",
     "bake_normals",
+    "train_gs",
 )
 
 
