@@ -3,8 +3,9 @@
 
 Reads ``02_rectify`` (rectified image and warps per view) and ``01_import`` (the views' sizes, the original
 images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md ("Hand-off formats"):
-``corners/{stem}.json``, the authoritative ``masks/{stem}.png`` (255 on panel glass) and ``overlays/{stem}.png``.
-A view with no facade in it gets ``facade_found: false``, an empty mask, and is listed in the manifest.
+``corners/{stem}.json``, the authoritative ``masks/{stem}.png`` (255 on panel glass) and
+``overlays/{stem}.png``. A view with no facade in it gets ``facade_found: false``, an empty mask,
+and is listed in the manifest.
 """
 
 from __future__ import annotations
@@ -30,7 +31,12 @@ from facade_pipeline.io.images import read_image, write_image, write_mask  # noq
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
 from facade_pipeline.scene import ImportedScene, View  # noqa: E402
-from facade_pipeline.segmentation.panels import Panel, SegmentParams, inside_quads, segment_image  # noqa: E402
+from facade_pipeline.segmentation.panels import (  # noqa: E402
+    Panel,
+    SegmentParams,
+    inside_quads,
+    segment_image,
+)
 from stages._runner import StageReport, main  # noqa: E402
 
 NAME = "segment_panels"
@@ -46,8 +52,11 @@ class Params(SegmentParams):
 
 
 def _view_inputs(layout: BuildingLayout, stem: str) -> list[Path]:
-    return [layout.path("rectify_image", stem=stem), layout.path("rectify_mapping", stem=stem),
-            layout.import_frontal_image(stem)]
+    return [
+        layout.path("rectify_image", stem=stem),
+        layout.path("rectify_mapping", stem=stem),
+        layout.import_frontal_image(stem),
+    ]
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -58,8 +67,11 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     for v in scene.frontal_views:
         for f in _view_inputs(layout, v.stem):
             if f.parent.parent.name == "02_rectify" and layout.relative(f) not in written:
-                raise UpstreamMissingError(f, "an output listed in the rectify manifest (run `doit rectify`)",
-                                           "a view that rectify did not write")
+                raise UpstreamMissingError(
+                    f,
+                    "an output listed in the rectify manifest (run `doit rectify`)",
+                    "a view that rectify did not write",
+                )
             if not f.is_file():
                 raise UpstreamMissingError(f, "a file written by an upstream stage", "no file")
             files.append(f)
@@ -74,10 +86,13 @@ def _to_view(panel: Panel, rect: ViewRectification, width: int, height: int) -> 
     """The panel as in data_layout.md, corners mapped back to the original view and kept inside it."""
     back = panel.corners if rect.kind != "curved" else rect.inverse(panel.corners)
     back = np.clip(back, [0.0, 0.0], [float(width), float(height)])
-    return {"row": panel.row, "col": panel.col,
-            "corners_px": np.round(back, 3).tolist(),
-            "corners_rectified_px": np.round(panel.corners, 3).tolist(),
-            "complete": panel.complete}
+    return {
+        "row": panel.row,
+        "col": panel.col,
+        "corners_px": np.round(back, 3).tolist(),
+        "corners_rectified_px": np.round(panel.corners, 3).tolist(),
+        "complete": panel.complete,
+    }
 
 
 def panel_labels(panels: list[Panel], rect: ViewRectification, width: int, height: int) -> np.ndarray:
@@ -102,8 +117,16 @@ def _overlay(image: np.ndarray, panels: list[Panel], rect: ViewRectification, sc
         colour = (0, 255, 0) if p.complete else (255, 160, 0)
         cv2.polylines(out, [np.int32(np.rint(outline * scale))], True, colour, 1, cv2.LINE_AA)
         centre = outline.mean(axis=0) * scale
-        cv2.putText(out, f"{p.row},{p.col}", (int(centre[0]) - 8, int(centre[1]) + 4), cv2.FONT_HERSHEY_PLAIN,
-                    0.8, colour, 1, cv2.LINE_AA)
+        cv2.putText(
+            out,
+            f"{p.row},{p.col}",
+            (int(centre[0]) - 8, int(centre[1]) + 4),
+            cv2.FONT_HERSHEY_PLAIN,
+            0.8,
+            colour,
+            1,
+            cv2.LINE_AA,
+        )
     return out
 
 
@@ -118,16 +141,29 @@ def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[lis
     found = seg.facade_found and bool((labels >= 0).any())
     panels = seg.panels if found else []
     out = {k: layout.path(k, stem=view.stem) for k in ("segment_corners", "segment_mask", "segment_overlay")}
-    write_json(out["segment_corners"], {
-        "image": view.stem, "width": W, "height": H, "rectified": rect.kind == "curved",
-        "facade_found": found, "panels": [_to_view(p, rect, W, H) for p in panels]})
+    write_json(
+        out["segment_corners"],
+        {
+            "image": view.stem,
+            "width": W,
+            "height": H,
+            "rectified": rect.kind == "curved",
+            "facade_found": found,
+            "panels": [_to_view(p, rect, W, H) for p in panels],
+        },
+    )
     write_mask(out["segment_mask"], labels >= 0 if found else np.zeros((H, W), bool))
     original = read_image(layout.import_frontal_image(view.stem))
     write_image(out["segment_overlay"], _overlay(original, panels, rect, params.overlay_scale))
-    metrics = {"facade_found": found, "n_panels": len(panels), "n_complete": sum(p.complete for p in panels),
-               "n_occluded": sum(p.reason == "occluded" for p in panels), "rectified": rect.kind == "curved",
-               **{k: round(v, 3) if isinstance(v, float) else v for k, v in seg.metrics.items()},
-               "seconds": round(time.perf_counter() - t0, 3)}
+    metrics = {
+        "facade_found": found,
+        "n_panels": len(panels),
+        "n_complete": sum(p.complete for p in panels),
+        "n_occluded": sum(p.reason == "occluded" for p in panels),
+        "rectified": rect.kind == "curved",
+        **{k: round(v, 3) if isinstance(v, float) else v for k, v in seg.metrics.items()},
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
     return list(out.values()), metrics
 
 
@@ -138,15 +174,18 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     for view in tqdm(views, desc="segment_panels: frontal views", unit="img", file=sys.stderr):
         outs, per_view[view.stem] = segment_one(layout, view, params)
         outputs += outs
-    return StageReport(outputs, {
-        "n_views": len(views),
-        "n_views_with_facade": sum(m["facade_found"] for m in per_view.values()),
-        "views_without_facade": [s for s, m in per_view.items() if not m["facade_found"]],
-        "n_panels": sum(m["n_panels"] for m in per_view.values()),
-        "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
-        "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
-        "views": per_view,
-    })
+    return StageReport(
+        outputs,
+        {
+            "n_views": len(views),
+            "n_views_with_facade": sum(m["facade_found"] for m in per_view.values()),
+            "views_without_facade": [s for s, m in per_view.items() if not m["facade_found"]],
+            "n_panels": sum(m["n_panels"] for m in per_view.values()),
+            "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
+            "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
+            "views": per_view,
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -18,14 +18,16 @@ from facade_pipeline.geometry.frames import transform_points
 
 
 def true_corners_px(panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray) -> np.ndarray:
-    """[T, 2] pixel positions of every true panel corner in front of ``camera`` (world -> local frame first)."""
+    """[T, 2] pixel positions of every true panel corner in front of ``camera`` (world -> local "
+    "frame first)."""
     c = np.array([p["corners"] for p in panels_json["panels"]], dtype=np.float64).reshape(-1, 3)
     uv, z = camera.project(transform_points(local_from_world, c))
     return uv[z > 0]
 
 
-def true_edges_px(panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray,
-                  surface_point, samples: int = 9) -> list[np.ndarray]:
+def true_edges_px(
+    panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray, surface_point, samples: int = 9
+) -> list[np.ndarray]:
     """Each true panel edge as [samples, 2] pixel positions along the true surface (``surface_point(a, b,
     t) -> [n, 3]`` interpolates between corners a and b on the facade, curved where it is)."""
     out = []
@@ -39,12 +41,17 @@ def true_edges_px(panels_json: dict, camera: PinholeCamera, local_from_world: np
     return out
 
 
-def corner_errors(pred_panels: list[dict], true_px: np.ndarray, width: int, height: int,
-                  border_tol_px: float = 0.01) -> np.ndarray:
+def corner_errors(
+    pred_panels: list[dict], true_px: np.ndarray, width: int, height: int, border_tol_px: float = 0.01
+) -> np.ndarray:
     """Distances [C] (px) from each predicted corner off the image border to the nearest true corner."""
     c = np.array([q for p in pred_panels for q in p["corners_px"]], dtype=np.float64).reshape(-1, 2)
-    off = ((c[:, 0] > border_tol_px) & (c[:, 0] < width - border_tol_px)
-           & (c[:, 1] > border_tol_px) & (c[:, 1] < height - border_tol_px))
+    off = (
+        (c[:, 0] > border_tol_px)
+        & (c[:, 0] < width - border_tol_px)
+        & (c[:, 1] > border_tol_px)
+        & (c[:, 1] < height - border_tol_px)
+    )
     c = c[off]
     if len(c) == 0 or len(true_px) == 0:
         return np.zeros(0)
@@ -101,8 +108,9 @@ def surface_interpolator(part: dict):
     return f
 
 
-def evaluate_view(layout, view, panels_json: dict, scene_json: dict, local_from_world: np.ndarray,
-                  min_area_px: int) -> dict:
+def evaluate_view(
+    layout, view, panels_json: dict, scene_json: dict, local_from_world: np.ndarray, min_area_px: int
+) -> dict:
     """Every accuracy figure of one frontal view from the stage outputs and the truth (module docstring)."""
     import json
 
@@ -117,8 +125,11 @@ def evaluate_view(layout, view, panels_json: dict, scene_json: dict, local_from_
     _, kept = glass_components(glass, min_area_px)
     from facade_pipeline.segmentation.panels import Panel
     from stages.segment_panels import panel_labels
-    panels = [Panel(p["row"], p["col"], np.array(p["corners_rectified_px"]), p["complete"], "")
-              for p in corners["panels"]]
+
+    panels = [
+        Panel(p["row"], p["col"], np.array(p["corners_rectified_px"]), p["complete"], "")
+        for p in corners["panels"]
+    ]
     ious = panel_ious(panel_labels(panels, rect, W, H), glass, min_area_px) if panels else np.zeros(0)
     complete = np.array([p["complete"] for p in corners["panels"]], bool)
     straight = []
@@ -127,6 +138,13 @@ def evaluate_view(layout, view, panels_json: dict, scene_json: dict, local_from_
         for uv in true_edges_px(sel, cam, local_from_world, surface_interpolator(part)):
             if uv.min() >= 0 and uv[:, 0].max() <= W and uv[:, 1].max() <= H:
                 straight.append(line_deviation_px(rect.forward(uv) if rect.kind == "curved" else uv))
-    return {"corner_errors_px": errors, "n_true": len(kept), "n_pred": len(corners["panels"]),
-            "iou_complete": ious[complete], "iou_cut": ious[~complete], "edge_straightness_px": np.array(straight),
-            "rectify_residual_px": max(rect.forward.max_px, rect.inverse.max_px), "kind": rect.kind}
+    return {
+        "corner_errors_px": errors,
+        "n_true": len(kept),
+        "n_pred": len(corners["panels"]),
+        "iou_complete": ious[complete],
+        "iou_cut": ious[~complete],
+        "edge_straightness_px": np.array(straight),
+        "rectify_residual_px": max(rect.forward.max_px, rect.inverse.max_px),
+        "kind": rect.kind,
+    }

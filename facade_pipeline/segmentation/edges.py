@@ -78,8 +78,9 @@ def fit_edge(grad: Gradients, position: float, sign: float, rows: slice, search_
     return EdgeLine(float(a), float(b), mid, strength)
 
 
-def bar_edges(grad: Gradients, centre: float, width: float, rows: slice,
-              search_px: float) -> tuple[EdgeLine, EdgeLine] | None:
+def bar_edges(
+    grad: Gradients, centre: float, width: float, rows: slice, search_px: float
+) -> tuple[EdgeLine, EdgeLine] | None:
     """The (low, high) edges of the bar centred at ``centre`` with ``width`` (px), or None. Each edge takes
     the polarity of the mean gradient at its expected position."""
     low = fit_edge(grad, centre - width / 2, 1.0, rows, search_px)

@@ -10,10 +10,12 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
   aligned in rows and columns); ``p`` uniform in [min_pitch_px, image size]; the bars form one contiguous
   run of indices ``k`` (no holes in a facade); each line costs ``line_cost`` nats (prior odds against a
   line, which also picks the number of lines);
-- likelihood (line and edge evidence): a frame bar has two parallel edges of opposite polarity ``w`` apart
-  along its whole length. Per row (for mullions) the bar response is ``sqrt(max(0, -g(c - w/2) . g(c + w/2)))``
-  with ``g`` the colour gradient across the bar; its mean over the grid's rows is E_g(c). LSD segments of the
-  family give the line support S(x) (summed length near x); E_l(c) = sqrt(S(c - w/2) S(c + w/2)) / length.
+- likelihood (line and edge evidence): a frame bar has two parallel edges ``w`` apart along its whole
+  length, usually of opposite polarity. Per row (for mullions), with gL, gR the colour gradients across
+  the bar at c - w/2 and c + w/2, the bar response is sqrt(|gL| |gR| (1 - cos(gL, gR)) / 2) (the weaker
+  edge counted at least ``weak_edge_floor`` of the stronger); its mean over the grid's rows is E_g(c).
+  LSD segments of the family give the line support S(x) (summed length near x);
+  E_l(c) = sqrt(S(c - w/2) S(c + w/2)) / length.
   A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
   is small (glass reflects a varying scene). The log-likelihood ratio of a bar at c is
   ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / lsd_scale) - v(c) / uniformity_scale``,
@@ -58,6 +60,8 @@ class GridParams:
     """Line support (fraction of the grid's length covered by LSD segments) that counts as strong (-)."""
     edge_search_px: float
     """A bar edge is searched this far (px) around its MAP position."""
+    weak_edge_floor: float
+    """The weaker edge of a bar counts at least this fraction of the stronger (-)."""
     uniformity_scale: float
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
 
@@ -126,9 +130,12 @@ def bar_evidence(grad: Gradients, rows: slice, params: GridParams) -> tuple[np.n
         h = w  # half width in lattice steps (w / 2 / STEP_PX)
         if 2 * h >= M:
             break
-        dot = (g[:, : M - 2 * h] * g[:, 2 * h:]).sum(axis=2)
-        prod = mag[:, : M - 2 * h] * mag[:, 2 * h:]
-        e = np.pad(np.sqrt(np.maximum(prod - dot, 0.0) / 2).mean(axis=0), (h, h))
+        gl, gr, ml, mr = g[:, : M - 2 * h], g[:, 2 * h :], mag[:, : M - 2 * h], mag[:, 2 * h :]
+        cos = (gl * gr).sum(axis=2) / np.maximum(ml * mr, 1e-12)
+        # the weaker edge counts at least ``weak_edge_floor`` of the stronger: an outer frame may border a
+        # background of its own colour on one side
+        weak = np.maximum(np.minimum(ml, mr), params.weak_edge_floor * np.maximum(ml, mr))
+        e = np.pad(np.sqrt(np.maximum(ml, mr) * weak * np.clip(1 - cos, 0, 2) / 2).mean(axis=0), (h, h))
         better = e > best
         best[better], width[better] = e[better], w
     return best, width
@@ -144,12 +151,16 @@ def lsd_evidence(support: np.ndarray, width: np.ndarray, length_px: float) -> np
     return np.sqrt(left * right) / max(length_px, 1.0)
 
 
-def log_likelihood(e_grad: np.ndarray, e_lsd: np.ndarray, uniformity: np.ndarray,
-                   params: GridParams) -> np.ndarray:
+def log_likelihood(
+    e_grad: np.ndarray, e_lsd: np.ndarray, uniformity: np.ndarray, params: GridParams
+) -> np.ndarray:
     """l(c) [M] of the module docstring."""
     background = float(np.median(e_grad)) + 1e-6
-    return (np.log1p(e_grad / background) + params.lsd_weight * np.log1p(e_lsd / params.lsd_scale)
-            - uniformity / params.uniformity_scale)
+    return (
+        np.log1p(e_grad / background)
+        + params.lsd_weight * np.log1p(e_lsd / params.lsd_scale)
+        - uniformity / params.uniformity_scale
+    )
 
 
 def _relaxed(ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -158,7 +169,9 @@ def _relaxed(ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
     M = len(ll)
     padded = np.pad(ll, r, constant_values=-np.inf)
     shifts = np.arange(-r, r + 1)
-    cand = np.stack([padded[r + s: r + s + M] for s in shifts]) - (shifts * STEP_PX)[:, None] ** 2 / (2 * sigma_px**2)
+    cand = np.stack([padded[r + s : r + s + M] for s in shifts]) - (shifts * STEP_PX)[:, None] ** 2 / (
+        2 * sigma_px**2
+    )
     k = np.argmax(cand, axis=0)
     return cand[k, np.arange(M)], shifts[k] * STEP_PX
 

@@ -35,7 +35,11 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 def detect_segments(image: np.ndarray, upsample: int, min_length_px: float) -> np.ndarray:
     """LSD segments [S, 4] of an RGB image [H, W, 3], at least ``min_length_px`` long (view pixels)."""
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    big = cv2.resize(gray, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC) if upsample > 1 else gray
+    big = (
+        cv2.resize(gray, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC)
+        if upsample > 1
+        else gray
+    )
     lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
     found = lsd.detect(big)[0]
     if found is None:
@@ -51,7 +55,8 @@ def segment_angles(segments: np.ndarray) -> np.ndarray:
 
 
 def _dominant(angles: np.ndarray, weights: np.ndarray, near: float, window: float) -> float:
-    """Length-weighted circular mean (mod pi) of the angles within ``window`` of ``near``; ``near`` if none."""
+    """Length-weighted circular mean (mod pi) of the angles within ``window`` of ``near``; ``near`` "
+    "if none."""
     diff = np.angle(np.exp(2j * (angles - near))) / 2  # signed difference mod pi
     sel = np.abs(diff) <= window
     if not sel.any():

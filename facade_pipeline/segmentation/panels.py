@@ -84,8 +84,14 @@ class _Bars:
     fit: FamilyFit
 
 
-def _family(image: np.ndarray, valid: np.ndarray | None, segments: np.ndarray, axis: int, span: slice,
-            params: SegmentParams) -> tuple[FamilyFit | None, Gradients]:
+def _family(
+    image: np.ndarray,
+    valid: np.ndarray | None,
+    segments: np.ndarray,
+    axis: int,
+    span: slice,
+    params: SegmentParams,
+) -> tuple[FamilyFit | None, Gradients]:
     """MAP bars of one family (axis 0: mullions) with evidence taken over ``span`` along the bars."""
     grad = Gradients.of(image, axis, valid)
     e_grad, widths = bar_evidence(grad, span, params.grid)
@@ -110,28 +116,36 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, search_px: float) -> _B
     return _Bars(edges, fit) if len(edges) >= 2 else None
 
 
-def find_bars(image: np.ndarray, params: SegmentParams,
-              valid: np.ndarray | None = None) -> tuple[_Bars | None, _Bars | None, dict]:
+def find_bars(
+    image: np.ndarray, params: SegmentParams, valid: np.ndarray | None = None
+) -> tuple[_Bars | None, _Bars | None, dict]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
     evidence over the other's extent only), then sub-pixel edges."""
     H, W = image.shape[:2]
-    fam = group_segments(detect_segments(image, params.upsample, params.min_segment_px),
-                         params.orientation_tolerance_deg, params.orientation_search_deg)
+    fam = group_segments(
+        detect_segments(image, params.upsample, params.min_segment_px),
+        params.orientation_tolerance_deg,
+        params.orientation_search_deg,
+    )
     vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
     v, _ = _family(image, valid, vseg, 0, slice(0, H), params)
     h, _ = _family(image, valid, hseg, 1, slice(0, W), params)
     v, gv = _family(image, valid, vseg, 0, _span(h, H), params)
     h, gh = _family(image, valid, hseg, 1, _span(v, W), params)
-    metrics = {"n_segments": len(fam.segments), "n_vertical_segments": len(vseg),
-               "n_horizontal_segments": len(hseg),
-               "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
-               "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal))}
+    metrics = {
+        "n_segments": len(fam.segments),
+        "n_vertical_segments": len(vseg),
+        "n_horizontal_segments": len(hseg),
+        "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
+        "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal)),
+    }
     if v is None or h is None:
         return None, None, metrics
     bars_v = _edges(v, gv, _span(h, H), params.grid.edge_search_px)
     bars_h = _edges(h, gh, _span(v, W), params.grid.edge_search_px)
-    metrics.update({"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score,
-                    "map_score_y": h.score})
+    metrics.update(
+        {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
+    )
     return bars_v, bars_h, metrics
 
 
@@ -147,7 +161,7 @@ def intersect(v: EdgeLine, h: EdgeLine) -> np.ndarray:
 
 
 def _mean(a: np.ndarray, lo: float, hi: float) -> float:
-    seg = a[int(max(0, np.ceil(lo))): int(max(0, np.floor(hi)))]
+    seg = a[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
     return float(seg.mean()) if len(seg) else 0.0
 
 
@@ -162,24 +176,29 @@ def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], 
     return float(np.median(r)) >= ratio
 
 
-def openings(bars: _Bars, other: _Bars, size: int, length: int,
-             params: SegmentParams) -> list[tuple[EdgeLine, EdgeLine, bool]]:
+def openings(
+    bars: _Bars, other: _Bars, size: int, length: int, params: SegmentParams
+) -> list[tuple[EdgeLine, EdgeLine, bool]]:
     """Openings across one family's bars, low to high: (low line, high line, cut by the border)."""
     e = bars.edges
     inside = (bars.fit.centres[0], bars.fit.centres[-1])
     out = []
-    if e[0][0].a >= params.min_partial_px and _continues(other, 0, e[0][0].a, inside, params.continuation_ratio):
+    if e[0][0].a >= params.min_partial_px and _continues(
+        other, 0, e[0][0].a, inside, params.continuation_ratio
+    ):
         out.append((_border(0, length), e[0][0], True))
     out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
     top = e[-1][1].a
-    if size - top >= params.min_partial_px and _continues(other, top, size, inside, params.continuation_ratio):
+    if size - top >= params.min_partial_px and _continues(
+        other, top, size, inside, params.continuation_ratio
+    ):
         out.append((e[-1][1], _border(size, length), True))
     return out
 
 
 def _supported(line: EdgeLine, lo: float, hi: float, params: SegmentParams) -> float:
     """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where the edge is present."""
-    s = line.strength[int(max(0, np.ceil(lo + 1))): int(max(0, np.floor(hi - 1)))]
+    s = line.strength[int(max(0, np.ceil(lo + 1))) : int(max(0, np.floor(hi - 1)))]
     ref = np.median(line.strength[line.strength > 0]) if (line.strength > 0).any() else 0.0
     return float((s >= params.occlusion_support * ref).mean()) if len(s) and ref > 0 else 1.0
 
@@ -191,13 +210,23 @@ def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: 
     panels = []
     for i, (top, bottom, cut_r) in enumerate(rows):
         for j, (left, right, cut_c) in enumerate(cols):
-            c = np.array([intersect(left, bottom), intersect(right, bottom), intersect(right, top),
-                          intersect(left, top)])
+            c = np.array(
+                [
+                    intersect(left, bottom),
+                    intersect(right, bottom),
+                    intersect(right, top),
+                    intersect(left, top),
+                ]
+            )
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            support = min(_supported(left, y0, y1, params), _supported(right, y0, y1, params),
-                          _supported(top, x0, x1, params), _supported(bottom, x0, x1, params))
+            support = min(
+                _supported(left, y0, y1, params),
+                _supported(right, y0, y1, params),
+                _supported(top, x0, x1, params),
+                _supported(bottom, x0, x1, params),
+            )
             reason = "border" if cut_r or cut_c else ("occluded" if support < params.min_edge_support else "")
             panels.append(Panel(len(rows) - 1 - i, j, c, reason == "", reason))
     return panels
@@ -219,8 +248,10 @@ def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.
     """Index [...] of the convex quad (corners [4, 2] each) containing each point (xs, ys), -1 for none."""
     out = np.full(np.shape(xs), -1, dtype=np.int32)
     for k, q in enumerate(quads):
-        cross = [(q[(i + 1) % 4, 0] - q[i, 0]) * (ys - q[i, 1]) - (q[(i + 1) % 4, 1] - q[i, 1]) * (xs - q[i, 0])
-                 for i in range(4)]
+        cross = [
+            (q[(i + 1) % 4, 0] - q[i, 0]) * (ys - q[i, 1]) - (q[(i + 1) % 4, 1] - q[i, 1]) * (xs - q[i, 0])
+            for i in range(4)
+        ]
         cross = np.stack(cross)
         inside = (cross >= 0).all(axis=0) | (cross <= 0).all(axis=0)
         out[inside & (out < 0)] = k

@@ -1,0 +1,72 @@
+"""Robust cylinder fit and the stable surface form: hard cases of issue 4 (near-planar, too few points,
+points on one line, non-vertical axis, ghost outliers)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from facade_pipeline.config import default_params
+from facade_pipeline.geometry.cylinder import Surface, SurfaceFitError, _stable_distance, fit_surface
+from stages import rectify
+
+FIT = default_params("rectify", rectify.Params).fit
+
+
+def cylinder_points(radius: float, rotvec=(0.0, 0.0, 0.0), n=800, width=7.0, height=6.0, noise=0.01, seed=1):
+    """Points on a convex cylinder patch facing +y (axis along z before ``rotvec``), and the rotation."""
+    rng = np.random.default_rng(seed)
+    phi = rng.uniform(-0.5, 0.5, n) * width / abs(radius)
+    z = rng.uniform(0, height, n)
+    pts = np.stack([radius * np.sin(phi), radius * np.cos(phi) - radius, z], 1) + rng.normal(0, noise, (n, 3))
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    return pts @ R.T, R
+
+
+def test_fits_radius_and_axis_despite_ghost_points():
+    pts, _ = cylinder_points(15.0)
+    ghosts = np.random.default_rng(2).uniform([-3, -30, 0], [3, -5, 6], (400, 3))  # mirrored behind glass
+    fit = fit_surface(np.vstack([pts, ghosts]), np.array([0.0, 10.0, 3.0]), FIT)
+    assert fit.surface.radius_m == pytest.approx(15.0, rel=0.02)
+    assert abs(fit.surface.axis @ [0, 0, 1]) > np.cos(np.radians(1.0))
+    assert fit.rms_m < 0.02 and fit.n_inliers >= 780
+
+
+def test_non_vertical_axis():
+    pts, R = cylinder_points(12.0, rotvec=(0.4, 0.0, 0.2))
+    fit = fit_surface(pts, R @ np.array([0.0, 10.0, 3.0]), FIT)
+    assert fit.surface.radius_m == pytest.approx(12.0, rel=0.02)
+    assert abs(fit.surface.axis @ R[:, 2]) > np.cos(np.radians(1.0))
+
+
+@pytest.mark.parametrize("radius", [1e3, 1e6, 1e12, 1e300])
+def test_nearly_planar_points_stay_finite(radius):
+    pts, _ = cylinder_points(radius)
+    fit = fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT)
+    s = fit.surface
+    assert np.isfinite(s.curvature_per_m) and abs(s.curvature_per_m) < 1e-2  # radius > 100 m
+    assert np.all(np.isfinite(s.signed_distance(pts)))
+    lam = s.intersect(np.array([[0.0, 10.0, 3.0]]), np.array([[0.0, -1.0, 0.0]]))
+    assert lam[0] == pytest.approx(10.0, abs=0.05)
+
+
+def test_too_few_points_and_points_on_a_line_are_typed_errors():
+    pts, _ = cylinder_points(15.0, n=10)
+    with pytest.raises(SurfaceFitError, match="at least 30 coarse points.*found 10") as e:
+        fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT, source="coarse_points.ply")
+    assert e.value.path.name == "coarse_points.ply"
+    line = np.stack([np.linspace(0, 5, 100), np.zeros(100), np.zeros(100)], 1) + 1e-4
+    with pytest.raises(SurfaceFitError, match="one line"):
+        fit_surface(line, np.array([0.0, 10.0, 3.0]), FIT)
+
+
+def test_stable_distance_matches_the_exact_formula_and_the_plane_limit():
+    rng = np.random.default_rng(0)
+    t, w = rng.uniform(-5, 5, 50), rng.uniform(-1, 1, 50)
+    for k in (1 / 15.0, -1 / 7.0):
+        exact = np.sign(k) * (np.hypot(w + 1 / k, t) - 1 / abs(k))
+        assert np.allclose(_stable_distance(t, w, k), exact, atol=1e-12)
+    assert np.array_equal(_stable_distance(t, w, 0.0), w)
+    s = Surface(np.zeros(3), np.array([0.0, 0, 1]), np.array([0.0, 1, 0]), 1 / 15.0)
+    assert Surface.from_dict(s.to_dict()).radius_m == pytest.approx(15.0)

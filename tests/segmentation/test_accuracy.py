@@ -1,0 +1,78 @@
+"""Accuracy of rectify + segment_panels against the simulator's truth on the shipped synthetic scenes
+(reflections on). Figures for benchmarks/RESULTS.md come from benchmarks/bench_segmentation.py."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from facade_pipeline.geometry.frames import invert_rigid
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.scene import ImportedScene
+from facade_pipeline.segmentation.accuracy import evaluate_view
+
+BUILDINGS = ["synthetic64", "synthetic64_curved"]
+
+
+def evaluate(layout) -> list[dict]:
+    scene = ImportedScene.load(layout)
+    panels, gt_scene = (json.loads(layout.gt(k).read_text()) for k in ("panels", "scene"))
+    local = invert_rigid(scene.georef_from_local)
+    return [evaluate_view(layout, v, panels, gt_scene, local, 4) for v in scene.frontal_views]
+
+
+@pytest.fixture(scope="module")
+def results(scenes):
+    return {b: evaluate(scenes[b][0]) for b in BUILDINGS}
+
+
+def test_curved_views_are_rectified_and_planar_ones_pass_through(scenes):
+    kinds = {
+        b: {m["kind"] for m in read_manifest(scenes[b][0], "rectify").metrics["views"].values()}
+        for b in BUILDINGS
+    }
+    assert kinds == {"synthetic64": {"planar"}, "synthetic64_curved": {"curved"}}
+
+
+@pytest.mark.parametrize("building", BUILDINGS)
+def test_rectification_residual_and_straight_edges(results, building):
+    r = results[building]
+    assert max(v["rectify_residual_px"] for v in r) < 0.5
+    straight = np.concatenate([v["edge_straightness_px"] for v in r])
+    assert len(straight) > 10 and straight.max() < 1.0
+
+
+@pytest.mark.parametrize("building", BUILDINGS)
+def test_corner_error_median_and_95th_percentile(results, building):
+    err = np.concatenate([v["corner_errors_px"] for v in results[building]])
+    assert len(err) >= 20
+    assert np.median(err) <= 1.0 and np.percentile(err, 95) <= 2.0
+
+
+@pytest.mark.parametrize("building", BUILDINGS)
+def test_every_view_has_a_facade_and_the_corners_file_follows_the_contract(scenes, building):
+    layout = scenes[building][0]
+    for v in ImportedScene.load(layout).frontal_views:
+        c = json.loads(layout.path("segment_corners", stem=v.stem).read_text())
+        assert c["image"] == v.stem and (c["width"], c["height"]) == (v.camera.width, v.camera.height)
+        assert c["facade_found"] and c["rectified"] == (building == "synthetic64_curved")
+        for p in c["panels"]:
+            assert np.array(p["corners_px"]).shape == (4, 2) and np.array(
+                p["corners_rectified_px"]
+            ).shape == (4, 2)
+            assert isinstance(p["complete"], bool) and p["row"] >= 0 and p["col"] >= 0
+
+
+@pytest.mark.xfail(
+    strict=False,
+    reason="open (issue 4): at 64 x 64 px some outer frames meeting a background of "
+    "their own colour are missed, so a few views miscount partial panels; complete-panel IoU "
+    "reaches 0.92-0.94 on a few panels (see benchmarks/RESULTS.md)",
+)
+@pytest.mark.parametrize("building", BUILDINGS)
+def test_panel_count_exact_and_mask_iou(results, building):
+    for v in results[building]:
+        assert v["n_pred"] == v["n_true"]
+        assert (v["iou_complete"] >= 0.95).all()
