@@ -20,8 +20,8 @@ from facade_pipeline.splatting.types import ALPHA_MIN, LOWPASS_INV_VAR, TILE_SIZ
 
 RHO_MARGIN = 1e-3
 """Relative and absolute slack on R^2 (float32 rounding of rho in the rasterizers)."""
-PIXEL_MARGIN = 1.0
-"""Slack on the pixel bounds (float32 rounding of the ray transform)."""
+PIXEL_MARGIN = 0.25
+"""Slack on the pixel bounds (float32 rounding of the ray transform; csrc/surfel_raster.cpp uses the same)."""
 
 
 def _interval_ratio_bounds(

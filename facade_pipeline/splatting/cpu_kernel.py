@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from facade_pipeline.splatting.types import TileBins
+from facade_pipeline.splatting.types import TILE_SIZE, PixelWindow, TileBins
 
 log = logging.getLogger(__name__)
 
@@ -77,11 +77,16 @@ def _declare(lib: ctypes.CDLL) -> None:
     p, i64, f64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int
     for suffix in ("f32", "f64"):
         fwd = getattr(lib, f"surfel_forward_{suffix}")
-        fwd.argtypes = [p] * 5 + [i64] + [p] * 2 + [i64] * 6 + [f64] * 2 + [i32] + [p] * 10
+        fwd.argtypes = [p] * 5 + [i64] * 2 + [p] * 2 + [i64] * 6 + [f64] * 2 + [i32] + [p] * 10
         fwd.restype = None
         bwd = getattr(lib, f"surfel_backward_{suffix}")
         bwd.argtypes = [p] * 5 + [i64] * 2 + [p] * 2 + [i64] * 6 + [f64] * 2 + [i32] + [p] * 15
         bwd.restype = None
+        count = getattr(lib, f"surfel_bin_count_{suffix}")
+        count.argtypes = [p, p, i64, f64] + [i64] * 6 + [i32] + [p] * 3
+        count.restype = None
+    lib.surfel_bin_fill.argtypes = [p, i64, p, i64, p, p]
+    lib.surfel_bin_fill.restype = None
 
 
 def load() -> ctypes.CDLL | None:
@@ -139,7 +144,7 @@ class _CppBlend(torch.autograd.Function):
         out_last = torch.empty(H, W, dtype=torch.int32)
         out_median_id = torch.empty(H, W, dtype=torch.int64)
         getattr(lib, f"surfel_forward_{_suffix(Tm.dtype)}")(
-            _ptr(Tm), _ptr(opac), _ptr(feat), _ptr(nrm), _ptr(bounds), F,
+            _ptr(Tm), _ptr(opac), _ptr(feat), _ptr(nrm), _ptr(bounds), F, Tm.shape[0],
             _ptr(bins.offsets), _ptr(bins.splat_ids), *_geometry(bins), near, far, threads,
             _ptr(out_feat), _ptr(out_T), _ptr(out_depth), _ptr(out_normal), _ptr(out_median), _ptr(out_dist),
             _ptr(out_M1), _ptr(out_M2), _ptr(out_last), _ptr(out_median_id),
@@ -166,6 +171,39 @@ class _CppBlend(torch.autograd.Function):
             *(_ptr(g) for g in grads), _ptr(dTm), _ptr(dop), _ptr(dfeat), _ptr(dnrm),
         )  # fmt: skip
         return dTm, dop, dfeat, dnrm, None, None, None, None
+
+
+def bin_splats_cpp(
+    ray_transform: torch.Tensor,  # [N, 3, 3]
+    opacities: torch.Tensor,  # [N]
+    depth: torch.Tensor,  # [N] centre depth, the sort key
+    window: PixelWindow,
+    near: float,
+    threads: int | None = None,
+) -> TileBins:
+    """binning.pixel_support_bounds + binning.bin_splats in the compiled kernel (a counting sort over tiles of
+    the splats taken front to back): the same bins, without a sort of the pairs."""
+    lib = load()
+    if lib is None:
+        raise RuntimeError(f"the C++ kernel is unavailable: {load_error()}")
+    T = ray_transform.detach().reshape(-1, 9).contiguous()
+    opac = opacities.detach().contiguous()
+    n = T.shape[0]
+    tiles_x, tiles_y = -(-window.width // TILE_SIZE), -(-window.height // TILE_SIZE)
+    bounds = torch.empty(n, 4, dtype=torch.float64)
+    rect = torch.empty(n, 4, dtype=torch.int64)
+    counts = torch.zeros(tiles_x * tiles_y, dtype=torch.int64)
+    getattr(lib, f"surfel_bin_count_{_suffix(T.dtype)}")(
+        _ptr(T), _ptr(opac), n, near, window.x0, window.y0, window.width, window.height, tiles_x, tiles_y,
+        threads or torch.get_num_threads(), _ptr(bounds), _ptr(rect), _ptr(counts))
+    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int64)
+    torch.cumsum(counts, 0, out=offsets[1:])
+    order = torch.sort(depth.detach().to(torch.float64), stable=True).indices.contiguous()
+    ids = torch.empty(int(offsets[-1]), dtype=torch.int64)
+    cursor = offsets[:-1].clone()
+    lib.surfel_bin_fill(_ptr(order), n, _ptr(rect), tiles_x, _ptr(cursor), _ptr(ids))
+    return TileBins(offsets=offsets, splat_ids=ids, bounds=bounds, window=window, tiles_x=tiles_x,
+                    tiles_y=tiles_y)
 
 
 def blend_cpp(

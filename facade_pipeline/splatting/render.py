@@ -106,8 +106,10 @@ def render_2dgs(
         return gsplat_backend.render(means, quats, scales, opacities, features, cam_from_world, K, window,
                                      near, far)
     proj = project_surfels(means, quats, scales, cam_from_world, K)
-    bounds = pixel_support_bounds(proj.ray_transform, opacities, near)
-    bins = bin_splats(bounds, proj.depth, window)
+    if chosen == "cpp":
+        bins = cpu_kernel.bin_splats_cpp(proj.ray_transform, opacities, proj.depth, window, near)
+    else:
+        bins = bin_splats(pixel_support_bounds(proj.ray_transform, opacities, near), proj.depth, window)
     args = (proj.ray_transform, opacities, features, proj.normal_world, bins)
     if chosen == "cpp":
         maps = cpu_kernel.blend_cpp(*args, near=near, far=far)

@@ -38,13 +38,16 @@ def project_surfels(
 ) -> ProjectedSurfels:
     """The ray transform T = K [s_u R t_u | s_v R t_v | R p + t] (R, t from ``cam_from_world``), the world
     normal flipped to face the camera centre o (n . (o - p) >= 0) and the centre depth (sort key)."""
+    n = means.shape[0]
     rot = quaternion_to_rotation(quats)  # [N, 3, 3]
     R_cw, t_cw = cam_from_world[:3, :3], cam_from_world[:3, 3]  # [3, 3], [3]
-    tangents = rot[:, :, :2] * scales[:, None, :]  # [N, 3, 2] world s_u t_u, s_v t_v
-    tangents_cam = R_cw @ tangents  # [N, 3, 2]
+    # rows of local_to_cam^T: s_u t_u and s_v t_v (directions) and p (a point), all in the camera frame;
+    # plain 2D matrix products (batched 3x3 products are slow on CPU)
+    tangents = (rot[:, :, :2] * scales[:, None, :]).transpose(1, 2)  # [N, 2, 3] world s_u t_u, s_v t_v
+    tangents_cam = (tangents.reshape(-1, 3) @ R_cw.T).reshape(n, 2, 3)  # [N, 2, 3]
     centre_cam = means @ R_cw.T + t_cw  # [N, 3]
-    local_to_cam = torch.cat([tangents_cam, centre_cam[:, :, None]], dim=2)  # [N, 3, 3] columns u, v, 1
-    ray_transform = K @ local_to_cam  # [N, 3, 3]
+    local_to_cam_t = torch.cat([tangents_cam, centre_cam[:, None, :]], dim=1)  # [N, 3 (u, v, 1), 3 (xyz)]
+    ray_transform = (local_to_cam_t.reshape(-1, 3) @ K.T).reshape(n, 3, 3).transpose(1, 2)  # [N, 3, 3]
     camera_centre = -R_cw.T @ t_cw  # [3] world
     normal = rot[:, :, 2]  # [N, 3]
     facing = ((camera_centre - means) * normal).sum(-1) >= 0  # [N]

@@ -246,3 +246,18 @@ def test_auto_backend_on_cpu_falls_back_to_torch_with_warning(monkeypatch, caplo
     with caplog.at_level(logging.WARNING):
         assert resolve_backend("auto", torch.device("cpu")) == "torch"
     assert "C++ kernel unavailable" in caplog.text
+
+
+@needs_cpp
+@pytest.mark.parametrize("case", ["random", "crossing_near_plane", "huge_scale", "covers_image",
+                                  "behind_camera"])
+def test_cpp_binning_equals_torch_binning(case):
+    scene = random_scene(9, n=200, width=70, height=50) if case == "random" else hard_case(case)
+    window = PixelWindow(3, 2, scene.width - 5, scene.height - 4)
+    proj = project_surfels(*scene.params()[:3], scene.cam_from_world, scene.K)
+    a = bin_splats(pixel_support_bounds(proj.ray_transform, scene.opacities, 0.2), proj.depth, window)
+    b = cpu_kernel.bin_splats_cpp(proj.ray_transform, scene.opacities, proj.depth, window, 0.2)
+    assert torch.equal(a.offsets, b.offsets) and torch.equal(a.splat_ids, b.splat_ids)
+    finite = torch.isfinite(a.bounds)
+    assert torch.equal(finite, torch.isfinite(b.bounds))
+    torch.testing.assert_close(a.bounds[finite], b.bounds[finite], rtol=1e-9, atol=1e-9)
