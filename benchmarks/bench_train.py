@@ -118,7 +118,8 @@ def main() -> None:
             base.densify,
             max_gaussians=a.max_gaussians,
             interval=max(a.iterations // 100, 1),
-            opacity_reset_interval=max(a.iterations // 10, 1),
+            # a reset must recover over many densify intervals before a prune (2DGS: 3000 vs 100)
+            opacity_reset_interval=0,
         ),
     )
     if layout.manifest("bake_normals").is_file():
@@ -134,7 +135,7 @@ def main() -> None:
             continue
         t0 = time.perf_counter()
         tr = build_trainer(p, data, raster)
-        train(tr, progress=lambda it, total, out, name=name: print(f"\r{name}: {it}/{total}", end=""))
+        train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
         ev = evaluate(tr, data.test_idx)
         wall = time.perf_counter() - t0
         rows.append((name, ev, wall, tr.model.n))
