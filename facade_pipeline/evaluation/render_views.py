@@ -1,0 +1,235 @@
+"""Load a trained model (the ``train_gs`` hand-off: Gaussians PLY + reflection weights) and render whole
+views with it, on top of the training package's public API (``read_ply``/``model_from_ply``,
+``build_reflection_module``, ``render_view``, ``splatting_rasterizer``).
+
+A *trained variant* is one such model and what produced it: the files and the ``train_gs`` parameters
+(``to_dict`` form, as the manifest records them). The pipeline's own model is ``07_train/``; more variants
+(a baseline, an ablation) may be saved under ``variants/<name>/`` with ``save_variant`` and are evaluated
+beside it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from facade_pipeline.config import to_dict
+from facade_pipeline.errors import InputError
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.io.atomic import write_bytes, write_json
+from facade_pipeline.shading.reflection import (
+    EnvMap,
+    ReflectionMLP,
+    ReflectionModel,
+    SHOnly,
+    build_reflection_module,
+    model_name,
+)
+from facade_pipeline.training.model import GaussianModel
+from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
+from facade_pipeline.training.render import Camera, ShadingOptions, render_view, splatting_rasterizer
+from facade_pipeline.training.trainer import Trainer
+
+#: reflective pixels shaded per call of the reflection module (bounds memory on large views)
+RENDER_CHUNK = 65536
+VARIANT_FILES = ("gaussians.ply", "reflection.pt", "split.json", "params.json")
+
+
+@dataclass(frozen=True)
+class TrainedVariant:
+    """Where a trained model lies and the ``train_gs`` parameters (plain dict) it was trained with."""
+
+    name: str
+    ply: Path
+    reflection: Path
+    split: Path
+    params: dict[str, Any]
+
+    @property
+    def files(self) -> list[Path]:
+        return [self.ply, self.reflection, self.split]
+
+    def split_stems(self) -> dict[str, list[str]]:
+        """``{"train": [...], "test": [...]}``: the view stems of the split it was trained on."""
+        try:
+            d = json.loads(self.split.read_text())
+            return {"train": list(d["train"]), "test": list(d["test"])}
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(
+                self.split, "a JSON split {train: [...], test: [...]}", f"{type(e).__name__}: {e}"
+            ) from None
+
+
+@dataclass
+class TrainedModel:
+    """A model ready to render: Gaussians, the reflection module (None for SH only) and shading options."""
+
+    name: str
+    model: GaussianModel
+    reflection: nn.Module | None
+    reflection_model: ReflectionModel
+    shading: ShadingOptions
+    sh_degree: int
+    near_m: float
+    backend: str
+    device: torch.device
+    mask_by_facade: bool
+    """the specular term only on the facade mask, as training did"""
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """One rendered view in numpy: colour [H, W, 3] in [0, 1], world normals [H, W, 3], opacity [H, W]."""
+
+    rgb: np.ndarray
+    normal: np.ndarray
+    alpha: np.ndarray
+
+
+def reflection_from_config(name: str, config: dict[str, Any], path: Path | None = None) -> ReflectionModel:
+    """The reflection strategy named ``name`` (``sh``/``envmap``/``mlp``) with its saved fields."""
+    try:
+        match name:
+            case "sh":
+                return SHOnly()
+            case "envmap":
+                return EnvMap(**config)
+            case "mlp":
+                return ReflectionMLP(**config)
+    except TypeError as e:
+        raise InputError(path, f"the fields of the {name!r} reflection model", str(e)) from None
+    raise InputError(path, "a reflection model 'sh', 'envmap' or 'mlp'", repr(name))
+
+
+def active_sh_degree(params: dict[str, Any]) -> int:
+    """The SH degree in use at the end of training (one band more every ``sh_degree_interval``)."""
+    degree, interval = int(params["sh_degree"]), int(params["sh_degree_interval"])
+    return degree if interval <= 0 else min(degree, int(params["iterations"]) // interval)
+
+
+def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") -> TrainedModel:
+    """Read a variant's PLY and reflection weights. A damaged file raises ``InputError`` naming it."""
+    device = torch.device(device)
+    model = model_from_ply(read_ply(variant.ply), device)
+    try:
+        refl = torch.load(variant.reflection, map_location="cpu", weights_only=True)
+        name, config, bounds = refl["model"], refl["config"], refl["bounds"]
+    except Exception as e:  # torch raises several types for truncated or foreign files
+        found = f"an unreadable file ({type(e).__name__}: {e})"
+        raise InputError(variant.reflection, "train_gs reflection weights", found) from None
+    strategy = reflection_from_config(name, config, variant.reflection)
+    module = build_reflection_module(strategy, device)
+    if module is not None:
+        try:
+            module.load_state_dict(refl["state_dict"])
+        except RuntimeError as e:
+            raise InputError(variant.reflection, f"weights of a {strategy}", str(e).splitlines()[0]) from None
+        module.eval()
+    lo, hi = (torch.as_tensor(np.asarray(b), dtype=torch.float32, device=device) for b in bounds)
+    p = variant.params
+    shading = ShadingOptions(float(p["refl_threshold"]), lo, hi)
+    backend = str(p.get("raster_backend", "auto"))
+    return TrainedModel(
+        variant.name,
+        model,
+        module,
+        strategy,
+        shading,
+        active_sh_degree(p),
+        float(p["near_m"]),
+        backend,
+        device,
+        bool(p.get("mask_by_facade", True)),
+    )
+
+
+def from_trainer(tr: Trainer, name: str) -> TrainedModel:
+    """A model being trained (``training.trainer.Trainer``), ready to render as if it had been saved."""
+    p = tr.params
+    return TrainedModel(
+        name,
+        tr.model,
+        tr.reflection,
+        p.reflection(),
+        tr.shading,
+        active_sh_degree(to_dict(p) | {"iterations": tr.iteration}),
+        p.near_m,
+        p.raster_backend,
+        tr.device,
+        p.mask_by_facade,
+    )
+
+
+@torch.no_grad()
+def render_trained(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndarray | None) -> RenderedView:
+    """Render a whole view (Eq. 7-9). ``facade_mask`` [H, W] bool limits the specular term to the facade,
+    as in training when ``mask_by_facade`` is set; None evaluates it wherever the reflectivity allows."""
+    f32 = {"dtype": torch.float32, "device": tm.device}
+    cam = Camera(
+        torch.as_tensor(camera.K, **f32),
+        torch.as_tensor(camera.cam_from_world, **f32),
+        camera.width,
+        camera.height,
+    )
+    spec = None
+    if facade_mask is not None and tm.mask_by_facade:
+        spec = torch.as_tensor(np.asarray(facade_mask, bool), device=tm.device)
+    r = render_view(
+        tm.model,
+        tm.reflection,
+        cam,
+        (0, 0, camera.width, camera.height),
+        splatting_rasterizer(tm.backend),
+        tm.near_m,
+        tm.sh_degree,
+        tm.shading,
+        spec_mask=spec,
+        chunk=RENDER_CHUNK,
+    )
+    return RenderedView(r.rgb.clamp(0, 1).cpu().numpy(), r.normal.cpu().numpy(), r.alpha.cpu().numpy())
+
+
+def variant_from_dir(folder: Path, name: str | None = None) -> TrainedVariant:
+    """A variant saved by ``save_variant`` in ``folder`` (its ``params.json`` holds the parameters)."""
+    files = [folder / f for f in VARIANT_FILES]
+    for f in files:
+        if not f.is_file():
+            raise InputError(f, "a file of a saved trained variant", "no file")
+    try:
+        params = json.loads(files[3].read_text())
+    except ValueError as e:
+        raise InputError(files[3], "train_gs parameters as JSON", str(e)) from None
+    return TrainedVariant(name or folder.name, files[0], files[1], files[2], params)
+
+
+def save_variant(
+    folder: Path,
+    model: GaussianModel,
+    reflection: nn.Module | None,
+    strategy: ReflectionModel,
+    bounds: tuple[np.ndarray, np.ndarray],
+    split: dict[str, list[str]],
+    params: dict[str, Any],
+) -> None:
+    """Write a trained model in the ``train_gs`` formats (PLY, reflection weights, split) plus its
+    parameters, atomically, so that ``variant_from_dir`` and the evaluate stage find it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_ply(folder / VARIANT_FILES[0], model)
+    refl = {
+        "model": model_name(strategy),
+        "config": asdict(strategy),
+        "bounds": [np.asarray(b).tolist() for b in bounds],
+        "state_dict": {} if reflection is None else reflection.state_dict(),
+    }
+    buf = io.BytesIO()
+    torch.save(refl, buf)
+    write_bytes(folder / VARIANT_FILES[1], buf.getvalue())
+    write_json(folder / VARIANT_FILES[2], split)
+    write_json(folder / VARIANT_FILES[3], params)

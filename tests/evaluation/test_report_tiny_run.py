@@ -1,0 +1,122 @@
+"""The report builds from a tiny run: a few training steps on synthetic64 (gt masks standing in for the
+bake_normals ones), rendered back from the saved files, measured by the stage's own functions and turned
+into metrics.json, Markdown and a self-contained HTML page."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from tqdm import tqdm
+
+from facade_pipeline.config import to_dict
+from facade_pipeline.errors import InputError
+from facade_pipeline.evaluation.image_eval import LpipsSetting
+from facade_pipeline.evaluation.metrics import psnr, ssim
+from facade_pipeline.evaluation.render_views import (
+    from_trainer,
+    load_trained,
+    render_trained,
+    save_variant,
+    variant_from_dir,
+)
+from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.scene import ImportedScene
+from facade_pipeline.training.render import splatting_rasterizer
+from facade_pipeline.training.trainer import build_trainer, train
+from stages import evaluate as stage
+from stages import load_stage
+from stages._runner import execute, load_params
+from tests.training.conftest import gt_train_data, small_params
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """synthetic64 imported, five views (0 and 4 held out), 10 training steps of a small MLP model."""
+    torch.set_num_threads(1)
+    layout = BuildingLayout(tmp_path_factory.mktemp("data"), "synthetic64")
+    for name in ("synthesize", "import_photogrammetry"):
+        s = load_stage(name)
+        execute(s, layout, load_params(s, "synthetic64"))
+    data = gt_train_data(layout, test_every=4, max_views=5)
+    p = small_params(iterations=10)
+    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend), "cpu")
+    train(tr)
+    for v in data.views:  # the gt masks stand in for bake_normals' masks
+        write_mask(layout.path("bake_facade_mask", stem=v.stem), v.facade_mask)
+        write_mask(layout.path("bake_glass_mask", stem=v.stem), v.glass_mask)
+    return layout, data, tr
+
+
+def test_saved_variant_renders_like_the_trainer(tiny):
+    layout, data, tr = tiny
+    split = {
+        "train": [data.views[i].stem for i in data.train_idx],
+        "test": [data.views[i].stem for i in data.test_idx],
+    }
+    folder = layout.path("variant_dir", variant="tiny")
+
+    save_variant(
+        folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, to_dict(tr.params)
+    )
+    variant = variant_from_dir(folder)
+    assert variant.name == "tiny" and variant.split_stems() == split
+    loaded = load_trained(variant)
+    live = from_trainer(tr, "live")
+    v = data.views[data.test_idx[0]]
+    a, b = render_trained(loaded, v.camera, v.facade_mask), render_trained(live, v.camera, v.facade_mask)
+    assert a.rgb.shape == (v.camera.height, v.camera.width, 3)
+    assert float(a.alpha.max()) > 0.1  # the facade is in view: something was rendered
+    np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)  # PLY stores activated values: float32 round trip
+    (folder / "params.json").write_text("{not json")
+    with pytest.raises(InputError, match="params.json"):
+        variant_from_dir(folder)
+
+
+def test_report_builds_from_a_tiny_run(tiny):
+    layout, data, tr = tiny
+    params = load_params(stage, "synthetic64")
+    setting = LpipsSetting(params.lpips_conventions, params.lpips_weights_dir or None)
+    scene_views = {v.stem: v for v in ImportedScene.load(layout).uav_views}
+    views = [scene_views[data.views[i].stem] for i in data.test_idx]
+    tm = from_trainer(tr, "tiny_run")
+    with tqdm(total=len(views), disable=True) as bar:
+        result, written = stage.evaluate_split(layout, params, tm, views, "test", setting, bar)
+    metrics = stage.metrics_header(layout, params, 4)
+    metrics["variants"]["tiny_run"] = {"reflection_model": "mlp", "architecture": None, "test": result}
+    outputs = stage.write_reports(layout, params, metrics)
+    assert all(p.is_file() for p in outputs + written)
+
+    # the figures are those of the render against the photo over the (gt) facade mask
+    row = result["views"][0]
+    v = data.views[data.test_idx[0]]
+    r = render_trained(tm, v.camera, v.facade_mask)
+    mask = read_mask(layout.path("bake_facade_mask", stem=v.stem))
+    assert row["metrics"]["facade"]["psnr"] == pytest.approx(psnr(r.rgb, v.image, mask), abs=1e-3)
+    assert row["metrics"]["facade"]["ssim"] == pytest.approx(
+        ssim(r.rgb, v.image, mask, border="renormalize"), abs=1e-5
+    )
+    saved = json.loads(layout.path("eval_metrics").read_text())
+    assert saved["variants"]["tiny_run"]["test"]["mean"] == json.loads(json.dumps(result["mean"]))
+
+    md = layout.path("eval_report_md").read_text()
+    table_row = next(line for line in md.splitlines() if line.startswith("| tiny_run"))
+    assert f"{result['mean']['facade']['psnr']:.2f}" in table_row
+    for link in re.findall(r"!\[[^]]*\]\(([^)]+)\)", md):
+        assert (layout.path("eval_report_md").parent / link).is_file()
+
+    page = layout.path("eval_report_html").read_text()
+    assert "<svg" in page and "Table 1" in page
+    srcs = re.findall(r"src='([^']+)'", page)
+    assert len(srcs) == len(views) and all(
+        s.startswith("data:image/png;base64,") for s in srcs
+    )  # self-contained
+    img = np.array(Image.open(io.BytesIO(base64.b64decode(srcs[0].split(",", 1)[1]))))
+    assert img.shape == (v.camera.height, 3 * v.camera.width + 4, 3)  # photo | render | heat map
