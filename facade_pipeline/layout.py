@@ -88,6 +88,14 @@ ENTRIES: dict[str, str] = {
     "train_split": "07_train/split.json",
     "train_log": "07_train/train_log.jsonl",
     "train_checkpoint": "07_train/checkpoint.pt",
+    # more trained variants (a baseline, an ablation), saved beside 07_train for evaluate to compare
+    "variant_dir": "variants/{variant}",
+    # 08_evaluate: metrics, renders beside ground truth, the report
+    "eval_metrics": "08_evaluate/metrics.json",
+    "eval_render": "08_evaluate/renders/{variant}/{split}/{stem}.png",
+    "eval_comparison": "08_evaluate/comparisons/{variant}/{split}/{stem}.png",
+    "eval_report_md": "08_evaluate/report.md",
+    "eval_report_html": "08_evaluate/report.html",
     # every stage folder ends with its manifest
     "stage_dir": "{stage_dir}",
     "stage_manifest": "{stage_dir}/manifest.json",

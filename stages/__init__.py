@@ -26,6 +26,7 @@ PIPELINE: tuple[str, ...] = (
     "correct_mesh",
     "bake_normals",
     "train_gs",
+    "evaluate",
 )
 
 
