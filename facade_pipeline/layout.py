@@ -77,7 +77,10 @@ ENTRIES: dict[str, str] = {
     "segment_overlay": "03_segment/overlays/{stem}.png",
     # 04-06: 3D panels, corrected mesh, baked geometry prior of the training views
     "regularize_panels": "04_regularize/panels.json",
+    "regularize_overlay": "04_regularize/overlays/{stem}.png",
     "correct_mesh": "05_correct_mesh/corrected_mesh.ply",
+    "correct_mesh_labels": "05_correct_mesh/triangle_labels.npy",
+    "correct_mesh_overlay": "05_correct_mesh/overlay.png",
     "bake_normal_map": "06_bake_normals/normals/{stem}.exr",
     "bake_depth_map": "06_bake_normals/depth/{stem}.exr",
     "bake_facade_mask": "06_bake_normals/masks/facade/{stem}.png",

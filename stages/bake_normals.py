@@ -1,10 +1,12 @@
 """Stage ``bake_normals``: the geometry prior of every training (UAV) view (Eq. 11's normal prior).
 
-Reads ``05_correct_mesh/corrected_mesh.ply``, ``04_regularize/panels.json`` and the imported scene; writes
+Reads ``05_correct_mesh/corrected_mesh.ply`` and ``triangle_labels.npy`` and the imported scene; writes
 per view a world-space normal map and a depth map (EXR float32, each with a ``valid`` channel; no NaN) by
-ray casting the corrected mesh, and the facade and glass masks (PNG) by projecting the 3D panels. One view
-at a time, ``chunk_rays`` rays at a time: memory does not grow with the number of views. On synthetic
-buildings the manifest compares the maps with gt/ (metrics only).
+ray casting the corrected mesh, and the facade and glass masks (PNG) from the same rays: a pixel is glass
+when its ray first hits a triangle labelled glass in ``05_correct_mesh/triangle_labels.npy``, facade when
+glass or frame, so frames in front of the glass hide it. One view at a time, ``chunk_rays`` rays at a time:
+memory does not grow with the number of views. On synthetic buildings the manifest compares the maps with
+gt/ (metrics only).
 """
 
 from __future__ import annotations
@@ -17,31 +19,35 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.geometry.bake import bake_view, panel_masks
+from facade_pipeline.geometry.bake import bake_view
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.exr import read_exr, write_exr
 from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
 from stages._runner import StageReport, main
 
 NAME = "bake_normals"
 DOC = "bake world-space normal and depth maps (EXR) and facade/glass masks (PNG) for every training view"
-UPSTREAM: tuple[str, ...] = ("correct_mesh", "regularize_corners", "import_photogrammetry")
-LIBRARY = ("geometry/bake.py", "geometry/raycast.py", "geometry/camera.py", "io", "scene.py", "panels.py")
+UPSTREAM: tuple[str, ...] = ("correct_mesh", "import_photogrammetry")
+LIBRARY = (
+    "geometry/bake.py",
+    "geometry/raycast.py",
+    "geometry/camera.py",
+    "meshing/correct.py",
+    "io",
+    "scene.py",
+    "panels.py",
+)
 
 
 @dataclass(frozen=True)
 class Params:
     chunk_rays: int
     """Rays cast per batch; bounds memory (-)."""
-    mask_edge_samples: int
-    """Points per panel edge when projecting panels into masks, so curved edges stay curved (-)."""
-    mask_near_m: float
-    """Panels are clipped this far (m) in front of the camera before projection."""
 
 
 def _outputs(layout: BuildingLayout, stem: str) -> dict[str, Path]:
@@ -52,11 +58,13 @@ def _outputs(layout: BuildingLayout, stem: str) -> dict[str, Path]:
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
-    for stage in ("correct_mesh", "regularize_corners"):
-        read_manifest(layout, stage)
-    files = [layout.import_scene, layout.path("correct_mesh"), layout.path("regularize_panels")]
+    read_manifest(layout, "correct_mesh")
+    files = [
+        layout.import_scene,
+        layout.path("correct_mesh"),
+        layout.path("correct_mesh_labels"),
+    ]
     ImportedScene.load(layout)
-    PanelSet.load(files[-1])
     return files
 
 
@@ -67,8 +75,10 @@ def _truth(
     normal: np.ndarray,
     valid: np.ndarray,
     glass: np.ndarray,
-) -> tuple[np.ndarray, float] | None:
-    """Normal angle errors (deg) on true glass pixels and the glass-mask IoU of one view (metrics only)."""
+    facade: np.ndarray,
+) -> tuple[np.ndarray, float, float] | None:
+    """Normal angle errors (deg) on true glass pixels and the glass- and facade-mask IoU of one view
+    (metrics only)."""
     if not layout.gt("normal_map", view.stem).is_file():
         return None
     gt_n = read_exr(layout.gt("normal_map", view.stem))
@@ -76,26 +86,28 @@ def _truth(
     true_n = gt_n["N"] @ local_from_georef[:3, :3].T  # normals turn with the frame
     sel = gt_glass & valid & (gt_n["valid"] > 0.5)
     err = np.degrees(np.arccos(np.clip(np.sum(normal[sel] * true_n[sel], axis=1), -1.0, 1.0)))
+    gt_facade = read_mask(layout.gt("facade_mask", view.stem))
     iou = (glass & gt_glass).sum() / max(1, (glass | gt_glass).sum())
-    return err, float(iou)
+    iou_f = (facade & gt_facade).sum() / max(1, (facade | gt_facade).sum())
+    return err, float(iou), float(iou_f)
 
 
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.path("correct_mesh"))
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
-    panels = PanelSet.load(layout.path("regularize_panels"))
+    labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
     views = scene.uav_views
     local_from_georef = np.linalg.inv(scene.georef_from_local)
     outputs: list[Path] = []
-    errs, ious, n_rays, n_valid, t_cast = [], [], 0, 0, 0.0
+    errs, ious, ious_f, n_rays, n_valid, t_cast = [], {}, [], 0, 0, 0.0
     total = sum(v.camera.width * v.camera.height for v in views)
     with tqdm(total=total, desc="bake: rays", unit="ray", unit_scale=True, file=sys.stderr) as bar:
         for v in views:
             t0 = time.perf_counter()
-            baked = bake_view(rc, v.camera, params.chunk_rays, bar.update)
+            baked = bake_view(rc, v.camera, params.chunk_rays, bar.update, labels)
             t_cast += time.perf_counter() - t0
-            facade, glass = panel_masks(panels, v.camera, params.mask_edge_samples, params.mask_near_m)
+            glass, facade = baked.label == GLASS, baked.label >= FRAME
             out = _outputs(layout, v.stem)
             valid = baked.valid.astype(np.float32)
             write_exr(out["normal_map"], {"N": baked.normal, "valid": valid})
@@ -105,10 +117,11 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             outputs += list(out.values())
             n_rays += baked.valid.size
             n_valid += int(baked.valid.sum())
-            truth = _truth(layout, local_from_georef, v, baked.normal, baked.valid, glass)
+            truth = _truth(layout, local_from_georef, v, baked.normal, baked.valid, glass, facade)
             if truth is not None:
                 errs.append(truth[0])
-                ious.append(truth[1])
+                ious[v.stem] = round(truth[1], 4)
+                ious_f.append(truth[2])
     metrics = {
         "n_views": len(views),
         "rays": n_rays,
@@ -120,7 +133,10 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
         metrics["truth"] = {
             "glass_normal_error_mean_deg": round(float(e.mean()), 4) if len(e) else None,
             "glass_normal_error_p95_deg": round(float(np.percentile(e, 95)), 4) if len(e) else None,
-            "glass_mask_iou_mean": round(float(np.mean(ious)), 4),
+            "glass_mask_iou_mean": round(float(np.mean(list(ious.values()))), 4),
+            "glass_mask_iou_min": min(ious.values()),
+            "glass_mask_iou": ious,
+            "facade_mask_iou_mean": round(float(np.mean(ious_f)), 4),
         }
     return StageReport(outputs, metrics)
 

@@ -2,7 +2,9 @@
 section 3.1.3, Fig. 6b).
 
 Reads ``01_import/coarse_mesh.ply`` and ``04_regularize/panels.json``; writes
-``05_correct_mesh/corrected_mesh.ply`` (inserted glass coloured ``panel_color``, coarse vertices keep theirs).
+``05_correct_mesh/corrected_mesh.ply`` (inserted glass coloured ``panel_color``, coarse vertices keep theirs),
+``triangle_labels.npy`` (glass / frame / other per triangle, for the bake's masks) and ``overlay.png`` (shaded
+renders of the coarse and the corrected mesh from the first frontal camera).
 On synthetic buildings the manifest compares the corrected and the coarse mesh with gt/ (surface distance on
 glass and frames, normal error on glass) and says whether the targets are met (gt is read for metrics only).
 """
@@ -18,11 +20,13 @@ import numpy as np
 
 from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.io.images import write_image
 from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.meshing.correct import correct_mesh
+from facade_pipeline.meshing.correct import LABEL_NAMES, correct_mesh, label_triangles, write_labels
 from facade_pipeline.meshing.metrics import surface_errors
+from facade_pipeline.meshing.overlay import scaled_camera, shaded_render, side_by_side, upscale_factor
 from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene
 from stages._runner import StageReport, main
@@ -30,13 +34,26 @@ from stages._runner import StageReport, main
 NAME = "correct_mesh"
 DOC = "replace the coarse mesh inside each panel's cuboid by the shrunk 3D panel, keeping the frames"
 UPSTREAM: tuple[str, ...] = ("regularize_corners", "import_photogrammetry")
-LIBRARY = ("meshing", "geometry/raycast.py", "geometry/frames.py", "io", "scene.py", "panels.py")
+LIBRARY = (
+    "meshing",
+    "geometry/raycast.py",
+    "geometry/frames.py",
+    "geometry/bake.py",
+    "geometry/camera.py",
+    "io",
+    "scene.py",
+    "panels.py",
+)
+OVERLAY_MIN_WIDTH_PX = 480  # renders of small views are upscaled to at least this width
 
 
 @dataclass(frozen=True)
 class Params:
     shrink_factor: float
     """Each panel is shrunk in its surface about its centre by this factor (0-1) before insertion."""
+    insert_factor: float
+    """The panel put in the cuboid's place is the 3D panel scaled about its centre by this factor (0-1):
+    1 puts the whole glass back, running on under the kept frames, so no gap is left around it."""
     cuboid_half_depth_m: float
     """The coarse mesh within this distance (m) of a shrunk panel along its normal is removed."""
     removal: Literal["any_vertex", "centroid", "all_vertices"]
@@ -45,6 +62,9 @@ class Params:
     """Panels on cylindrical parts are split into flat facets spanning at most this angle (deg)."""
     panel_color: tuple[float, float, float]
     """Vertex colour of the inserted glass (0-1)."""
+    frame_half_depth_m: float
+    """Kept coarse triangles inside a part's facade outline and within this distance (m) of the glass
+    surface are labelled frame (the rest: other)."""
     metric_samples: int
     """Points sampled on a mesh for the metrics against gt/ (synthetic buildings) (-)."""
     metric_max_match_m: float
@@ -97,36 +117,63 @@ def truth_metrics(
     return {"truth": out}
 
 
+def _overlay(layout: BuildingLayout, coarse: tuple, fixed: tuple, labels) -> None:
+    """Shaded coarse (left) and corrected (right, by label) renders from the first frontal (else UAV) view."""
+    scene = ImportedScene.load(layout)
+    views = scene.frontal_views or scene.uav_views
+    cam = views[0].camera
+    cam = scaled_camera(cam, upscale_factor(cam.width, OVERLAY_MIN_WIDTH_PX))
+    left = shaded_render(MeshRaycaster(*coarse), cam, None)
+    right = shaded_render(MeshRaycaster(*fixed), cam, labels)
+    write_image(layout.path("correct_mesh_overlay"), side_by_side(left, right))
+
+
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     coarse = read_mesh(layout.import_coarse_mesh)
     panels = PanelSet.load(layout.path("regularize_panels"))
     v, f = np.asarray(coarse.vertices), np.asarray(coarse.triangles)
     fixed = correct_mesh(
-        v, f, panels, params.shrink_factor, params.cuboid_half_depth_m, params.max_facet_deg, params.removal
+        v,
+        f,
+        panels,
+        params.shrink_factor,
+        params.cuboid_half_depth_m,
+        params.max_facet_deg,
+        params.removal,
+        params.insert_factor,
+    )
+    labels = label_triangles(
+        fixed.vertices, fixed.triangles, fixed.is_panel, panels, params.frame_half_depth_m
     )
     colors = np.tile(np.asarray(params.panel_color), (len(fixed.vertices), 1))
     if coarse.has_vertex_colors():
         colors[: len(v)] = np.asarray(coarse.vertex_colors)
     mesh = make_mesh(fixed.vertices, fixed.triangles, colors)
-    mesh.remove_unreferenced_vertices()
+    mesh.remove_unreferenced_vertices()  # keeps the triangles and their order: the labels stay aligned
     mesh.compute_vertex_normals()
+    assert len(mesh.triangles) == len(labels)
     out = layout.path("correct_mesh")
     write_mesh(out, mesh)
+    write_labels(layout.path("correct_mesh_labels"), labels)
+    _overlay(layout, (v, f), (fixed.vertices, fixed.triangles), labels)
     width = float(np.median([p.width_m for p in panels.panels])) if panels.panels else 0.0
     metrics = {
         "n_panels_inserted": len(panels.panels),
         "coarse_triangles_removed": fixed.n_removed,
         "panel_triangles": int(fixed.is_panel.sum()),
         "triangles": len(mesh.triangles),
+        **{f"triangles_{name}": int((labels == k).sum()) for k, name in LABEL_NAMES.items()},
         **truth_metrics(
             layout, params, {"coarse": (v, f), "corrected": (fixed.vertices, fixed.triangles)}, width
         ),
     }
-    return StageReport([out], metrics)
+    return StageReport(
+        [out, layout.path("correct_mesh_labels"), layout.path("correct_mesh_overlay")], metrics
+    )
 
 
 def targets(layout: BuildingLayout, params: Params) -> list[Path]:
-    return [layout.path("correct_mesh")]
+    return [layout.path(k) for k in ("correct_mesh", "correct_mesh_labels", "correct_mesh_overlay")]
 
 
 if __name__ == "__main__":

@@ -2,7 +2,9 @@
 paper, end of section 3.1.2).
 
 Reads the frontal views' panel corners and authoritative panel masks (``03_segment``), the imported
-scene, coarse mesh and coarse points (``01_import``); writes ``04_regularize/panels.json`` (a ``PanelSet``).
+scene, coarse mesh and coarse points (``01_import``); writes ``04_regularize/panels.json`` (a ``PanelSet``)
+and per frontal view an overlay (the segmented quads and the 3D panels projected over the view).
+Quads cut by the image border ("complete": false) count with their corners away from the border.
 Rejected rays (missed, grazing, ghost) and grid outliers are counted in the manifest; on synthetic
 buildings the 3D corner error against gt/panels.json is added (gt is read for that metric only).
 """
@@ -22,11 +24,12 @@ from facade_pipeline.geometry.panel_grid import build_panel_set
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.geometry.regularize import RegularizeConfig
 from facade_pipeline.geometry.segment_obs import read_view_corners, reconcile_with_mask
-from facade_pipeline.io.images import image_size, read_mask
+from facade_pipeline.io.images import image_size, read_image, read_mask, write_image
 from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.metrics import corner_errors
+from facade_pipeline.meshing.overlay import panels_over_view, upscale_factor
 from facade_pipeline.scene import ImportedScene
 from stages import PIPELINE
 from stages._runner import StageReport, main
@@ -48,7 +51,10 @@ LIBRARY = (
     "scene.py",
     "panels.py",
     "meshing/metrics.py",
+    "meshing/overlay.py",
+    "geometry/bake.py",
 )
+OVERLAY_MIN_WIDTH_PX = 480  # small views are drawn upscaled to at least this width
 Params = RegularizeConfig
 
 
@@ -75,6 +81,7 @@ def _segment_files(layout: BuildingLayout, scene: ImportedScene) -> list[tuple[P
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     scene = ImportedScene.load(layout)
     files = [layout.import_scene, layout.import_coarse_mesh, layout.import_coarse_points]
+    files += [layout.root / v.image for v in scene.frontal_views]
     for (corners, mask), view in zip(_segment_files(layout, scene), scene.frontal_views, strict=True):
         c = view.camera
         if image_size(mask) != (c.width, c.height):
@@ -120,6 +127,18 @@ def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels) -> dict
     return {"truth": {**corner_errors(panels, np.array(true)), "true_panels": len(true)}}
 
 
+def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: list, panels) -> list[Path]:
+    """Write one overlay per frontal view; returns their paths."""
+    out = []
+    for i, v in enumerate(scene.frontal_views):
+        factor = upscale_factor(v.camera.width, OVERLAY_MIN_WIDTH_PX)
+        mine = [q for q, k in zip(quads, view, strict=True) if k == i]
+        img = panels_over_view(read_image(layout.root / v.image), v.camera, mine, panels, factor)
+        out.append(layout.path("regularize_overlay", stem=v.stem))
+        write_image(out[-1], img)
+    return out
+
+
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.import_coarse_mesh)
@@ -130,6 +149,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     panels, metrics = build_panel_set(quads, complete, view, cameras, rc, points, params)
     out = layout.path("regularize_panels")
     panels.save(out)
+    overlays = _overlays(layout, scene, quads, view, panels)
     metrics = {
         "n_frontal_views": len(cameras),
         "coarse_triangles_degenerate": rc.n_dropped,
@@ -137,7 +157,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
         **metrics,
         **_truth_metrics(layout, scene, panels),
     }
-    return StageReport([out], metrics)
+    return StageReport([out, *overlays], metrics)
 
 
 def targets(layout: BuildingLayout, params: Params) -> list[Path]:

@@ -18,52 +18,81 @@ import open3d as o3d
 
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.panels import Panel, PanelSet, PartSurface
+from facade_pipeline.panels import PanelSet, PartSurface, part_outline
 
 POLY_SHIFT = 4  # cv2 fixed-point bits: polygons are filled at 1/16 px
 POLY_LIMIT_PX = 1 << 20  # projected polygon coordinates are clamped here (cv2 int32 fixed point)
 
 
+INVALID_ID = np.iinfo(np.uint32).max  # open3d's primitive id of a ray that hit nothing
+
+
 @dataclass(frozen=True, eq=False)
 class BakedView:
     """``normal`` [H, W, 3] float32 (world, unit, facing the camera), ``depth`` [H, W] float32 (m, camera
-    z), ``valid`` [H, W] bool."""
+    z), ``valid`` [H, W] bool, and ``label`` [H, W] uint8: the label of the hit triangle (0 where none)."""
 
     normal: np.ndarray
     depth: np.ndarray
     valid: np.ndarray
+    label: np.ndarray
+
+
+def facing_tables(
+    rc: MeshRaycaster, center: np.ndarray, labels: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per scene triangle, plus one last row for "no hit": the unit normal turned toward the camera centre
+    ``center`` [3] (every ray from a pinhole meets a flat triangle from the same side, so the turn is a
+    property of the triangle and the view, not of the pixel) [S + 1, 3] float32, and the triangle's label
+    (``labels`` [F] of the caller's triangles, or 0) [S + 1] uint8. The last rows are zero."""
+    away = np.einsum("ij,ij->i", rc.tri_vertex - center, rc.tri_normals) > 0
+    normals = np.zeros((len(rc.prim_map) + 1, 3), np.float32)
+    normals[:-1] = np.where(away[:, None], -rc.tri_normals, rc.tri_normals)
+    lab = np.zeros(len(rc.prim_map) + 1, np.uint8)
+    if labels is not None:
+        lab[:-1] = np.asarray(labels, np.uint8)[rc.prim_map]
+    return normals, lab
 
 
 def bake_view(
-    rc: MeshRaycaster, camera: PinholeCamera, chunk_rays: int, progress: Callable[[int], None] | None = None
+    rc: MeshRaycaster,
+    camera: PinholeCamera,
+    chunk_rays: int,
+    progress: Callable[[int], None] | None = None,
+    labels: np.ndarray | None = None,
 ) -> BakedView:
     """Ray-cast every pixel of ``camera`` against the mesh of ``rc``, in bands of whole rows of about
-    ``chunk_rays`` rays. Rays are built by open3d through pixel centres with camera-z component 1, so the
-    hit distance is the depth along the camera axis."""
+    ``chunk_rays`` rays; ``labels`` [F] (uint8, one per triangle of the caller's mesh) gives each hit
+    pixel its triangle's label. Rays are built by open3d (float32) through pixel centres with camera-z
+    component 1, so the hit distance is the depth along the camera axis. Only the hit distance and the
+    triangle id are read per ray; normals and labels are looked up by id in per-view tables."""
     h, w = camera.height, camera.width
     normal = np.zeros((h, w, 3), np.float32)
     depth = np.zeros((h, w), np.float32)
     valid = np.zeros((h, w), bool)
+    label = np.zeros((h, w), np.uint8)
     band = max(1, int(chunk_rays) // max(1, w))
     extrinsic = o3d.core.Tensor(camera.cam_from_world)
+    normals_t, labels_t = facing_tables(rc, camera.center, labels)
+    last = len(rc.prim_map)
     for r0 in range(0, h, band):
         rows = min(band, h - r0)
-        K = camera.K.copy()
-        K[1, 2] -= r0  # the band's first row becomes row 0
-        rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(o3d.core.Tensor(K), extrinsic, w, rows)
         if not rc.empty:
-            t, n, _ = rc.cast_rays(rays)
-            hit = np.isfinite(t)
-            d = rays.numpy()[..., 3:].reshape(-1, 3)
-            n[
-                np.einsum("ij,ij->i", n, d) > 0
-            ] *= -1.0  # face the camera (back faces, cameras inside or behind)
-            valid[r0 : r0 + rows] = hit.reshape(rows, w)
-            depth[r0 : r0 + rows] = np.where(hit, t, 0.0).reshape(rows, w)
-            normal[r0 : r0 + rows] = n.reshape(rows, w, 3)
+            K = camera.K.copy()
+            K[1, 2] -= r0  # the band's first row becomes row 0
+            rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(o3d.core.Tensor(K), extrinsic, w, rows)
+            out = rc.scene.cast_rays(rays)
+            ids = out["primitive_ids"].numpy().reshape(rows, w)
+            hit = ids != INVALID_ID
+            idx = np.minimum(ids, last)  # misses -> the zero row
+            valid[r0 : r0 + rows] = hit
+            np.copyto(depth[r0 : r0 + rows], out["t_hit"].numpy().reshape(rows, w), where=hit)
+            np.take(normals_t, idx, axis=0, out=normal[r0 : r0 + rows])
+            if labels is not None:
+                np.take(labels_t, idx, out=label[r0 : r0 + rows])
         if progress is not None:
             progress(rows * w)
-    return BakedView(normal, depth, valid)
+    return BakedView(normal, depth, valid, label)
 
 
 def _outline(surface: PartSurface, szh: np.ndarray, samples: int) -> np.ndarray:
@@ -100,24 +129,6 @@ def _clip_near(pc: np.ndarray, near: float) -> np.ndarray:
             t = (near - a[2]) / (b[2] - a[2])
             out.append(a + t * (b - a))
     return np.array(out).reshape(-1, 3)
-
-
-def part_outline(panels: tuple[Panel, ...], surface: PartSurface) -> np.ndarray:
-    """Surface coordinates [4, 3] of a part's facade: its panels' extent grown by one frame width (the
-    median gap between neighbouring panels; zero with a single panel)."""
-    szh = np.stack([surface.coords(p.corners) for p in panels])  # [P, 4, 3]
-    gaps = []
-    for axis, (lo_k, hi_k) in ((0, (1, 0)), (1, (2, 1))):  # s: right -> next left; z: top -> next bottom
-        lo = np.unique(np.round(szh[:, hi_k, axis], 6))
-        hi = np.unique(np.round(szh[:, lo_k, axis], 6))
-        d = lo[:, None] - hi[None]
-        d = d[d > 0]
-        if len(d):
-            gaps.append(float(d.min()))
-    fw = float(np.median(gaps)) if gaps else 0.0
-    s0, s1 = szh[..., 0].min() - fw, szh[..., 0].max() + fw
-    z0, z1 = szh[..., 1].min() - fw, szh[..., 1].max() + fw
-    return np.array([[s0, z0, 0.0], [s1, z0, 0.0], [s1, z1, 0.0], [s0, z1, 0.0]])
 
 
 def panel_masks(

@@ -70,52 +70,151 @@ def assign_parts(
     return out
 
 
+LEFT, BOTTOM = np.array([True, False, False, True]), np.array([True, True, False, False])  # of BL BR TR TL
+
+
+def panel_size(szh: np.ndarray, ok: np.ndarray) -> tuple[float, float]:
+    """Median panel width and height (m) from corner surface coordinates [Q, 4, 3] where the corners of an
+    edge are both true corners (``ok`` [Q, 4]): bottom and top edges for the width, the sides for the
+    height."""
+    w = [szh[ok[:, b] & ok[:, a], b, 0] - szh[ok[:, b] & ok[:, a], a, 0] for a, b in ((0, 1), (3, 2))]
+    h = [szh[ok[:, b] & ok[:, a], b, 1] - szh[ok[:, b] & ok[:, a], a, 1] for a, b in ((0, 3), (1, 2))]
+    w, h = np.concatenate(w), np.concatenate(h)
+    return (float(np.median(w)) if len(w) else np.nan), (float(np.median(h)) if len(h) else np.nan)
+
+
+def grid_cells(
+    szh: np.ndarray, ok: np.ndarray, width: float, height: float, gap_factor: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column [Q] of every quad (-1: none) from its true corners only (``ok`` [Q, 4]): each true
+    corner, moved half a panel (``width``, ``height``, m) inward, votes for its panel's centre; the votes
+    are clustered (gaps over ``gap_factor`` times the panel size) and a quad takes its corners' majority.
+    So a panel cut by the image border in one view and seen whole, or cut on the other side, in another
+    falls in the same cell."""
+    q_idx, k_idx = np.nonzero(ok)
+    sc = szh[q_idx, k_idx, 0] + np.where(LEFT[k_idx], 0.5, -0.5) * width
+    zc = szh[q_idx, k_idx, 1] + np.where(BOTTOM[k_idx], 0.5, -0.5) * height
+    col_of, row_of = cluster_1d(sc, gap_factor * width), cluster_1d(zc, gap_factor * height)
+    rows, cols = np.full(len(szh), -1, np.int64), np.full(len(szh), -1, np.int64)
+    for q in np.unique(q_idx):
+        rows[q] = np.bincount(row_of[q_idx == q]).argmax()
+        cols[q] = np.bincount(col_of[q_idx == q]).argmax()
+    return rows, cols
+
+
 def grid_lines(
-    szh: np.ndarray, rows: np.ndarray, cols: np.ndarray, cfg: RegularizeConfig
+    szh: np.ndarray,
+    ok: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    size: tuple[float, float],
+    cfg: RegularizeConfig,
 ) -> tuple[dict, dict, int]:
-    """Robust lines of the grid from corner surface coordinates [Q, 4, 3] of quads at ``rows``, ``cols``
-    [Q]: {row: (z_bottom, z_top)}, {col: (s_left, s_right)} and the number of corner outliers."""
+    """Robust lines of the grid from the true corners (``ok`` [Q, 4]) of quads [Q, 4, 3] at ``rows``,
+    ``cols`` [Q]: {row: (z_bottom, z_top)}, {col: (s_left, s_right)} and the number of corner outliers.
+    A line no true corner shows is put one panel ``size`` (width, height, m) from the opposite line (the
+    grid's regularity)."""
     n_out = 0
 
-    def line(values: np.ndarray) -> float:
+    def line(sel: np.ndarray, corner_mask: np.ndarray, axis: int) -> float:
         nonlocal n_out
-        v = values[np.isfinite(values)]
+        v = szh[sel][:, corner_mask, axis][ok[sel][:, corner_mask]]
+        v = v[np.isfinite(v)]
+        if not len(v):
+            return np.nan
         keep = robust_inliers(v, cfg.outlier_mad_factor, cfg.outlier_floor_m)
         n_out += int((~keep).sum())
         return float(v[keep].mean())
 
-    row_lines = {
-        int(r): (line(szh[rows == r][:, [0, 1], 1].ravel()), line(szh[rows == r][:, [2, 3], 1].ravel()))
-        for r in np.unique(rows)
-    }
-    col_lines = {
-        int(c): (line(szh[cols == c][:, [0, 3], 0].ravel()), line(szh[cols == c][:, [1, 2], 0].ravel()))
-        for c in np.unique(cols)
-    }
+    def pair(sel: np.ndarray, lo_mask: np.ndarray, axis: int, span: float) -> tuple[float, float]:
+        lo, hi = line(sel, lo_mask, axis), line(sel, ~lo_mask, axis)
+        return (hi - span if np.isnan(lo) else lo), (lo + span if np.isnan(hi) else hi)
+
+    row_lines = {int(r): pair(rows == r, BOTTOM, 1, size[1]) for r in np.unique(rows[rows >= 0])}
+    col_lines = {int(c): pair(cols == c, LEFT, 0, size[0]) for c in np.unique(cols[cols >= 0])}
     return row_lines, col_lines, n_out
 
 
 def part_panels(
-    surface: PartSurface, part: int, szh: np.ndarray, views: np.ndarray, cfg: RegularizeConfig
+    surface: PartSurface,
+    part: int,
+    szh: np.ndarray,
+    ok: np.ndarray,
+    views: np.ndarray,
+    cfg: RegularizeConfig,
 ) -> tuple[list[Panel], int]:
     """The regularised panels of one part from its quads' corner surface coordinates [Q, 4, 3] (h = 0)
-    seen in ``views`` [Q]. Returns the panels (rows bottom to top, columns left to right) and the number
-    of corner outliers."""
-    centre = np.nanmean(szh[..., :2], axis=1)
-    width = np.nanmedian(np.ptp(szh[..., 0], axis=1))
-    height = np.nanmedian(np.ptp(szh[..., 1], axis=1))
-    rows = cluster_1d(centre[:, 1], cfg.cluster_gap_factor * height)
-    cols = cluster_1d(centre[:, 0], cfg.cluster_gap_factor * width)
-    row_lines, col_lines, n_out = grid_lines(szh, rows, cols, cfg)
+    seen in ``views`` [Q]; ``ok`` [Q, 4] marks the true corners (not cut by the image border). Returns
+    the panels (rows and columns renumbered from 0, bottom to top and left to right) and the number of
+    corner outliers."""
+    ok = ok & np.isfinite(szh).all(axis=2)
+    size = panel_size(szh, ok)
+    if not np.isfinite(size).all() or min(size) <= 0:
+        return [], 0
+    rows, cols = grid_cells(szh, ok, *size, cfg.cluster_gap_factor)
+    row_lines, col_lines, n_out = grid_lines(szh, ok, rows, cols, size, cfg)
+    cells = sorted({(int(a), int(b)) for a, b in zip(rows, cols, strict=True) if a >= 0 and b >= 0})
+    r_num = {r: i for i, r in enumerate(sorted({r for r, _ in cells}))}
+    c_num = {c: i for i, c in enumerate(sorted({c for _, c in cells}))}
     panels = []
-    for r, c in sorted({(int(a), int(b)) for a, b in zip(rows, cols, strict=True)}):
+    for r, c in cells:
         (zb, zt), (sl, sr) = row_lines[r], col_lines[c]
         corners = surface.points(np.array([[sl, zb, 0.0], [sr, zb, 0.0], [sr, zt, 0.0], [sl, zt, 0.0]]))
         centre3, _, n = quad_frames(corners[None])
         n = n[0] if surface.kind == "cylindrical" else surface.normal
         n_views = len(np.unique(views[(rows == r) & (cols == c)]))
-        panels.append(Panel(part, r, c, corners, n, float(n @ centre3[0]), n_views))
+        panels.append(Panel(part, r_num[r], c_num[c], corners, n, float(n @ centre3[0]), n_views))
     return panels, n_out
+
+
+def true_corners(
+    quads_px: list[np.ndarray],
+    complete: np.ndarray,
+    view: list[int],
+    cameras: list[PinholeCamera],
+    margin_px: float,
+) -> np.ndarray:
+    """[Q, 4] bool: the corners that are real panel corners: all of a complete quad's, and those of an
+    incomplete quad (cut by the image border) farther than ``margin_px`` (px) inside the image."""
+    ok = np.ones((len(quads_px), 4), bool)
+    for q in np.flatnonzero(~complete):
+        c, cam = quads_px[q], cameras[view[q]]
+        ok[q] = (
+            (c[:, 0] > margin_px)
+            & (c[:, 1] > margin_px)
+            & (c[:, 0] < cam.width - margin_px)
+            & (c[:, 1] < cam.height - margin_px)
+        )
+    return ok
+
+
+def _refit_parts(
+    surfaces: list[PartSurface],
+    offsets: list[dict],
+    rays: CornerRays,
+    points: np.ndarray,
+    good_hit: np.ndarray,
+    part: np.ndarray,
+    ok: np.ndarray,
+    anchor: np.ndarray,
+    rc: MeshRaycaster,
+    coarse_points: np.ndarray,
+    cfg: RegularizeConfig,
+) -> None:
+    """Refit each part's surface (in place) through every true corner (``ok`` [Q, 4]) with a good hit
+    (``good_hit`` [Q, 4]) of the quads assigned to it, cut quads included, when they add corners to the
+    anchors' (whole quads'); the glass offset is found again on the new surface."""
+    for p in range(len(surfaces)):
+        use = (part == p)[:, None] & ok & good_hit
+        if use.sum() <= 4 * int(anchor[part == p].sum()):
+            continue
+        surf, _ = fit_surface_robust(points[use], rays.centers[np.unique(rays.view[part == p])], cfg)
+        feet = footprints_of(surface_corners(surf, rays, (part == p) & anchor), cfg.footprint_shrink)
+        delta, _, _ = glass_offset(surf, feet, coarse_points, rc, cfg)
+        surfaces[p] = surf.shifted(delta)
+        offsets[p].update(
+            glass_offset_m=round(delta, 4), radius_m=round(surf.radius_m, 3), refit_corners=int(use.sum())
+        )
 
 
 def build_panel_set(
@@ -132,7 +231,7 @@ def build_panel_set(
     set and metrics (rejected rays by cause, parts, outliers, glass offsets)."""
     metrics: dict = {
         "n_quads": len(quads_px),
-        "n_incomplete_quads_skipped": int(np.sum(~np.asarray(complete, bool))),
+        "n_incomplete_quads": int(np.sum(~np.asarray(complete, bool))),
     }
     if not quads_px:
         return PanelSet((), (), {"n_parts": 0}), {**metrics, "n_panels": 0, "n_parts": 0}
@@ -166,18 +265,20 @@ def build_panel_set(
             }
         )
         lo, hi = np.nanmin(szh[..., :2], axis=(0, 1)), np.nanmax(szh[..., :2], axis=(0, 1))
-        extents.append(np.array([lo[0] - (hi[0] - lo[0]), hi[0] + (hi[0] - lo[0]), lo[1] - 1.0, hi[1] + 1.0]))
+        span = hi - lo  # quads cut by the border may lie a whole part's size beyond the anchors
+        extents.append(np.array([lo[0] - span[0], hi[0] + span[0], lo[1] - span[1], hi[1] + span[1]]))
     part = assign_parts(rays, points, status, part, surfaces, extents, cfg.ghost_max_m)
-    part[~complete_a] = -1
+    ok = true_corners(quads_px, complete_a, view, cameras, cfg.border_margin_px)
+    ok_any = ok.any(axis=1)
     for q in np.flatnonzero(part >= 0):  # hits far from the assigned surface are ghosts too
         h = np.abs(surfaces[part[q]].coords(np.nan_to_num(points[q]))[:, 2])
         status[q][(status[q] == OK) & (h > cfg.ghost_max_m + abs(offsets[part[q]]["glass_offset_m"]))] = GHOST
+    _refit_parts(surfaces, offsets, rays, points, status == OK, part, ok, anchor, rc, coarse_points, cfg)
     panels, n_out = [], 0
     for p, surf in enumerate(surfaces):
-        sel = np.flatnonzero(part == p)
+        sel = np.flatnonzero((part == p) & ok_any)
         szh = surface_corners(surf, rays, sel)
-        good = np.isfinite(szh).all(axis=(1, 2))
-        new, k = part_panels(surf, p, szh[good], rays.view[sel][good], cfg)
+        new, k = part_panels(surf, p, szh, ok[sel], rays.view[sel], cfg)
         panels += new
         n_out += k
     metrics.update(
@@ -188,7 +289,9 @@ def build_panel_set(
             "rays_total": int(status.size),
             "n_parts": len(surfaces),
             "n_panels": len(panels),
-            "n_quads_unplaced": int(np.sum((part < 0) & complete_a)),
+            "n_quads_unplaced": int(np.sum(part < 0)),
+            "n_incomplete_quads_used": int(np.sum((part >= 0) & ~complete_a & ok_any)),
+            "corners_on_border": int((~ok).sum()),
             "corner_outliers": n_out,
             "panels_seen_in_one_view": int(sum(p.n_views == 1 for p in panels)),
             "parts": offsets,

@@ -52,9 +52,17 @@ class MeshRaycaster:
         self.prim_map = keep  # scene triangle -> caller's triangle index
         self.n_dropped = int(len(np.asarray(triangles).reshape(-1, 3)) - len(keep))
         self.scene = o3d.t.geometry.RaycastingScene()
+        # per scene triangle: unit normal as wound and one vertex (float64 maths, float32 storage), for bakes
+        # that look normals up by triangle id instead of fetching them per ray
+        self.tri_normals = np.zeros((len(keep), 3), np.float32)
+        self.tri_vertex = np.zeros((len(keep), 3), np.float64)
         if len(keep):
-            v = np.asarray(vertices, dtype=np.float32)
             f = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)[keep]
+            p = np.asarray(vertices, dtype=np.float64)[f]
+            n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+            self.tri_normals[:] = n / np.linalg.norm(n, axis=1, keepdims=True)
+            self.tri_vertex[:] = p[:, 0]
+            v = np.asarray(vertices, dtype=np.float32)
             used, inv = np.unique(f, return_inverse=True)
             self.scene.add_triangles(
                 o3d.core.Tensor(np.ascontiguousarray(v[used])),

@@ -62,6 +62,9 @@ class RegularizeConfig:
     """Fewer coarse points than this in a part's panels falls back to the coarse mesh median (-)."""
     footprint_shrink: float
     """Evidence is taken inside panels shrunk about their centre by this factor (0-1), away from frames."""
+    border_margin_px: float
+    """Corners of a quad marked incomplete (cut by the image border) closer than this (px) to the border
+    are not panel corners and are left out; its other corners count like any other."""
     mask_min_region_px: int
     """Mask regions smaller than this (px) are ignored."""
     mask_refit_iou: float

@@ -9,15 +9,21 @@ Frames: local (01_import), metres; surface coordinates (s, z, h) as in ``facade_
 
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from facade_pipeline.panels import Panel, PanelSet, PartSurface
+from facade_pipeline.errors import InputError
+from facade_pipeline.io.atomic import write_bytes
+from facade_pipeline.panels import Panel, PanelSet, PartSurface, part_outline
 
 RemovalRule = Literal["any_vertex", "centroid", "all_vertices"]
+OTHER, FRAME, GLASS = 0, 1, 2  # triangle labels of the corrected mesh (05_correct_mesh/triangle_labels.npy)
+LABEL_NAMES = {OTHER: "other", FRAME: "frame", GLASS: "glass"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,9 +89,13 @@ def correct_mesh(
     cuboid_half_depth_m: float,
     max_facet_deg: float,
     removal: RemovalRule,
+    insert_factor: float | None = None,
 ) -> CorrectedMesh:
-    """Replace the coarse mesh (``vertices`` [V, 3], ``triangles`` [F, 3]) inside each panel's cuboid by the
-    shrunk panel (``removal`` decides when a triangle is inside: any vertex, its centroid, all vertices)."""
+    """Replace the coarse mesh (``vertices`` [V, 3], ``triangles`` [F, 3]) inside each panel's cuboid (the
+    panel shrunk by ``shrink_factor``) by the panel scaled by ``insert_factor`` (default: the shrunk one)
+    (``removal`` decides when a triangle is inside: any vertex, its centroid, all vertices). Inserting the
+    whole panel (1) closes the gap that the removal leaves around the shrunk one: the glass runs on under
+    the kept frames, which stand in front of it, as in the real facade."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     remove = np.zeros(len(f), bool)
@@ -99,7 +109,8 @@ def correct_mesh(
         else:
             vin = in_cuboid(surf, szh, cuboid_half_depth_m, v)[f]
             remove |= vin.any(axis=1) if removal == "any_vertex" else vin.all(axis=1)
-        pv, pf = panel_patch(surf, szh, max_facet_deg)
+        ins = szh if insert_factor is None else shrunk_corners(surf, p, insert_factor)
+        pv, pf = panel_patch(surf, ins, max_facet_deg)
         new_v.append(pv)
         new_f.append(pf + offset)
         offset += len(pv)
@@ -107,3 +118,50 @@ def correct_mesh(
     all_f = np.concatenate(new_f)[keep]
     is_panel = np.concatenate([np.zeros(len(f), bool), np.ones(len(keep) - len(f), bool)])[keep]
     return CorrectedMesh(np.concatenate(new_v), all_f, is_panel, int(remove.sum()))
+
+
+def label_triangles(
+    vertices: np.ndarray, triangles: np.ndarray, is_panel: np.ndarray, panels: PanelSet, half_depth_m: float
+) -> np.ndarray:
+    """Label [F] uint8 of every triangle of the corrected mesh (``vertices`` [V, 3], ``triangles`` [F, 3]):
+    GLASS for the inserted panels (``is_panel`` [F]), FRAME for the kept coarse triangles whose centroid
+    lies inside a part's facade outline (its panels grown by one frame width, ``part_outline``) within
+    ``half_depth_m`` (m) of the glass surface along its normal, OTHER for the rest. A ray's hit triangle
+    then says whether the pixel sees glass, a frame (which may hide glass) or something else."""
+    f = np.asarray(triangles, np.int64).reshape(-1, 3)
+    centroids = np.asarray(vertices, np.float64)[f].mean(axis=1)
+    labels = np.where(np.asarray(is_panel, bool), GLASS, OTHER).astype(np.uint8)
+    for k, surface in enumerate(panels.parts):
+        own = panels.of_part(k)
+        if not own:
+            continue
+        (s0, z0, _), _, (s1, z1, _), _ = part_outline(own, surface)
+        q = surface.coords(centroids)
+        inside = (q[:, 0] >= s0) & (q[:, 0] <= s1) & (q[:, 1] >= z0) & (q[:, 1] <= z1)
+        labels[inside & (np.abs(q[:, 2]) <= half_depth_m) & (labels == OTHER)] = FRAME
+    return labels
+
+
+def write_labels(path: str | Path, labels: np.ndarray) -> None:
+    """Write triangle labels [F] as a uint8 ``.npy`` file, atomically."""
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(labels, np.uint8), allow_pickle=False)
+    write_bytes(path, buf.getvalue())
+
+
+def read_labels(path: str | Path, n_triangles: int) -> np.ndarray:
+    """Read triangle labels [F] and check there is one valid label for each of ``n_triangles`` triangles."""
+    path = Path(path)
+    try:
+        labels = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError(path, "triangle labels written by correct_mesh", "no file") from None
+    except (OSError, ValueError) as e:
+        raise InputError(path, "a uint8 .npy array of triangle labels", f"{type(e).__name__}: {e}") from None
+    if labels.dtype != np.uint8 or labels.shape != (n_triangles,) or labels.max(initial=0) > GLASS:
+        raise InputError(
+            path,
+            f"{n_triangles} uint8 labels in 0..{GLASS} (one per corrected-mesh triangle)",
+            f"{labels.dtype} array of shape {labels.shape}",
+        )
+    return labels

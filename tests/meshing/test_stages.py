@@ -11,9 +11,11 @@ import pytest
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.exr import read_exr
-from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.io.images import read_image, read_mask, write_mask
+from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
+from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
 from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene
 from tests.meshing.conftest import run_stage
@@ -61,7 +63,28 @@ def test_bake_outputs_are_finite_and_face_the_camera(built64):
         assert (np.sum(n["N"].reshape(-1, 3) * dirs, axis=1)[valid.ravel()] < 0).all()
         glass = read_mask(built64.path("bake_glass_mask", stem=v.stem))
         facade = read_mask(built64.path("bake_facade_mask", stem=v.stem))
-        assert glass.any() and not (glass & ~facade).any()
+        assert glass.any() and not (glass & ~facade).any() and not (glass & ~valid).any()
+    # masks from the same rays as the normals, frames hiding glass: close to the true glass at 64 px
+    assert m.metrics["truth"]["glass_mask_iou_min"] > 0.9
+    assert set(m.metrics["truth"]["glass_mask_iou"]) == {v.stem for v in scene.uav_views}
+
+
+def test_labels_and_check_images(built64):
+    mesh = read_mesh(built64.path("correct_mesh"))
+    labels = read_labels(built64.path("correct_mesh_labels"), len(mesh.triangles))
+    m = read_manifest(built64, "correct_mesh").metrics
+    assert (labels == GLASS).sum() == m["triangles_glass"] == m["panel_triangles"] > 0
+    assert (labels == FRAME).sum() == m["triangles_frame"] > 0
+    scene = ImportedScene.load(built64)
+    img = read_image(built64.path("correct_mesh_overlay"))
+    assert img.shape[1] >= 2 * 480 and img.std() > 10
+    for v in scene.frontal_views:
+        ov = read_image(built64.path("regularize_overlay", stem=v.stem))
+        assert ov.shape[0] >= v.camera.height and ov.shape[1] >= 480
+    outputs = set(read_manifest(built64, "regularize_corners").outputs)
+    assert {
+        built64.relative(built64.path("regularize_overlay", stem=v.stem)) for v in scene.frontal_views
+    } <= outputs
 
 
 @pytest.fixture
