@@ -191,7 +191,8 @@ def test_hard_cases_show_expected_behaviour():
 
 
 @pytest.mark.parametrize("backend", CPU_BACKENDS)
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=25, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     seed=st.integers(0, 10_000),
     log_scale=st.floats(-12, 7),
