@@ -110,6 +110,10 @@ def correct_mesh(
             vin = in_cuboid(surf, szh, cuboid_half_depth_m, v)[f]
             remove |= vin.any(axis=1) if removal == "any_vertex" else vin.all(axis=1)
         ins = szh if insert_factor is None else shrunk_corners(surf, p, insert_factor)
+        if insert_factor is not None and insert_factor > shrink_factor:
+            # coarse triangles centred over the inserted glass (the smoothed step down from a frame to the
+            # glass) would cover it: they go too; frames lie outside the glass footprint and stay
+            remove |= in_cuboid(surf, ins, cuboid_half_depth_m, v[f].mean(axis=1))
         pv, pf = panel_patch(surf, ins, max_facet_deg)
         new_v.append(pv)
         new_f.append(pf + offset)
