@@ -41,8 +41,10 @@ def row(building: str, layout: BuildingLayout) -> str:
     exact = sum(v["n_pred"] == v["n_true"] for v in r)
     t_rect = read_manifest(layout, "rectify").metrics["seconds_per_view"]
     t_seg = read_manifest(layout, "segment_panels").metrics["seconds_per_view"]
+    sizes = sorted({f"{v.camera.width}x{v.camera.height}" for v in scene.frontal_views})
     return (
-        f"| {building} | {len(r)} | {max(v['rectify_residual_px'] for v in r):.4f} | {straight.max():.3f} | "
+        f"| {building} | {len(r)} ({', '.join(sizes)} px) | "
+        f"{max(v['rectify_residual_px'] for v in r):.4f} | {straight.max():.3f} | "
         f"{np.median(err):.2f} | {np.percentile(err, 95):.2f} | {err.max():.2f} | {exact}/{len(r)} | "
         f"{iou_c.min():.3f} / {np.median(iou_c):.3f} ({len(iou_c)}) | {iou_x.min():.2f} / "
         f"{np.median(iou_x):.2f} "
@@ -89,7 +91,7 @@ def main() -> None:
             "(min / median (count)), whole panels and panels cut by the border separately. Targets: "
             "residual <= 0.5 "
             "px, straightness <= 1 px, corner median <= 1 px and p95 <= 2 px, count exact, IoU >= 0.95.\n",
-            "| building | views | warp residual max px | true edges after rectification: max "
+            "| building | frontal views (size) | warp residual max px | true edges after rectification: max "
             "deviation px | corner "
             "median px | corner p95 px | corner max px | views with exact count | IoU whole panels | "
             "IoU cut panels | "

@@ -2,7 +2,8 @@
 
 Positions follow the pixel-centre convention (pixel i spans [i, i + 1], centre i + 0.5); a forward difference
 ``d[i] = I[i + 1] - I[i]`` sits at the boundary position i + 1. Along a bar, the edge position in each row is
-the parabolic sub-pixel peak of the gradient projected on the edge's mean gradient direction (which fixes
+the sub-pixel peak (centroid of the peak and its neighbours) of the gradient projected on the edge's mean
+gradient direction (which fixes
 the polarity, so the bar's other edge is never taken). The per-row positions are fitted by weighted least
 squares (weights: peak strength) as ``x = a + b (y - mid)`` with two rounds of outlier rejection.
 """
@@ -25,22 +26,33 @@ class EdgeLine:
     b: float
     mid: float
     strength: np.ndarray
+    present: np.ndarray | None = None
+    """[L] float: 1 where the bar's own colour is seen on its centre line, 0 where not, NaN outside the
+    view (None: not measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
 
 
 def _row_peaks(q: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel peak positions [L] (px) and values [L] of q [L, N - 1] within columns [lo, hi)."""
+    """Sub-pixel peak positions [L] (px) and values [L] of q [L, N - 1] within columns [lo, hi): the
+    centroid of the positive differences at the peak and its two neighbours. A step box-filtered over the
+    pixel it crosses gives two differences in the ratio of the pixel's two parts, whose centroid is the
+    step's position exactly (a parabola through them pulls it toward pixel centres and boundaries)."""
     win = q[:, lo:hi]
     i = np.argmax(win, axis=1)
-    L = len(q)
-    val = win[np.arange(L), i]
-    left = win[np.arange(L), np.maximum(i - 1, 0)]
-    right = win[np.arange(L), np.minimum(i + 1, win.shape[1] - 1)]
-    den = left - 2 * val + right
-    inner = (i > 0) & (i < win.shape[1] - 1) & (den < 0)
-    off = np.where(inner, 0.5 * (left - right) / np.where(den < 0, den, -1.0), 0.0)
+    L, n = win.shape
+    rows = np.arange(L)
+    val = win[rows, i]
+    num = np.zeros(L)
+    den = np.zeros(L)
+    for k in (-1, 0, 1):
+        j = i + k
+        ok = (j >= 0) & (j < n)
+        w = np.where(ok, np.maximum(win[rows, np.clip(j, 0, n - 1)], 0.0), 0.0)
+        num += w * k
+        den += w
+    off = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
     return lo + i + 1.0 + off, val
 
 
@@ -88,3 +100,23 @@ def bar_edges(
     if low is None or high is None or high.a <= low.a:
         return None
     return low, high
+
+
+def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, tol: float) -> np.ndarray:
+    """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
+    colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
+    keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
+    which is what marks a panel occluded."""
+    L, N = grad.img.shape[:2]
+    t = np.arange(L) + 0.5
+    centre = 0.5 * (low.at(t) + high.at(t))
+    col = np.clip(np.floor(centre).astype(int), 0, N - 1)  # the pixel whose span holds the centre line
+    colour = grad.img[np.arange(L), col]  # [L, 3]
+    ok = grad.valid[np.arange(L), col]
+    ref_rows = np.zeros(L, bool)
+    ref_rows[rows] = True
+    ref_rows &= ok
+    if not ref_rows.any():
+        return np.where(ok, 1.0, np.nan)
+    ref = np.median(colour[ref_rows], axis=0)
+    return np.where(ok, (np.linalg.norm(colour - ref, axis=1) <= tol).astype(float), np.nan)

@@ -22,7 +22,11 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
   ``w`` the best width in [min_bar_px, max_bar_px].
 
 MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) - line_cost]`` over ``p``,
-``c_0`` and the contiguous run (exhaustive on a 0.5 px lattice; the run by Kadane's algorithm). Reflections
+``c_0`` and the contiguous run (exhaustive on a 0.5 px lattice; the run by Kadane's algorithm). Outer
+frames: a facade's outer frame may meet a background of its own colour (paving, sky), so it shows only its
+glass-side edge. The run is then extended by one bar at either end where l(c) computed with the weaker edge
+counted at least ``outer_edge_floor`` of the stronger (a one-sided bar) pays for the line, one pitch beyond
+the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection. Reflections
 of buildings and trees in the glass, the main distractor, are single edges (no opposite-polarity partner at
 the bar width), cover only parts of the grid and are not periodic: they lose against the prior.
 
@@ -62,6 +66,8 @@ class GridParams:
     """A bar edge is searched this far (px) around its MAP position."""
     weak_edge_floor: float
     """The weaker edge of a bar counts at least this fraction of the stronger (-)."""
+    outer_edge_floor: float
+    """... and of an outer frame bar, one pitch beyond either end of the MAP run, at least this (-)."""
     uniformity_scale: float
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
 
@@ -116,12 +122,15 @@ class Gradients:
         return np.where(np.isfinite(v), v, 1.0)
 
 
-def bar_evidence(grad: Gradients, rows: slice, params: GridParams) -> tuple[np.ndarray, np.ndarray]:
+def bar_evidence(
+    grad: Gradients, rows: slice, params: GridParams, weak_edge_floor: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px).
 
     Per row, edges gL, gR (colour vectors) at the two sides of the bar give sqrt((|gL||gR| - gL.gR) / 2):
     |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
-    agree, 0 for equal changes (a ramp, not a bar)."""
+    agree, 0 for equal changes (a ramp, not a bar). ``weak_edge_floor`` overrides the parameter's."""
+    floor = params.weak_edge_floor if weak_edge_floor is None else weak_edge_floor
     g = grad.on_lattice()[rows]
     mag = np.linalg.norm(g, axis=2)
     M = g.shape[1]
@@ -134,7 +143,7 @@ def bar_evidence(grad: Gradients, rows: slice, params: GridParams) -> tuple[np.n
         cos = (gl * gr).sum(axis=2) / np.maximum(ml * mr, 1e-12)
         # the weaker edge counts at least ``weak_edge_floor`` of the stronger: an outer frame may border a
         # background of its own colour on one side
-        weak = np.maximum(np.minimum(ml, mr), params.weak_edge_floor * np.maximum(ml, mr))
+        weak = np.maximum(np.minimum(ml, mr), floor * np.maximum(ml, mr))
         e = np.pad(np.sqrt(np.maximum(ml, mr) * weak * np.clip(1 - cos, 0, 2) / 2).mean(axis=0), (h, h))
         better = e > best
         best[better], width[better] = e[better], w
@@ -200,8 +209,15 @@ def _best_run(values: np.ndarray) -> tuple[float, int, int]:
     return best, lo, hi
 
 
-def map_family(ll: np.ndarray, widths: np.ndarray, size: int, params: GridParams) -> FamilyFit | None:
-    """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines."""
+def map_family(
+    ll: np.ndarray,
+    widths: np.ndarray,
+    size: int,
+    params: GridParams,
+    outer: tuple[np.ndarray, np.ndarray] | None = None,
+) -> FamilyFit | None:
+    """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines.
+    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames."""
     M = len(ll)
     best: tuple[float, np.ndarray, float] | None = None
     for pitch in np.arange(params.min_pitch_px, size + STEP_PX, STEP_PX):
@@ -223,4 +239,34 @@ def map_family(ll: np.ndarray, widths: np.ndarray, size: int, params: GridParams
         return None
     score, centres, pitch = best
     lat = np.clip(np.rint(centres / STEP_PX).astype(int), 0, M - 1)
-    return FamilyFit(centres, widths[lat].astype(float), float(pitch), float(score))
+    fit = FamilyFit(centres, widths[lat].astype(float), float(pitch), float(score))
+    return fit if outer is None else _with_outer_frames(fit, *outer, size, params)
+
+
+def _with_outer_frames(
+    fit: FamilyFit, ll_outer: np.ndarray, widths_outer: np.ndarray, size: int, params: GridParams
+) -> FamilyFit:
+    """The run extended by one bar at either end where l(c) of a one-sided bar (an outer frame meeting a
+    background of its own colour: its edge on the glass side only) one pitch beyond the end, relaxed as
+    in the prior, pays for the line (module docstring)."""
+    M = len(ll_outer)
+    sigma = max(params.sigma_min_px, params.sigma_frac * fit.pitch)
+    relaxed, delta = _relaxed(ll_outer, sigma)
+    centres, widths, score = list(fit.centres), list(fit.widths), fit.score
+    for end, sign in ((-1, 1.0), (0, -1.0)):
+        c = centres[end] + sign * fit.pitch
+        i = int(np.rint(c / STEP_PX))
+        if not 0 <= i < M or relaxed[i] - params.line_cost <= 0:
+            continue
+        c_new = c + delta[i]
+        w = float(widths_outer[int(np.clip(np.rint(c_new / STEP_PX), 0, M - 1))])
+        if c_new - w / 2 < 1.0 or c_new + w / 2 > size - 1.0:  # an outer frame lies whole in the view
+            continue
+        score += relaxed[i] - params.line_cost
+        if sign > 0:
+            centres.append(c_new)
+            widths.append(w)
+        else:
+            centres.insert(0, c_new)
+            widths.insert(0, w)
+    return FamilyFit(np.array(centres), np.array(widths), fit.pitch, float(score))

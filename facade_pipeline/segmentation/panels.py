@@ -8,18 +8,26 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
 (``complete = False``) when it is at least ``min_partial_px`` wide and the bars of the other family continue
 into it (their edge strength there is at least ``continuation_ratio`` of that inside the grid); otherwise
-the facade ends at that bar. Partly occluded panels: a panel whose frame edges are supported (edge strength
-at least ``occlusion_support`` of the bar's median) over less than ``min_edge_support`` of any side's length
-is kept, with ``complete = False``.
+the facade ends at that bar. Partly occluded panels: a panel whose frame bars are present (their centre
+line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its colour whatever the glass
+beside it reflects, an object in front of it does not) over less than ``min_edge_support`` of any side's
+length is kept, with ``complete = False``.
+
+Masks: a pixel belongs to a panel when its centre lies inside the panel's quad, the way the views are
+sampled (one ray through each pixel centre); a centre exactly on a quad's edge is decided by the half-open
+rule (inside on the left and top edges, outside on the right and bottom ones), so that a panel whose edge
+falls on pixel centres takes the same pixels as the truth does and two panels sharing an edge never share a
+pixel.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from facade_pipeline.segmentation.edges import EdgeLine, bar_edges
+from facade_pipeline.segmentation.edges import EdgeLine, bar_edges, frame_presence
 from facade_pipeline.segmentation.grid import (
     STEP_PX,
     FamilyFit,
@@ -51,8 +59,8 @@ class SegmentParams:
     """A border strip narrower than this (px) holds no partial panel."""
     continuation_ratio: float
     """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
-    occlusion_support: float
-    """An edge position is supported at this fraction of its bar's median edge strength (-)."""
+    frame_colour_tol: float
+    """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
     min_edge_support: float
     """A panel side supported over less than this fraction of its length is occluded (-)."""
 
@@ -99,8 +107,11 @@ def _family(
     t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
     inside = segments[(t >= lo) & (t <= hi)]
     support = support_profile(inside, axis, grad.size, STEP_PX, params.lsd_sigma_px)[: len(e_grad)]
-    ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), grad.uniformity(span), params.grid)
-    return map_family(ll, widths, grad.size, params.grid), grad
+    uniformity = grad.uniformity(span)
+    ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid)
+    e_out, w_out = bar_evidence(grad, span, params.grid, params.grid.outer_edge_floor)
+    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
+    return map_family(ll, widths, grad.size, params.grid, (ll_out, w_out)), grad
 
 
 def _span(fit: FamilyFit | None, size: int) -> slice:
@@ -110,9 +121,17 @@ def _span(fit: FamilyFit | None, size: int) -> slice:
     return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
 
 
-def _edges(fit: FamilyFit, grad: Gradients, span: slice, search_px: float) -> _Bars | None:
-    edges = [bar_edges(grad, c, w, span, search_px) for c, w in zip(fit.centres, fit.widths, strict=True)]
-    edges = [e for e in edges if e is not None]
+def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> _Bars | None:
+    found = [
+        bar_edges(grad, c, w, span, params.grid.edge_search_px)
+        for c, w in zip(fit.centres, fit.widths, strict=True)
+    ]
+    edges = []
+    for e in found:
+        if e is None:
+            continue
+        present = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
+        edges.append(tuple(dataclasses.replace(line, present=present) for line in e))
     return _Bars(edges, fit) if len(edges) >= 2 else None
 
 
@@ -141,8 +160,8 @@ def find_bars(
     }
     if v is None or h is None:
         return None, None, metrics
-    bars_v = _edges(v, gv, _span(h, H), params.grid.edge_search_px)
-    bars_h = _edges(h, gh, _span(v, W), params.grid.edge_search_px)
+    bars_v = _edges(v, gv, _span(h, H), params)
+    bars_h = _edges(h, gh, _span(v, W), params)
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )
@@ -160,19 +179,25 @@ def intersect(v: EdgeLine, h: EdgeLine) -> np.ndarray:
     return np.array([x, h.a + h.b * (x - h.mid)])
 
 
-def _mean(a: np.ndarray, lo: float, hi: float) -> float:
-    seg = a[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
+def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float:
+    """Mean of a [L] over the rows [lo, hi) that show the view (``seen``; all if None)."""
+    i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+    seg = a[i0:i1] if seen is None else a[i0:i1][seen[i0:i1]]
     return float(seg.mean()) if len(seg) else 0.0
 
 
 def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], ratio: float) -> bool:
     """Do the bars of ``other`` continue over [lo, hi) along them, with ``ratio`` of their strength over
-    ``inside``?"""
+    ``inside``? A bar continues where either of its edges does: an outer frame shows only its glass side
+    wherever the background beside it changes colour."""
     r = []
     for e in other.edges:
-        s = np.minimum(e[0].strength, e[1].strength)
-        ref = _mean(s, *inside)
-        r.append(_mean(s, lo, hi) / ref if ref > 0 else 0.0)
+        seen = None if e[0].present is None else ~np.isnan(e[0].present)
+        best = 0.0
+        for line in e:
+            ref = _mean(line.strength, *inside, seen)
+            best = max(best, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
+        r.append(best)
     return float(np.median(r)) >= ratio
 
 
@@ -196,11 +221,14 @@ def openings(
     return out
 
 
-def _supported(line: EdgeLine, lo: float, hi: float, params: SegmentParams) -> float:
-    """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where the edge is present."""
-    s = line.strength[int(max(0, np.ceil(lo + 1))) : int(max(0, np.floor(hi - 1)))]
-    ref = np.median(line.strength[line.strength > 0]) if (line.strength > 0).any() else 0.0
-    return float((s >= params.occlusion_support * ref).mean()) if len(s) and ref > 0 else 1.0
+def _supported(line: EdgeLine, lo: float, hi: float) -> float:
+    """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where its frame bar is present;
+    1 for the image border."""
+    if line.present is None:
+        return 1.0
+    s = line.present[int(max(0, np.ceil(lo + 1))) : int(max(0, np.floor(hi - 1)))]
+    s = s[~np.isnan(s)]
+    return float(s.mean()) if len(s) else 1.0
 
 
 def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: SegmentParams) -> list[Panel]:
@@ -222,10 +250,10 @@ def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: 
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
             support = min(
-                _supported(left, y0, y1, params),
-                _supported(right, y0, y1, params),
-                _supported(top, x0, x1, params),
-                _supported(bottom, x0, x1, params),
+                _supported(left, y0, y1),
+                _supported(right, y0, y1),
+                _supported(top, x0, x1),
+                _supported(bottom, x0, x1),
             )
             reason = "border" if cut_r or cut_c else ("occluded" if support < params.min_edge_support else "")
             panels.append(Panel(len(rows) - 1 - i, j, c, reason == "", reason))
@@ -245,14 +273,30 @@ def segment_image(image: np.ndarray, params: SegmentParams, valid: np.ndarray | 
 
 
 def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """Index [...] of the convex quad (corners [4, 2] each) containing each point (xs, ys), -1 for none."""
+    """Index [...] of the convex quad (corners [4, 2] each) containing each point (xs, ys), -1 for none.
+
+    Half-open (module docstring): a point on an edge is inside when the point moved by an infinitesimal
+    step along (+1, +eps) (right, then down) is; the step is taken exactly by a tie-break on the edge
+    equations, not by moving the points."""
     out = np.full(np.shape(xs), -1, dtype=np.int32)
     for k, q in enumerate(quads):
-        cross = [
-            (q[(i + 1) % 4, 0] - q[i, 0]) * (ys - q[i, 1]) - (q[(i + 1) % 4, 1] - q[i, 1]) * (xs - q[i, 0])
-            for i in range(4)
-        ]
-        cross = np.stack(cross)
-        inside = (cross >= 0).all(axis=0) | (cross <= 0).all(axis=0)
+        q = np.asarray(q, dtype=np.float64)
+        if _signed_area(q) < 0:  # orient so that the inner side of every edge has cross > 0
+            q = q[::-1]
+        inside = np.ones(np.shape(xs), bool)
+        for i in range(4):
+            (x0, y0), (x1, y1) = q[i], q[(i + 1) % 4]
+            ex, ey = x1 - x0, y1 - y0
+            cross = ex * (ys - y0) - ey * (xs - x0)  # > 0: on the inner side of this edge
+            # d(cross)/d(step): along +x it is -ey, then along +y it is ex; the first non-zero decides a tie
+            tie = np.where(ey != 0, -ey > 0, ex > 0)
+            inside &= (cross > 0) | ((cross == 0) & tie)
         out[inside & (out < 0)] = k
     return out
+
+
+def _signed_area(q: np.ndarray) -> float:
+    """Shoelace area of a polygon [n, 2]; > 0 when its vertices turn with the edge equations above
+    (cross > 0 on the inner side)."""
+    x, y = q[:, 0], q[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))

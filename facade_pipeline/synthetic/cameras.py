@@ -54,14 +54,15 @@ def frontal_views(parts: tuple[PartGeometry, ...], cams: CameraParams) -> list[V
     """Frontal views at ``frontal_distance_m`` along the local normal of the centre of blocks of panels,
     the blocks as large as fit in the image with ``frontal_margin_px`` to spare. Analytic: no ray is cast.
     Raises ConfigError if a panel of its block does not fit in a view."""
-    K = camera_matrix(cams.width_px, cams.height_px, cams.frontal_fov_deg)
+    width, height = cams.frontal_size_px
+    K = camera_matrix(width, height, cams.frontal_fov_deg)
     D, f = cams.frontal_distance_m, K[0, 0]
     views: list[View] = []
     for g in parts:
         p = g.part
         pitch_s, pitch_z = (p.width_m - g.frame_width_m) / p.cols, (p.height_m - g.frame_width_m) / p.rows
-        usable_w = (cams.width_px - 2 * cams.frontal_margin_px) * D / f - g.frame_width_m
-        usable_h = (cams.height_px - 2 * cams.frontal_margin_px) * D / f - g.frame_width_m
+        usable_w = (width - 2 * cams.frontal_margin_px) * D / f - g.frame_width_m
+        usable_h = (height - 2 * cams.frontal_margin_px) * D / f - g.frame_width_m
         kc, kr = max(1, int(usable_w // pitch_s)), max(1, int(usable_h // pitch_z))
         for rows in np.array_split(np.arange(p.rows), math.ceil(p.rows / kr)):
             for cols in np.array_split(np.arange(p.cols), math.ceil(p.cols / kc)):
@@ -69,7 +70,7 @@ def frontal_views(parts: tuple[PartGeometry, ...], cams: CameraParams) -> list[V
                 z = 0.5 * (g.panel_bounds(rows[0], 0)[2] + g.panel_bounds(rows[-1], 0)[3])
                 target = g.surface(np.array(s), np.array(z), np.array(0.0))
                 eye = target + D * g.normal(np.array(s))
-                cam = PinholeCamera(K, look_at(eye, target), cams.width_px, cams.height_px)
+                cam = PinholeCamera(K, look_at(eye, target), width, height)
                 _check_block(g, cam, rows, cols, cams.frontal_margin_px, len(views))
                 views.append(
                     View("frontal", len(views), cam, (g.index, tuple(map(int, rows)), tuple(map(int, cols))))

@@ -169,6 +169,15 @@ class CameraParams:
     """Distance of frontal views from the glass along its local normal (m)."""
     frontal_margin_px: float
     """Every panel of a frontal view's block lies this far inside its image (px)."""
+    frontal_width_px: int = 0
+    """Width of frontal views (px); 0: ``width_px`` (the UAV views')."""
+    frontal_height_px: int = 0
+    """Height of frontal views (px); 0: ``height_px``."""
+
+    @property
+    def frontal_size_px(self) -> tuple[int, int]:
+        """(width, height) of frontal views (px)."""
+        return (self.frontal_width_px or self.width_px, self.frontal_height_px or self.height_px)
 
 
 @dataclass(frozen=True)
@@ -181,6 +190,13 @@ class RenderParams:
     """Rays cast per batch: bounds memory by this, not by image or view count."""
     ray_offset_m: float
     """Offset of secondary ray origins along the normal, against self-intersection (m)."""
+    frontal_supersample: int = 0
+    """The same for frontal views; 0: ``supersample``. An odd grid has a ray through the pixel centre, as
+    the truth maps do, so a panel edge crossing a pixel is on the same side of its centre in both."""
+
+    def supersample_for(self, kind: str) -> int:
+        """Sub-pixel grid per pixel side of a view of ``kind`` ("uav" or "frontal")."""
+        return (self.frontal_supersample or self.supersample) if kind == "frontal" else self.supersample
 
 
 @dataclass(frozen=True)
@@ -320,6 +336,13 @@ def _check_ranges(p: SynthesizeParams) -> None:
     for key, v in positive.items():
         if v <= 0:
             _fail(key, "> 0", v)
+    for key, v in {
+        "cameras.frontal_width_px": p.cameras.frontal_width_px,
+        "cameras.frontal_height_px": p.cameras.frontal_height_px,
+        "render.frontal_supersample": p.render.frontal_supersample,
+    }.items():
+        if v < 0:
+            _fail(key, ">= 0 (0: as the UAV views)", v)
     for key, v in {
         "cameras.fov_deg": p.cameras.fov_deg,
         "cameras.frontal_fov_deg": p.cameras.frontal_fov_deg,

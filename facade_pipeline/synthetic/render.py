@@ -194,11 +194,15 @@ class ViewRender:
     material: np.ndarray
 
 
-def render_view(scene: Scene, tracer: Tracer, arrays: SceneArrays, camera: PinholeCamera) -> ViewRender:
-    """Render ``camera``'s image (supersampled, chunked) and its ground-truth maps."""
+def render_view(
+    scene: Scene, tracer: Tracer, arrays: SceneArrays, camera: PinholeCamera, supersample: int | None = None
+) -> ViewRender:
+    """Render ``camera``'s image (supersampled ``supersample`` per side, default ``render.supersample``;
+    chunked) and its ground-truth maps."""
     r = scene.params.render
-    H, W, S = camera.height, camera.width, r.supersample * r.supersample
-    o, d = camera.all_pixel_rays(r.supersample)
+    ss = r.supersample if supersample is None else supersample
+    H, W, S = camera.height, camera.width, ss * ss
+    o, d = camera.all_pixel_rays(ss)
     rgb = np.empty((len(o), 3), np.float32)
     for a in range(0, len(o), r.chunk_rays):
         rgb[a : a + r.chunk_rays] = shade(

@@ -87,7 +87,8 @@ def render_all(sim: Simulator, on_view: ViewSink, progress: Progress | None = No
     t_render = t_sink = 0.0
     for k, view in enumerate(sim.views):
         t0 = time.perf_counter()
-        r = render_view(sim.scene, sim.tracer, sim.arrays, view.camera)
+        ss = sim.scene.params.render.supersample_for(view.kind)
+        r = render_view(sim.scene, sim.tracer, sim.arrays, view.camera, ss)
         t1 = time.perf_counter()
         on_view(view, r)
         t_render += t1 - t0

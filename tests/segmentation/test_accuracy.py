@@ -65,12 +65,6 @@ def test_every_view_has_a_facade_and_the_corners_file_follows_the_contract(scene
             assert isinstance(p["complete"], bool) and p["row"] >= 0 and p["col"] >= 0
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="open (issue 4): at 64 x 64 px some outer frames meeting a background of "
-    "their own colour are missed, so a few views miscount partial panels; complete-panel IoU "
-    "reaches 0.92-0.94 on a few panels (see benchmarks/RESULTS.md)",
-)
 @pytest.mark.parametrize("building", BUILDINGS)
 def test_panel_count_exact_and_mask_iou(results, building):
     for v in results[building]:

@@ -9,7 +9,7 @@ import pytest
 from facade_pipeline.config import default_params
 from facade_pipeline.geometry.rectification import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
-from facade_pipeline.segmentation.panels import segment_image
+from facade_pipeline.segmentation.panels import inside_quads, segment_image
 from stages import segment_panels
 from stages.segment_panels import panel_labels
 from tests.segmentation.drawn import Drawing
@@ -49,22 +49,50 @@ def test_grid_corners(reflections):
     assert np.median(err) < 0.5 and err.max() < 1.0
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="open (issue 4): a panel crossed by a strong reflection can be flagged "
-    "occluded, and one drawn panel's mask IoU is 0.905 although its corners are within 0.2 px",
-)
 @pytest.mark.parametrize("reflections", [False, True])
-def test_grid_completeness_and_masks(reflections):
+def test_grid_completeness(reflections):
+    """Strong straight reflections crossing panels leave every panel whole (the frames keep their colour)."""
     d = Drawing(reflections=reflections)
-    img, seg, truth = run(d)
+    _, seg, truth = run(d)
     assert seg.facade_found and len(seg.panels) == 9
-    assert all(p.complete for p in seg.panels)
+    assert all(p.complete for p in seg.panels), [(p.row, p.col, p.reason) for p in seg.panels]
     assert sorted((p.row, p.col) for p in seg.panels) == [(r, c) for r in range(3) for c in range(3)]
+
+
+# The grid of ``Drawing()`` at twice the pixel count, frames of 4.8 px as in the 96 px frontal views of the
+# synthetic scenes. Masks are point samples at pixel centres (as the views and their truth are): an edge
+# lying on a row of pixel centres flips that whole row on a 0.01 px error, one row of a 20-row panel is 5 %
+# of IoU, so the 0.95 target is a test of panels of 40 rows and more, not of the 96 x 80 drawing.
+FINE = {"W": 192, "H": 160, "x0": 12.6, "y0": 11.2, "pitch": (54.8, 46.6), "bar": 4.8}
+
+
+@pytest.mark.parametrize("reflections", [False, True])
+def test_grid_masks(reflections):
+    d = Drawing(reflections=reflections, **FINE)
+    _, seg, truth = run(d)
+    assert seg.facade_found and len(seg.panels) == 9 and all(p.complete for p in seg.panels)
     err = corner_errors(seg, truth, d.W, d.H)
     assert np.median(err) < 0.5 and err.max() < 1.0
     labels = panel_labels(seg.panels, ViewRectification.identity(d.W, d.H, "planar"), d.W, d.H)
     assert panel_ious(labels, glass_mask(d), 4).min() >= 0.95
+
+
+def test_quad_rasterisation_is_half_open_at_pixel_centres():
+    """A quad whose edges lie on pixel centres takes exactly the pixels [x0, x1) x [y0, y1) (the drawn
+    truth's rule), whatever its corner order; two quads sharing an edge share no pixel."""
+    ys, xs = np.mgrid[0:12, 0:14] + 0.5
+    a = np.array([[2.5, 7.5], [6.5, 7.5], [6.5, 3.5], [2.5, 3.5]])  # BL, BR, TR, TL
+    b = a + [4.0, 0.0]  # shares the edge x = 6.5
+    for quad in (a, a[::-1], np.roll(a, 1, axis=0)):
+        got = inside_quads([quad], xs, ys) == 0
+        assert np.array_equal(got, (xs >= 2.5) & (xs < 6.5) & (ys >= 3.5) & (ys < 7.5))
+    both = inside_quads([a, b], xs, ys)
+    assert (both == 0).sum() == 16 and (both == 1).sum() == 16
+    tilted = np.array([[2.0, 9.0], [9.0, 8.0], [8.0, 1.0], [1.0, 2.0]])
+    inside = inside_quads([tilted], xs, ys) == 0
+    (ax, ay), (bx, by) = tilted[2] - tilted[0], tilted[3] - tilted[1]
+    area = 0.5 * abs(ax * by - ay * bx)
+    assert abs(inside.sum() - area) < 0.1 * area
 
 
 def test_corner_order_and_rows_from_the_bottom():

@@ -16,13 +16,22 @@ def shipped(building: str) -> SynthesizeParams:
 
 
 def tiny(building: str = "synthetic64", uav_count: int = 3, size_px: int = 48, **changes) -> SynthesizeParams:
-    """A shipped synthetic scene made smaller; ``changes`` replace top-level fields."""
+    """A shipped synthetic scene made smaller; ``changes`` replace top-level fields. Frontal views take the
+    UAV views' size and sampling (the shipped frontal resolution and supersampling are reset to 0)."""
     p = shipped(building)
-    cams = dataclasses.replace(p.cameras, uav_count=uav_count, width_px=size_px, height_px=size_px)
+    cams = dataclasses.replace(
+        p.cameras,
+        uav_count=uav_count,
+        width_px=size_px,
+        height_px=size_px,
+        frontal_width_px=0,
+        frontal_height_px=0,
+    )
     coarse = dataclasses.replace(
         p.coarse, environment_points=1000, ghost_points_per_part=200, sparse_points=200
     )
-    return dataclasses.replace(p, cameras=cams, coarse=coarse, **changes)
+    render = dataclasses.replace(p.render, frontal_supersample=0)
+    return dataclasses.replace(p, cameras=cams, coarse=coarse, render=render, **changes)
 
 
 def without(p: SynthesizeParams, effect: str) -> SynthesizeParams:

@@ -50,6 +50,8 @@ def _table(**changes):
         ("effects", ["fresnel", "fresnel"], "synthesize.effects"),
         ("effects", ["curved"], "synthesize.effects"),
         ("environment.tree_height_m", [9.0, 5.0], "synthesize.environment.tree_height_m"),
+        ("cameras.frontal_width_px", -1, "synthesize.cameras.frontal_width_px"),
+        ("render.frontal_supersample", -1, "synthesize.render.frontal_supersample"),
     ],
 )
 def test_inconsistent_values_name_the_key(key, value, named):
@@ -119,3 +121,25 @@ def test_a_tree_hiding_a_frontal_view_is_a_config_error():
                 check_frontal_views(views, scene.panels, tracer, SceneArrays.of(scene))
         else:
             check_frontal_views(views, scene.panels, tracer, SceneArrays.of(scene))
+
+
+def test_frontal_views_have_their_own_resolution():
+    """Frontal views default to the UAV size (0); set, they get it with the same horizontal field of view
+    (a finer pixel), and every panel of each view's block still fits (planning raises otherwise)."""
+    from facade_pipeline.synthetic.simulate import planned_frontal_views
+
+    zero = {"cameras.frontal_width_px": 0, "cameras.frontal_height_px": 0, "render.frontal_supersample": 0}
+    p = from_dict(SynthesizeParams, _table(**zero))
+    assert p.cameras.frontal_size_px == (p.cameras.width_px, p.cameras.height_px)
+    base = planned_frontal_views(p)
+    assert {(v.camera.width, v.camera.height) for v in base} == {(p.cameras.width_px, p.cameras.height_px)}
+    big = planned_frontal_views(
+        from_dict(
+            SynthesizeParams, _table(**{"cameras.frontal_width_px": 160, "cameras.frontal_height_px": 120})
+        )
+    )
+    assert {(v.camera.width, v.camera.height) for v in big} == {(160, 120)}
+    assert big[0].camera.K[0, 0] == pytest.approx(160 / p.cameras.width_px * base[0].camera.K[0, 0])
+    assert p.render.supersample_for("frontal") == p.render.supersample  # frontal_supersample 0
+    odd = from_dict(SynthesizeParams, _table(**{"render.frontal_supersample": 3})).render
+    assert (odd.supersample_for("frontal"), odd.supersample_for("uav")) == (3, p.render.supersample)

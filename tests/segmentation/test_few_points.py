@@ -1,0 +1,78 @@
+"""A frontal view with too few coarse points in it, the stages run directly (no doit): rectify passes it
+through with identity warps and lists it in its manifest; segment_panels still segments it (unrectified)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+
+from facade_pipeline.io.images import read_mask
+from facade_pipeline.io.meshes import make_points, read_points, write_points
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.scene import ImportedScene
+from stages.rectify import view_points
+from tests.segmentation.conftest import REPO
+
+BUILDING = "synthetic64_curved"
+
+
+def run_stage(name: str, layout: BuildingLayout, env: dict) -> None:
+    cmd = [
+        sys.executable,
+        "-m",
+        f"stages.{name}",
+        "--building",
+        BUILDING,
+        "--data-root",
+        str(layout.data_root),
+    ]
+    out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_view_with_too_few_points_passes_through(scenes, tmp_path):
+    src, env = scenes[BUILDING]
+    layout = BuildingLayout(tmp_path / "data", BUILDING)
+    shutil.copytree(src.root / "01_import", layout.root / "01_import")
+    scene = ImportedScene.load(layout)
+    starved = scene.frontal_views[0]
+    pts = np.asarray(read_points(layout.import_coarse_points).points)
+    uv, z = starved.camera.project(pts)
+    seen = (z > 0) & (uv >= 0).all(axis=1) & (uv <= [starved.camera.width, starved.camera.height]).all(axis=1)
+    assert seen.sum() > 100
+    keep = ~seen
+    keep[np.flatnonzero(seen)[:5]] = True  # five points of the view survive: too few for a surface
+    write_points(layout.import_coarse_points, make_points(pts[keep]))
+    assert len(view_points(pts[keep], starved.camera)) == 5
+
+    run_stage("rectify", layout, env)
+    m = read_manifest(layout, "rectify").metrics
+    assert m["views_without_surface"] == [starved.stem] and m["n_no_surface"] == 1
+    assert m["views"][starved.stem]["kind"] == "no_surface"
+    assert m["views"][starved.stem]["fit"].startswith("no surface")
+    assert all(v["kind"] == "curved" for s, v in m["views"].items() if s != starved.stem)
+    mapping = json.loads(layout.path("rectify_mapping", stem=starved.stem).read_text())
+    assert mapping["kind"] == "no_surface"
+    assert json.loads(layout.path("rectify_surface", stem=starved.stem).read_text())["status"].startswith(
+        "no surface"
+    )
+    # identity warps: the rectified image is the view, byte for byte
+    assert (
+        layout.path("rectify_image", stem=starved.stem).read_bytes()
+        == layout.import_frontal_image(starved.stem).read_bytes()
+    )
+
+    run_stage("segment_panels", layout, env)
+    corners = json.loads(layout.path("segment_corners", stem=starved.stem).read_text())
+    assert corners["rectified"] is False and isinstance(corners["facade_found"], bool)
+    for p in corners["panels"]:
+        assert p["corners_px"] == p["corners_rectified_px"]
+    mask = read_mask(layout.path("segment_mask", stem=starved.stem))
+    assert mask.shape == (starved.camera.height, starved.camera.width)
+    seg = read_manifest(layout, "segment_panels").metrics
+    assert seg["n_views"] == len(scene.frontal_views) and seg["views"][starved.stem]["rectified"] is False
