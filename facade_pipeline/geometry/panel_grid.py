@@ -167,6 +167,24 @@ def part_panels(
     return panels, n_out
 
 
+def drop_specks(
+    surfaces: list[PartSurface], rays: CornerRays, part: np.ndarray, ok: np.ndarray, fraction: float
+) -> np.ndarray:
+    """``ok`` [Q, 4] with the corners of every quad cleared whose visible part spans less than ``fraction``
+    of its part's panel width and of its height (a speck in the mask, a panel's corner at the image's
+    corner): too little to place a panel by."""
+    ok = ok.copy()
+    for p, surf in enumerate(surfaces):
+        sel = np.flatnonzero(part == p)
+        szh = surface_corners(surf, rays, sel)
+        size = np.array(panel_size(szh, ok[sel] & np.isfinite(szh).all(axis=2)))
+        extent = np.nanmax(szh[..., :2], axis=1) - np.nanmin(szh[..., :2], axis=1)  # [Q, 2]
+        with np.errstate(invalid="ignore"):
+            small = ~((extent / size) >= fraction).any(axis=1)
+        ok[sel[small]] = False
+    return ok
+
+
 def true_corners(
     quads_px: list[np.ndarray],
     complete: np.ndarray,
@@ -269,6 +287,7 @@ def build_panel_set(
         extents.append(np.array([lo[0] - span[0], hi[0] + span[0], lo[1] - span[1], hi[1] + span[1]]))
     part = assign_parts(rays, points, status, part, surfaces, extents, cfg.ghost_max_m)
     ok = true_corners(quads_px, complete_a, view, cameras, cfg.border_margin_px)
+    ok = drop_specks(surfaces, rays, part, ok, cfg.min_visible_fraction)
     ok_any = ok.any(axis=1)
     for q in np.flatnonzero(part >= 0):  # hits far from the assigned surface are ghosts too
         h = np.abs(surfaces[part[q]].coords(np.nan_to_num(points[q]))[:, 2])

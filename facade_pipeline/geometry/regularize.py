@@ -65,6 +65,9 @@ class RegularizeConfig:
     border_margin_px: float
     """Corners of a quad marked incomplete (cut by the image border) closer than this (px) to the border
     are not panel corners and are left out; its other corners count like any other."""
+    min_visible_fraction: float
+    """A quad whose corners span less than this fraction of a panel's width and of its height (a speck
+    in the mask, a panel's corner at the image's corner) is left out of the grid (0-1)."""
     mask_min_region_px: int
     """Mask regions smaller than this (px) are ignored."""
     mask_refit_iou: float

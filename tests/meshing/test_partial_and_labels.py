@@ -75,6 +75,8 @@ def test_panels_cut_by_the_border_are_recovered_from_their_inner_corners():
         pts,
         cfg(),
     )
+    speck = np.array([[0.0, 9.0], [5.0, 9.0], [5.0, 4.0], [0.0, 4.0]])  # a speck of mask at the border
+    quads, complete, view = quads + [speck], complete + [False], view + [0]
     ps, m = build_panel_set(quads, complete, view, cams, rc, pts, cfg())
     assert len(ps_whole.panels) < 6 and m["n_panels"] == 6 and m["n_incomplete_quads_used"] > 0
     assert sorted((p.row, p.col) for p in ps.panels) == [(r, c) for r in range(2) for c in range(3)]
