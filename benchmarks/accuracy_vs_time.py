@@ -64,7 +64,7 @@ def sweep(quick: bool) -> list[tuple[str, dict[str, Any]]]:
         arch = [dict(fourier_levels=4), dict(mlp_depth=2), dict(mlp_width=32), dict(mlp_skip=False)]
         scales = [0.5]
     else:
-        iters = [1000, 3000, 10000, 30000]
+        iters = [1000, 3000, 10000]
         gaussians = [(20000, 50000), (100000, 300000), (100000, 1000000)]
         arch = [
             dict(fourier_levels=10),

@@ -12,6 +12,8 @@ self-contained HTML page) into 08_evaluate/.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,7 +52,7 @@ from facade_pipeline.evaluation.render_views import (
     render_trained,
     variant_from_dir,
 )
-from facade_pipeline.evaluation.report import build_html, build_markdown
+from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.images import read_image, read_mask, write_image
 from facade_pipeline.io.meshes import read_mesh
@@ -262,16 +264,24 @@ def scene_geometry(
     return out
 
 
+#: parameters that do not change what is trained (where it runs, how often it logs or saves)
+_NOT_TRAINING = ("device", "raster_backend", "checkpoint_every", "log_every")
+
+
+def ablation_group(params: dict[str, Any]) -> str:
+    """A digest of the training parameters other than the MLP architecture: variants with the same one
+    differ only in L, depth, width and skip, and form a Table 3 ablation."""
+    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + _NOT_TRAINING}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def _variant_entry(v: TrainedVariant, tm: TrainedModel) -> dict[str, Any]:
     p = v.params
-    arch = (
-        {k: p[k] for k in ("fourier_levels", "mlp_depth", "mlp_width", "mlp_skip")}
-        if p["reflection_model"] == "mlp"
-        else None
-    )
+    arch = {k: p[k] for k in ARCHITECTURE_KEYS} if p["reflection_model"] == "mlp" else None
     return {
         "reflection_model": p["reflection_model"],
         "architecture": arch,
+        "ablation_group": ablation_group(p),
         "iterations": p["iterations"],
         "n_gaussians": tm.model.n,
         "files": [str(f) for f in v.files],

@@ -18,6 +18,8 @@ from typing import Any
 
 from facade_pipeline.evaluation.lpips import CONVENTIONS
 
+#: the reflection MLP's architecture (Table 3 varies these)
+ARCHITECTURE_KEYS = ("fourier_levels", "mlp_depth", "mlp_width", "mlp_skip")
 _COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
 
 
@@ -86,19 +88,24 @@ TABLE1_HEADER = [
 ]
 
 
+def ablation_variants(metrics: dict[str, Any]) -> list[dict[str, Any]]:
+    """The MLP variants of the largest ablation: same ``ablation_group`` (every training parameter but the
+    architecture equal), one per architecture (the first found), sorted by architecture; [] when no group
+    holds two architectures (no ablation was run)."""
+    groups: dict[str, dict[str, dict[str, Any]]] = {}
+    for v in metrics["variants"].values():
+        if v["reflection_model"] == "mlp" and v.get("architecture"):
+            arch = architecture_label(v["architecture"])
+            groups.setdefault(v.get("ablation_group", ""), {}).setdefault(arch, v)
+    best = max(groups.values(), key=len, default={})
+    return [best[a] for a in sorted(best)] if len(best) >= 2 else []
+
+
 def table3_rows(metrics: dict[str, Any]) -> list[list[str]]:
-    """Rows of Table 3 (case, architecture, PSNR, SSIM, LPIPS), or [] when fewer than two MLP variants of
-    different architectures were evaluated (no ablation was run)."""
+    """Rows of Table 3 (case, architecture, PSNR, SSIM, LPIPS) of ``ablation_variants``, or []."""
     conv = primary_convention(metrics)
-    mlp = [
-        (n, v)
-        for n, v in metrics["variants"].items()
-        if v["reflection_model"] == "mlp" and v.get("architecture")
-    ]
-    if len({architecture_label(v["architecture"]) for _, v in mlp}) < 2:
-        return []
     rows = []
-    for case, (_, v) in enumerate(sorted(mlp, key=lambda nv: architecture_label(nv[1]["architecture"])), 1):
+    for case, v in enumerate(ablation_variants(metrics), 1):
         f = _region(v, "test", "facade")
         rows.append(
             [
@@ -123,6 +130,9 @@ GEOMETRY_KEYS = [
 ]
 
 
+GEOMETRY_HEADER = ["Surface"] + [h for _, h, _ in GEOMETRY_KEYS] + ["measured"]
+
+
 def geometry_rows(metrics: dict[str, Any]) -> list[list[str]]:
     """One row per surface (coarse mesh, corrected mesh, each variant's Gaussians) against gt/."""
     geo = metrics.get("geometry")
@@ -133,8 +143,15 @@ def geometry_rows(metrics: dict[str, Any]) -> list[list[str]]:
     rows = []
     for label, g in surfaces:
         if g:
+            measured = (
+                f"{g['gaussians_measured']} of {g['gaussians']} splats"
+                if "gaussians" in g
+                else f"{g.get('samples_unmatched', 0)} samples unmatched"
+            )
             rows.append(
-                [label] + [fmt(None if g.get(k) is None else g[k] * s, 2) for k, _, s in GEOMETRY_KEYS]
+                [label]
+                + [fmt(None if g.get(k) is None else g[k] * s, 2) for k, _, s in GEOMETRY_KEYS]
+                + [measured]
             )
     return rows
 
@@ -196,7 +213,7 @@ def build_markdown(metrics: dict[str, Any], images: Sequence[tuple[str, str]] = 
             "",
             "## Geometry against the truth (synthetic building)",
             "",
-            markdown_table(["Surface"] + [h for _, h, _ in GEOMETRY_KEYS], geo),
+            markdown_table(GEOMETRY_HEADER, geo),
         ]
         line = _corner_line(metrics)
         md += ["", line] if line else []
@@ -384,7 +401,7 @@ def build_html(metrics: dict[str, Any], images: Sequence[tuple[str, Path]] = ())
     if geo:
         parts += [
             "<h2>Geometry against the truth (synthetic building)</h2>",
-            _html_table(["Surface"] + [h for _, h, _ in GEOMETRY_KEYS], geo),
+            _html_table(GEOMETRY_HEADER, geo),
         ]
         line = _corner_line(metrics)
         parts += [f"<p>{e(line)}</p>"] if line else []

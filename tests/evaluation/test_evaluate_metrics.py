@@ -207,6 +207,15 @@ def test_table3_only_for_an_mlp_ablation():
     ]
     assert [r[2] for r in rows] == ["29.00", "30.00"]
     assert "Table 3" in build_html(_metrics(two))
+    # a variant trained otherwise (longer, say) is not part of the ablation, whatever its architecture
+    longer = {**_variant("mlp", 35.0, {**arch, "mlp_depth": 6}), "ablation_group": "other"}
+    three = {name: {**v, "ablation_group": "g"} for name, v in two.items()} | {"longer": longer}
+    assert [r[2] for r in table3_rows(_metrics(three))] == ["29.00", "30.00"]
+    from stages.evaluate import ablation_group
+
+    base = {"iterations": 10, "seed": 0, "device": "cpu", **arch}
+    assert ablation_group(base) == ablation_group({**base, "mlp_width": 64, "device": "cuda"})
+    assert ablation_group(base) != ablation_group({**base, "iterations": 20})
 
 
 def test_pareto_front():
