@@ -231,6 +231,8 @@ def map_family(
         gain = np.where(vals > 0, vals, 0.0).sum(axis=1)
         top = gain.argsort()[::-1][:8]  # only the most promising phases need the exact run
         for p in top:
+            if best is not None and gain[p] <= best[0]:
+                break  # a run scores at most the sum of its positive terms: no better run from here on
             score, lo, hi = _best_run(vals[p])
             if hi - lo >= 2 and (best is None or score > best[0]):
                 i = idx[p, lo:hi]

@@ -3,10 +3,9 @@ through with identity warps and lists it in its manifest; segment_panels still s
 
 from __future__ import annotations
 
+import importlib
 import json
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 
@@ -15,28 +14,22 @@ from facade_pipeline.io.meshes import make_points, read_points, write_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
+from stages._runner import main
 from stages.rectify import view_points
-from tests.segmentation.conftest import REPO
 
 BUILDING = "synthetic64_curved"
 
 
-def run_stage(name: str, layout: BuildingLayout, env: dict) -> None:
-    cmd = [
-        sys.executable,
-        "-m",
-        f"stages.{name}",
-        "--building",
-        BUILDING,
-        "--data-root",
-        str(layout.data_root),
-    ]
-    out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stdout + out.stderr
+def run_stage(name: str, layout: BuildingLayout) -> None:
+    """The stage's own entry point (``python -m stages.<name>``), in this process."""
+    stage = importlib.import_module(f"stages.{name}")
+    assert main(stage, ["--building", BUILDING, "--data-root", str(layout.data_root)]) == 0
 
 
-def test_view_with_too_few_points_passes_through(scenes, tmp_path):
+def test_view_with_too_few_points_passes_through(scenes, tmp_path, monkeypatch):
     src, env = scenes[BUILDING]
+    monkeypatch.setenv("FACADE_CONFIG_DIR", env["FACADE_CONFIG_DIR"])
+    monkeypatch.setenv("TQDM_DISABLE", "1")
     layout = BuildingLayout(tmp_path / "data", BUILDING)
     shutil.copytree(src.root / "01_import", layout.root / "01_import")
     scene = ImportedScene.load(layout)
@@ -50,7 +43,7 @@ def test_view_with_too_few_points_passes_through(scenes, tmp_path):
     write_points(layout.import_coarse_points, make_points(pts[keep]))
     assert len(view_points(pts[keep], starved.camera)) == 5
 
-    run_stage("rectify", layout, env)
+    run_stage("rectify", layout)
     m = read_manifest(layout, "rectify").metrics
     assert m["views_without_surface"] == [starved.stem] and m["n_no_surface"] == 1
     assert m["views"][starved.stem]["kind"] == "no_surface"
@@ -67,7 +60,7 @@ def test_view_with_too_few_points_passes_through(scenes, tmp_path):
         == layout.import_frontal_image(starved.stem).read_bytes()
     )
 
-    run_stage("segment_panels", layout, env)
+    run_stage("segment_panels", layout)
     corners = json.loads(layout.path("segment_corners", stem=starved.stem).read_text())
     assert corners["rectified"] is False and isinstance(corners["facade_found"], bool)
     for p in corners["panels"]:
