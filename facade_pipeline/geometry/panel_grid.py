@@ -235,6 +235,35 @@ def _refit_parts(
         )
 
 
+def glass_support(
+    panel: Panel, surface: PartSurface, coarse_points: np.ndarray, cfg: RegularizeConfig
+) -> int:
+    """How many coarse points lie on ``panel``'s glass (within three kernel widths of its surface, inside its
+    footprint shrunk by ``footprint_shrink``): the evidence that the panel is where its part puts it."""
+    szh = surface.coords(coarse_points)
+    feet = footprints_of(surface.coords(panel.corners)[None], cfg.footprint_shrink)[0]
+    inside = (szh[:, 0] >= feet[0]) & (szh[:, 0] <= feet[1]) & (szh[:, 1] >= feet[2]) & (szh[:, 1] <= feet[3])
+    return int((inside & (np.abs(szh[:, 2]) <= 3 * cfg.depth_bandwidth_m)).sum())
+
+
+def dedupe_across_parts(
+    panels: list[Panel], surfaces: list[PartSurface], coarse_points: np.ndarray, cfg: RegularizeConfig
+) -> list[Panel]:
+    """Panels of different parts whose centres are closer than half a panel width are one panel placed by
+    two parts (where a cylinder meets a plane tangentially both surfaces fit the quads there): the one
+    with more coarse points on its glass (``glass_support``) stays."""
+    drop: set[int] = set()
+    for i, a in enumerate(panels):
+        for j in range(i + 1, len(panels)):
+            b = panels[j]
+            if a.part == b.part or np.linalg.norm(a.center - b.center) >= 0.5 * min(a.width_m, b.width_m):
+                continue
+            sa = glass_support(a, surfaces[a.part], coarse_points, cfg)
+            sb = glass_support(b, surfaces[b.part], coarse_points, cfg)
+            drop.add(j if sa >= sb else i)
+    return [p for k, p in enumerate(panels) if k not in drop]
+
+
 def build_panel_set(
     quads_px: list[np.ndarray],
     complete: list[bool],
@@ -300,6 +329,9 @@ def build_panel_set(
         new, k = part_panels(surf, p, szh, ok[sel], rays.view[sel], cfg)
         panels += new
         n_out += k
+    n_before = len(panels)
+    panels = dedupe_across_parts(panels, surfaces, coarse_points, cfg)
+    metrics["panels_placed_by_two_parts"] = n_before - len(panels)
     metrics.update(
         {f"rays_rejected_{name}": int((status == code).sum()) for code, name in STATUS_NAMES.items()}
     )

@@ -152,3 +152,21 @@ def test_check_images(corrected):
     assert shaded.shape == (H, W, 3) and shaded.dtype == np.uint8
     blue = shaded[..., 2] > shaded[..., 0] + 40  # glass is tinted blue, frames brown
     assert 0.2 < blue.mean() < 0.9
+
+
+def test_a_panel_placed_by_two_parts_is_kept_once_where_the_glass_is():
+    from facade_pipeline.geometry.panel_grid import dedupe_across_parts
+    from facade_pipeline.panels import Panel, PartSurface
+
+    near = PartSurface("planar", [0, 0, 0], [0, -1, 0])
+    far = PartSurface("planar", [0, 0.3, 0], [0, -1, 0])  # a second part's surface, 30 cm behind
+    corners = np.array([[-1, 0, 0], [1, 0, 0], [1, 0, 2], [-1, 0, 2.0]])
+    a = Panel(0, 0, 0, corners, [0, -1, 0], 0.0)
+    b = Panel(1, 0, 0, corners + [0, 0.3, 0], [0, -1, 0], -0.3)
+    other = Panel(1, 0, 1, corners + [5, 0.3, 0], [0, -1, 0], -0.3)
+    rng = np.random.default_rng(0)
+    glass = np.c_[rng.uniform(-0.9, 0.9, 200), np.zeros(200), rng.uniform(0.1, 1.9, 200)]  # on panel a
+    kept = dedupe_across_parts([a, b, other], [near, far], glass, cfg())
+    assert [(p.part, p.col) for p in kept] == [(0, 0), (1, 1)]
+    kept = dedupe_across_parts([a, b, other], [near, far], glass + [0, 0.3, 0], cfg())
+    assert [(p.part, p.col) for p in kept] == [(1, 0), (1, 1)]
