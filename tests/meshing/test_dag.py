@@ -24,7 +24,7 @@ def test_hand_edited_mask_reruns_exactly_the_3d_stages(tmp_path):
     cfg = tmp_path / "configs"
     shutil.copytree(config_dir(), cfg)
     toml = cfg / "buildings" / "synthetic64.toml"
-    toml.write_text(re.sub(r"(?m)^uav_count = \d+", "uav_count = 1", toml.read_text()))  # one view: faster
+    toml.write_text(re.sub(r"(?m)^uav_count = \d+", "uav_count = 3", toml.read_text()))  # fewer views: faster
     env = {**os.environ, "FACADE_CONFIG_DIR": str(cfg), "TQDM_DISABLE": "1"}
     root = tmp_path / "data"
     args = [
