@@ -36,6 +36,7 @@ def test_whole_dag_on_synthetic64_reaches_evaluate(tmp_path):
     shutil.copytree(config_dir(), cfg)
     toml = cfg / "buildings" / "synthetic64.toml"
     text = re.sub(r"(?m)^iterations = \d+", "iterations = 20", toml.read_text())
+    text = re.sub(r"(?m)^uav_count = \d+", "uav_count = 4", text)  # view 0 held out, 3 to train on
     # a 20-step model is still faint: measure every splat that is at least as opaque as it started
     toml.write_text(
         text + "\n[evaluate]\ngeometry_samples = 4000\ngaussian_min_opacity = 0.05\n"
