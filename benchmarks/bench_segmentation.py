@@ -20,7 +20,6 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from facade_pipeline.geometry.frames import invert_rigid  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
 from facade_pipeline.scene import ImportedScene  # noqa: E402
@@ -31,7 +30,7 @@ def row(building: str, layout: BuildingLayout) -> str:
     scene = ImportedScene.load(layout)
     panels, gt_scene = (json.loads(layout.gt(k).read_text()) for k in ("panels", "scene"))
     r = [
-        evaluate_view(layout, v, panels, gt_scene, invert_rigid(scene.georef_from_local), 4)
+        evaluate_view(layout, v, panels, gt_scene, 4)
         for v in scene.frontal_views
     ]
     err = np.concatenate([v["corner_errors_px"] for v in r])
@@ -86,7 +85,8 @@ def main() -> None:
             f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (other work shares the cores).\n",
             "Against gt/ (reflections on). Corner errors: predicted corners off the image border "
             "against the nearest "
-            "projected true glass corner. IoU: per predicted panel against the true glass component "
+            "projected true glass corner (true camera, gt/frontal/sparse/0). "
+            "IoU: per predicted panel against the true glass component "
             "it overlaps most "
             "(min / median (count)), whole panels and panels cut by the border separately. Targets: "
             "residual <= 0.5 "

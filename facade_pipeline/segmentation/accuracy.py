@@ -2,7 +2,8 @@
 reads gt/). Pure functions over arrays and the parsed ``gt/panels.json``.
 
 - corners: each predicted corner that is a true corner (not on the image border, where cut panels are
-  closed) against the nearest true panel corner projected into the view (Eq. 6), in pixels;
+  closed) against the nearest true panel corner projected into the view (Eq. 6) through the view's true
+  camera (gt/frontal/sparse/0: with "pose_noise" the imported camera is off by the noise), in pixels;
 - count: true panels visible in the view = connected components (4-connected) of the true glass mask with
   at least ``min_area_px`` pixels, against the panels in the corners file;
 - mask IoU per predicted panel against the true glass component it overlaps most.
@@ -108,8 +109,17 @@ def surface_interpolator(part: dict):
     return f
 
 
+def true_frontal_camera(layout, view) -> PinholeCamera:
+    """The true camera (world frame) of frontal view ``view`` from gt/frontal/sparse/0."""
+    from facade_pipeline.io.colmap import pinhole_camera, read_reconstruction
+
+    rec = read_reconstruction(layout.path("gt_frontal_sparse_dir"))
+    im = next(i for i in rec.images.values() if i.name.rsplit(".", 1)[0] == view.stem)
+    return pinhole_camera(rec.cameras[im.camera_id], im.cam_from_world())
+
+
 def evaluate_view(
-    layout, view, panels_json: dict, scene_json: dict, local_from_world: np.ndarray, min_area_px: int
+    layout, view, panels_json: dict, scene_json: dict, min_area_px: int
 ) -> dict:
     """Every accuracy figure of one frontal view from the stage outputs and the truth (module docstring)."""
     import json
@@ -117,7 +127,8 @@ def evaluate_view(
     from facade_pipeline.geometry.rectification import ViewRectification
     from facade_pipeline.io.images import read_mask
 
-    cam, W, H = view.camera, view.camera.width, view.camera.height
+    W, H = view.camera.width, view.camera.height
+    cam, local_from_world = true_frontal_camera(layout, view), np.eye(4)  # truth and camera in world
     corners = json.loads(layout.path("segment_corners", stem=view.stem).read_text())
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     glass = read_mask(layout.gt("glass_mask", view.stem))

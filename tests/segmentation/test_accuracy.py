@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 
-from facade_pipeline.geometry.frames import invert_rigid
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.segmentation.accuracy import evaluate_view
@@ -19,8 +18,7 @@ BUILDINGS = ["synthetic64", "synthetic64_curved"]
 def evaluate(layout) -> list[dict]:
     scene = ImportedScene.load(layout)
     panels, gt_scene = (json.loads(layout.gt(k).read_text()) for k in ("panels", "scene"))
-    local = invert_rigid(scene.georef_from_local)
-    return [evaluate_view(layout, v, panels, gt_scene, local, 4) for v in scene.frontal_views]
+    return [evaluate_view(layout, v, panels, gt_scene, 4) for v in scene.frontal_views]
 
 
 @pytest.fixture(scope="module")
