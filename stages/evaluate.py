@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.errors import InputError
+from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.geometry_eval import (
     Truth,
     load_truth,
@@ -106,7 +106,7 @@ class Params:
 
     def __post_init__(self) -> None:
         if not self.lpips_conventions:
-            raise ValueError("evaluate.lpips_conventions needs at least one convention")
+            raise ConfigError(None, "at least one convention in evaluate.lpips_conventions", "none")
         for c in self.lpips_conventions:
             convention_spec(c)
 
@@ -135,6 +135,10 @@ def variants(layout: BuildingLayout, params: Params) -> list[TrainedVariant]:
     root = layout.path("variant_dir", variant="x").parent
     if params.include_saved_variants and root.is_dir():
         found += [variant_from_dir(d) for d in sorted(root.iterdir()) if d.is_dir()]
+    if sum(v.name == MAIN_VARIANT for v in found) > 1:
+        raise InputError(
+            root / MAIN_VARIANT, "a saved variant named other than the pipeline's model", "its name"
+        )
     return found
 
 
