@@ -37,6 +37,7 @@ corners are intersections of these edge lines (``panels.py``).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,8 +117,9 @@ class Gradients:
         """v(c) [M]: median over ``rows`` of the colour distance of the image at position c (interpolated
         between pixel centres) from its median along the rows; small along a uniform frame bar."""
         col = self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]  # [L, M, 3]
-        dev = np.linalg.norm(col - np.nanmedian(col, axis=0, keepdims=True), axis=2)
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings():  # positions outside the view (rectified images) are all NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            dev = np.linalg.norm(col - np.nanmedian(col, axis=0, keepdims=True), axis=2)
             v = np.nanmedian(dev, axis=0)
         return np.where(np.isfinite(v), v, 1.0)
 
