@@ -45,19 +45,31 @@ DOIT_CONFIG = {
 
 def _inputs_action(stage, params):
     """calc_dep action: the files the stage will read, now that its upstream ran."""
+
     def compute():
         try:
             return {"file_dep": [str(p) for p in stage.inputs(LAYOUT, params)]}
         except PipelineError as e:
             return TaskFailed(f"{stage.NAME}: {e}")
+
     return compute
 
 
 def _stage_tasks(name):
     stage = load_stage(name)
     params = CONFIG.section(name, stage.Params)
-    command = [sys.executable, "-m", f"stages.{name}", "--building", BUILDING, "--data-root", str(LAYOUT.data_root)]
-    upstream = list(stage.UPSTREAM) + (["synthesize"] if SYNTHETIC and name == "import_photogrammetry" else [])
+    command = [
+        sys.executable,
+        "-m",
+        f"stages.{name}",
+        "--building",
+        BUILDING,
+        "--data-root",
+        str(LAYOUT.data_root),
+    ]
+    upstream = list(stage.UPSTREAM) + (
+        ["synthesize"] if SYNTHETIC and name == "import_photogrammetry" else []
+    )
     yield {
         "basename": f"_inputs:{name}",
         "doc": f"(hidden) list the files {name} reads",

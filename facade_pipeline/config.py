@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tomllib
 import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
+
+import tomllib
 
 from facade_pipeline.errors import ConfigError
 
@@ -144,7 +145,9 @@ def _build(cls: type, table: Any, where: str, files: tuple[Path | None, ...]) ->
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for key in table:
         if key not in fields:
-            raise ConfigError(file, f"one of the keys of [{where}] ({', '.join(fields)})", f"unknown key '{key}'")
+            raise ConfigError(
+                file, f"one of the keys of [{where}] ({', '.join(fields)})", f"unknown key '{key}'"
+            )
     kwargs = {}
     for name, field in fields.items():
         key = f"{where}.{name}" if where else name
@@ -186,7 +189,9 @@ def _convert(tp: Any, value: Any, key: str, files: tuple[Path | None, ...]) -> A
             return tuple(_convert(args[0], v, f"{key}[{i}]", files) for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(file, f"'{key}' an array of {len(args)} values", f"{len(value)} values")
-        return tuple(_convert(a, v, f"{key}[{i}]", files) for i, (a, v) in enumerate(zip(args, value, strict=True)))
+        return tuple(
+            _convert(a, v, f"{key}[{i}]", files) for i, (a, v) in enumerate(zip(args, value, strict=True))
+        )
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(file, f"'{key}' a number", repr(value))

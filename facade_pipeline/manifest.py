@@ -42,8 +42,13 @@ def sources_digest(files: list[Path]) -> str:
 def git_commit(repo: Path) -> str | None:
     """The checkout's commit, with ``-dirty`` when it has local changes; None outside a git checkout."""
     try:
-        out = subprocess.run(["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
-                             capture_output=True, text=True, timeout=10, check=True)
+        out = subprocess.run(
+            ["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        )
         return out.stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         return None
@@ -95,11 +100,13 @@ def read_manifest(layout: BuildingLayout, stage: str) -> Manifest:
     """Read ``stage``'s manifest; a missing one means the stage has not completed."""
     path = layout.manifest(stage)
     if not path.is_file():
-        raise UpstreamMissingError(path, f"the manifest of a completed '{stage}' stage (run `doit {stage}`)",
-                                   "no manifest")
+        raise UpstreamMissingError(
+            path, f"the manifest of a completed '{stage}' stage (run `doit {stage}`)", "no manifest"
+        )
     try:
         data = json.loads(path.read_text())
         return Manifest(stage, path, data["params"], data["inputs"], data["outputs"], data["metrics"], data)
     except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise InputError(path, "a stage manifest (JSON with params, inputs, outputs, metrics)",
-                         f"{type(e).__name__}: {e}") from None
+        raise InputError(
+            path, "a stage manifest (JSON with params, inputs, outputs, metrics)", f"{type(e).__name__}: {e}"
+        ) from None

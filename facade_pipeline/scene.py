@@ -33,8 +33,13 @@ class View:
     image: str  # relative to the building folder
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "stem": self.stem, "role": self.role, "image": self.image,
-                "camera": self.camera.to_dict()}
+        return {
+            "name": self.name,
+            "stem": self.stem,
+            "role": self.role,
+            "image": self.image,
+            "camera": self.camera.to_dict(),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> View:
@@ -57,12 +62,15 @@ class ImportedScene:
         return tuple(v for v in self.views if v.role == "frontal")
 
     def save(self, path: str | Path) -> None:
-        write_json(path, {
-            "georef_from_local": self.georef_from_local.tolist(),
-            "up_axis_method": self.up_axis_method,
-            "points_source": self.points_source,
-            "views": [v.to_dict() for v in self.views],
-        })
+        write_json(
+            path,
+            {
+                "georef_from_local": self.georef_from_local.tolist(),
+                "up_axis_method": self.up_axis_method,
+                "points_source": self.points_source,
+                "views": [v.to_dict() for v in self.views],
+            },
+        )
 
     @classmethod
     def load(cls, layout: BuildingLayout) -> ImportedScene:
@@ -71,7 +79,11 @@ class ImportedScene:
         path = layout.import_scene
         try:
             d = json.loads(path.read_text())
-            return cls(tuple(View.from_dict(v) for v in d["views"]), np.array(d["georef_from_local"]),
-                       d["up_axis_method"], d["points_source"])
+            return cls(
+                tuple(View.from_dict(v) for v in d["views"]),
+                np.array(d["georef_from_local"]),
+                d["up_axis_method"],
+                d["points_source"],
+            )
         except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
             raise InputError(path, "an imported scene (JSON)", f"{type(e).__name__}: {e}") from None

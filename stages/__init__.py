@@ -1,7 +1,7 @@
 """Pipeline stages, one module each. A stage module exposes:
 
 - ``NAME``, ``DOC`` (one line), ``Params`` (a frozen dataclass, read from the config section ``NAME``);
-- ``UPSTREAM``: the stages whose outputs it reads; ``LIBRARY``: the library modules it runs (its code version);
+- ``UPSTREAM``: the stages whose outputs it reads (its code version is derived from its imports);
 - ``inputs(layout, params)``: the exact files it reads, validated (missing ones raise ``InputError``);
 - ``targets(layout, params)``: the outputs whose names are known before it runs;
 - ``run(layout, params) -> StageReport``: does the work, writing every output atomically;

@@ -38,19 +38,52 @@ class StageReport:
 
 
 def source_files(stage: ModuleType) -> list[Path]:
-    """The stage's own source, the runner, and the library modules it declares in ``LIBRARY``."""
-    files = {Path(stage.__file__).resolve(), Path(__file__).resolve()}
-    for name in ("__init__.py", "errors.py", "layout.py", "config.py", "manifest.py", *stage.LIBRARY):
-        p = PACKAGE_DIR / name
-        if p.is_dir():
-            files.update(q.resolve() for q in p.rglob("*.py"))
-        elif p.with_suffix(".py").is_file():
-            files.add(p.with_suffix(".py").resolve())
-        elif p.is_file():
-            files.add(p.resolve())
-        else:
-            raise FileNotFoundError(f"{stage.__name__}.LIBRARY names {name!r}, not found in {PACKAGE_DIR}")
-    return sorted(files)
+    """The stage's code version: its own module, this runner, and every ``facade_pipeline`` module they
+    import, followed transitively (plus the C/C++ sources in a ``csrc/`` folder beside an imported module).
+    Derived from the imports, so editing a module that a stage does not use never reruns it."""
+    todo = [Path(stage.__file__).resolve(), Path(__file__).resolve()]
+    seen: set[Path] = set()
+    while todo:
+        path = todo.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        csrc = path.parent / "csrc"
+        if csrc.is_dir():
+            seen.update(
+                q.resolve() for q in csrc.rglob("*") if q.suffix in (".c", ".cc", ".cpp", ".h", ".hpp")
+            )
+        todo += _imported_package_files(path)
+    return sorted(seen)
+
+
+def _imported_package_files(path: Path) -> list[Path]:
+    """Files of ``facade_pipeline`` (and its package ``__init__``s) that the module at ``path`` imports."""
+    import ast
+
+    names: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative import inside the package
+                pkg = path.parent.relative_to(PACKAGE_DIR.parent).parts[
+                    : len(path.parent.relative_to(PACKAGE_DIR.parent).parts) - node.level + 1
+                ]
+                base = ".".join((*pkg, base)) if base else ".".join(pkg)
+            names += [base] + [f"{base}.{a.name}" for a in node.names]
+    files = []
+    for name in names:
+        parts = name.split(".")
+        if parts[0] != PACKAGE_DIR.name:
+            continue
+        for i in range(1, len(parts) + 1):
+            stem = PACKAGE_DIR.parent.joinpath(*parts[:i])
+            for candidate in (stem.with_suffix(".py"), stem / "__init__.py"):
+                if candidate.is_file():
+                    files.append(candidate.resolve())
+    return files
 
 
 def output_folders(stage: ModuleType, layout: BuildingLayout) -> list[Path]:
@@ -80,8 +113,9 @@ def execute(stage: ModuleType, layout: BuildingLayout, params: Any) -> dict[str,
         _remove_stale_outputs(folder, outputs | {manifest_path.resolve()})
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports kB
     code = {"git": git_commit(STAGES_DIR.parent), "sources_sha256": sources_digest(source_files(stage))}
-    manifest = build_manifest(stage.NAME, layout, to_dict(params), inputs, sorted(outputs), report.metrics, code,
-                              wall, peak_mb)
+    manifest = build_manifest(
+        stage.NAME, layout, to_dict(params), inputs, sorted(outputs), report.metrics, code, wall, peak_mb
+    )
     write_json(manifest_path, manifest)
     return manifest
 
@@ -101,10 +135,11 @@ def main(stage: ModuleType, argv: list[str] | None = None) -> int:
     """The CLI of every stage: ``python -m stages.<name> --building NAME [--data-root DIR]``."""
     parser = argparse.ArgumentParser(prog=f"python -m stages.{stage.NAME}", description=stage.DOC)
     parser.add_argument("--building", default="demo", help="building name (configs/buildings/<name>.toml)")
-    parser.add_argument("--data-root", default=None,
-                        help="data root (default: $FACADE_DATA_ROOT or ./data)")
+    parser.add_argument("--data-root", default=None, help="data root (default: $FACADE_DATA_ROOT or ./data)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=os.environ.get("FACADE_LOG_LEVEL", "INFO"), format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=os.environ.get("FACADE_LOG_LEVEL", "INFO"), format="%(levelname)s %(name)s: %(message)s"
+    )
     try:
         layout = BuildingLayout.for_building(args.building, args.data_root)
         params = load_params(stage, args.building)
@@ -116,6 +151,8 @@ def main(stage: ModuleType, argv: list[str] | None = None) -> int:
         print(f"{stage.NAME}: interrupted; no manifest written, the stage will rerun", file=sys.stderr)
         return 130
     summary = ", ".join(f"{k}={v}" for k, v in manifest["metrics"].items() if not isinstance(v, dict | list))
-    print(f"{stage.NAME}: {len(manifest['outputs'])} outputs in {manifest['wall_time_s']:.1f} s"
-          + (f" ({summary})" if summary else ""))
+    print(
+        f"{stage.NAME}: {len(manifest['outputs'])} outputs in {manifest['wall_time_s']:.1f} s"
+        + (f" ({summary})" if summary else "")
+    )
     return 0

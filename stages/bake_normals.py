@@ -33,15 +33,6 @@ from stages._runner import StageReport, main
 NAME = "bake_normals"
 DOC = "bake world-space normal and depth maps (EXR) and facade/glass masks (PNG) for every training view"
 UPSTREAM: tuple[str, ...] = ("correct_mesh", "import_photogrammetry")
-LIBRARY = (
-    "geometry/bake.py",
-    "geometry/raycast.py",
-    "geometry/camera.py",
-    "meshing/correct.py",
-    "io",
-    "scene.py",
-    "panels.py",
-)
 
 
 @dataclass(frozen=True)

@@ -34,16 +34,6 @@ from stages._runner import StageReport, main
 NAME = "correct_mesh"
 DOC = "replace the coarse mesh inside each panel's cuboid by the shrunk 3D panel, keeping the frames"
 UPSTREAM: tuple[str, ...] = ("regularize_corners", "import_photogrammetry")
-LIBRARY = (
-    "meshing",
-    "geometry/raycast.py",
-    "geometry/frames.py",
-    "geometry/bake.py",
-    "geometry/camera.py",
-    "io",
-    "scene.py",
-    "panels.py",
-)
 OVERLAY_MIN_WIDTH_PX = 480  # renders of small views are upscaled to at least this width
 
 

@@ -34,7 +34,6 @@ from stages._runner import StageReport, main
 NAME = "import_photogrammetry"
 DOC = "import the COLMAP model, images, coarse mesh and points into a local z-up frame, undistorted"
 UPSTREAM: tuple[str, ...] = ()
-LIBRARY = ("io", "geometry", "scene.py")
 
 
 @dataclass(frozen=True)
@@ -78,8 +77,11 @@ def _coarse_mesh_path(layout: BuildingLayout) -> Path:
     found = [p for p in layout.raw_coarse_mesh_candidates if p.is_file()]
     if len(found) != 1:
         ply, obj = layout.raw_coarse_mesh_candidates
-        raise InputError(layout.raw_dir, f"exactly one coarse mesh ({ply.name} or {obj.name})",
-                         f"{len(found)} ({', '.join(p.name for p in found) or 'none'})")
+        raise InputError(
+            layout.raw_dir,
+            f"exactly one coarse mesh ({ply.name} or {obj.name})",
+            f"{len(found)} ({', '.join(p.name for p in found) or 'none'})",
+        )
     return found[0]
 
 
@@ -97,8 +99,11 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
             colmap.check_camera_supported(cam, src.model_dir)
             w, h = image_size(path)
             if (w, h) != (cam.width, cam.height):
-                raise InputError(path, f"{cam.width}x{cam.height} pixels (camera {cam.camera_id} in {src.model_dir})",
-                                 f"{w}x{h}")
+                raise InputError(
+                    path,
+                    f"{cam.width}x{cam.height} pixels (camera {cam.camera_id} in {src.model_dir})",
+                    f"{w}x{h}",
+                )
             files.append(path)
     files.append(_coarse_mesh_path(layout))
     if layout.raw_coarse_points.is_file():
@@ -106,7 +111,9 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     return files
 
 
-def _local_frame(rec: pycolmap.Reconstruction, mesh_vertices: np.ndarray, params: Params) -> tuple[np.ndarray, str]:
+def _local_frame(
+    rec: pycolmap.Reconstruction, mesh_vertices: np.ndarray, params: Params
+) -> tuple[np.ndarray, str]:
     """``local_from_model`` [4, 4] and how up was found."""
     centres = np.array([im.projection_center() for im in colmap.registered_images(rec)])
     extent = max(np.abs(centres).max(), np.abs(mesh_vertices).max())
@@ -124,10 +131,12 @@ def _local_frame(rec: pycolmap.Reconstruction, mesh_vertices: np.ndarray, params
     return T, method
 
 
-def _import_views(src: _Source, rec: pycolmap.Reconstruction, layout: BuildingLayout, params: Params,
-                  bar: tqdm) -> tuple[list[View], list[colmap.ColmapView]]:
-    opts = colmap.undistort_options(params.undistort_blank_pixels, params.undistort_min_scale,
-                                    params.undistort_max_scale)
+def _import_views(
+    src: _Source, rec: pycolmap.Reconstruction, layout: BuildingLayout, params: Params, bar: tqdm
+) -> tuple[list[View], list[colmap.ColmapView]]:
+    opts = colmap.undistort_options(
+        params.undistort_blank_pixels, params.undistort_min_scale, params.undistort_max_scale
+    )
     pinhole: dict[int, pycolmap.Camera] = {}
     views, model_views = [], []
     for im in colmap.registered_images(rec):
@@ -177,8 +186,9 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     else:
         pts = recs[0].points3D.values()
         if not pts:
-            raise InputError(layout.raw_coarse_points, "a coarse point cloud, or points in raw/sparse/0",
-                             "neither")
+            raise InputError(
+                layout.raw_coarse_points, "a coarse point cloud, or points in raw/sparse/0", "neither"
+            )
         pcd = make_points(np.array([p.xyz for p in pts]), np.array([p.color for p in pts]) / 255.0)
         points_source = "raw/sparse/0 points3D"
     write_points(layout.import_coarse_points, pcd)
@@ -187,17 +197,20 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     ImportedScene(tuple(views), georef_from_local, up_method, points_source).save(layout.import_scene)
     outputs += [layout.import_coarse_mesh, layout.import_coarse_points, layout.import_scene]
     n_undistorted = sum(not colmap.is_pinhole(im.camera) for r in recs for im in colmap.registered_images(r))
-    return StageReport(outputs, {
-        "n_uav_images": sum(v.role == "uav" for v in views),
-        "n_frontal_images": sum(v.role == "frontal" for v in views),
-        "n_undistorted_images": n_undistorted,
-        "up_axis_method": up_method,
-        "georef_offset_m": georef_from_local[:3, 3].tolist(),
-        "coarse_mesh_vertices": len(mesh.vertices),
-        "coarse_mesh_triangles": len(mesh.triangles),
-        "coarse_points": len(pcd.points),
-        "points_source": points_source,
-    })
+    return StageReport(
+        outputs,
+        {
+            "n_uav_images": sum(v.role == "uav" for v in views),
+            "n_frontal_images": sum(v.role == "frontal" for v in views),
+            "n_undistorted_images": n_undistorted,
+            "up_axis_method": up_method,
+            "georef_offset_m": georef_from_local[:3, 3].tolist(),
+            "coarse_mesh_vertices": len(mesh.vertices),
+            "coarse_mesh_triangles": len(mesh.triangles),
+            "coarse_points": len(pcd.points),
+            "points_source": points_source,
+        },
+    )
 
 
 def targets(layout: BuildingLayout, params: Params) -> list[Path]:

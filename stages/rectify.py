@@ -51,8 +51,6 @@ from stages._runner import StageReport, main  # noqa: E402
 NAME = "rectify"
 DOC = "fit a cylinder to each frontal view's points and warp curved facades into planar-facade images"
 UPSTREAM: tuple[str, ...] = ("import_photogrammetry",)
-LIBRARY = ("geometry/camera.py", "geometry/cylinder.py", "geometry/polywarp.py", "geometry/rectification.py",
-           "io", "scene.py")
 
 
 @dataclass(frozen=True)

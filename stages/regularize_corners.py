@@ -40,20 +40,6 @@ DOC = "3D panel models: ray-cast segmented corners onto the coarse mesh, merge, 
 UPSTREAM: tuple[str, ...] = (("segment_panels",) if "segment_panels" in PIPELINE else ()) + (
     "import_photogrammetry",
 )
-LIBRARY = (
-    "geometry/camera.py",
-    "geometry/frames.py",
-    "geometry/raycast.py",
-    "geometry/regularize.py",
-    "geometry/panel_grid.py",
-    "geometry/segment_obs.py",
-    "io",
-    "scene.py",
-    "panels.py",
-    "meshing/metrics.py",
-    "meshing/overlay.py",
-    "geometry/bake.py",
-)
 OVERLAY_MIN_WIDTH_PX = 480  # small views are drawn upscaled to at least this width
 Params = RegularizeConfig
 

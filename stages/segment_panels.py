@@ -42,7 +42,6 @@ from stages._runner import StageReport, main  # noqa: E402
 NAME = "segment_panels"
 DOC = "find the glass panels of each frontal view (MAP panel grid): corners, panel mask, overlay"
 UPSTREAM: tuple[str, ...] = ("rectify", "import_photogrammetry")
-LIBRARY = ("segmentation", "geometry/polywarp.py", "geometry/rectification.py", "io", "scene.py")
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,6 @@ NAME = "synthesize"
 DOC = "Make a synthetic building: ray-traced glass facade images, COLMAP models, coarse mesh, truth"
 Params = SynthesizeParams
 UPSTREAM: tuple[str, ...] = ()
-LIBRARY = ("synthetic", "io", "geometry")
 
 #: Files pycolmap 4 writes for a binary model.
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin")

@@ -46,7 +46,6 @@ from stages._runner import PACKAGE_DIR, StageReport, main
 NAME = "train_gs"
 DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
 UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
-LIBRARY = ("training", "shading", "splatting", "io", "scene.py", "geometry/camera.py")
 Params = TrainParams
 BAKED = ("normal_map", "facade_mask", "glass_mask")
 

@@ -13,9 +13,14 @@ from facade_pipeline.io.meshes import make_mesh, make_points, write_mesh, write_
 from facade_pipeline.layout import BuildingLayout
 
 
-def synthetic_reconstruction(n_images: int = 6, width: int = 96, height: int = 72,
-                             model: str = "SIMPLE_RADIAL", params=(120.0, 48.0, 36.0, 0.05),
-                             seed: int = 0) -> pycolmap.Reconstruction:
+def synthetic_reconstruction(
+    n_images: int = 6,
+    width: int = 96,
+    height: int = 72,
+    model: str = "SIMPLE_RADIAL",
+    params=(120.0, 48.0, 36.0, 0.05),
+    seed: int = 0,
+) -> pycolmap.Reconstruction:
     pycolmap.set_random_seed(seed)
     o = pycolmap.SyntheticDatasetOptions()
     o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig = 1, 1, n_images
@@ -26,8 +31,14 @@ def synthetic_reconstruction(n_images: int = 6, width: int = 96, height: int = 7
     return pycolmap.synthesize_dataset(o)
 
 
-def make_raw(layout: BuildingLayout, rec: pycolmap.Reconstruction | None = None, offset=(0.0, 0.0, 0.0),
-             with_points: bool = True, frontal: bool = False, seed: int = 0) -> pycolmap.Reconstruction:
+def make_raw(
+    layout: BuildingLayout,
+    rec: pycolmap.Reconstruction | None = None,
+    offset=(0.0, 0.0, 0.0),
+    with_points: bool = True,
+    frontal: bool = False,
+    seed: int = 0,
+) -> pycolmap.Reconstruction:
     """Write a complete raw/ for ``layout``: COLMAP model, textured images of the right size, a hand-made
     mesh (a quad spanning the points) and the point cloud, all moved by ``offset`` (georeferencing)."""
     rec = rec or synthetic_reconstruction(seed=seed)
@@ -45,7 +56,9 @@ def make_raw(layout: BuildingLayout, rec: pycolmap.Reconstruction | None = None,
             write_image(image_dir / im.name, rng.integers(0, 256, (cam.height, cam.width, 3), dtype=np.uint8))
     xyz = np.array([p.xyz for p in rec.points3D.values()])
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-    quad = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]], [hi[0], hi[1], hi[2]], [lo[0], hi[1], hi[2]]])
+    quad = np.array(
+        [[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]], [hi[0], hi[1], hi[2]], [lo[0], hi[1], hi[2]]]
+    )
     write_mesh(layout.raw_coarse_mesh_candidates[0], make_mesh(quad, np.array([[0, 1, 2], [0, 2, 3]])))
     if with_points:
         write_points(layout.raw_coarse_points, make_points(xyz))
@@ -57,5 +70,7 @@ def tree_digest(folder: Path) -> dict[str, str]:
     out = {}
     for p in sorted(folder.rglob("*")):
         if p.is_file():
-            out[p.relative_to(folder).as_posix()] = hashlib.sha256(p.read_bytes()).hexdigest() + str(p.stat().st_mtime_ns)
+            out[p.relative_to(folder).as_posix()] = hashlib.sha256(p.read_bytes()).hexdigest() + str(
+                p.stat().st_mtime_ns
+            )
     return out

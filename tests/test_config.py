@@ -35,7 +35,12 @@ def test_paper_settings_on_the_paper_buildings():
         assert t["iterations"] == 200_000 and t["fourier_levels"] == 12
         assert (t["mlp_depth"], t["mlp_width"], t["mlp_skip"]) == (8, 512, True)
         assert (t["lambda_normal"], t["lambda_normal_prior"]) == (0.05, 1.0)
-        assert (t["lambda_hf_start"], t["lambda_hf_end"], t["hf_tau_start"], t["hf_tau_end"]) == (1, 10, 0.2, 0.09)
+        assert (t["lambda_hf_start"], t["lambda_hf_end"], t["hf_tau_start"], t["hf_tau_end"]) == (
+            1,
+            10,
+            0.2,
+            0.09,
+        )
 
 
 def test_every_default_parameter_has_a_comment():
@@ -58,16 +63,22 @@ def _write(d: Path, building: str, text: str) -> Path:
 
 
 def test_unknown_key_names_key_and_file(cfg_dir):
-    p = _write(cfg_dir, "typo", '[building]\nkind = "real"\ndescription = "x"\n'
-               '[import_photogrammetry]\nup_axiz = "+z"\n')
+    p = _write(
+        cfg_dir,
+        "typo",
+        '[building]\nkind = "real"\ndescription = "x"\n[import_photogrammetry]\nup_axiz = "+z"\n',
+    )
     with pytest.raises(ConfigError) as e:
         load_building_config("typo", cfg_dir)
     assert "up_axiz" in str(e.value) and str(p) in str(e.value)
 
 
 def test_wrong_type_names_key_and_file(cfg_dir):
-    p = _write(cfg_dir, "bad", '[building]\nkind = "real"\ndescription = "x"\n'
-               '[import_photogrammetry]\ngeoref_threshold_m = "far"\n')
+    p = _write(
+        cfg_dir,
+        "bad",
+        '[building]\nkind = "real"\ndescription = "x"\n[import_photogrammetry]\ngeoref_threshold_m = "far"\n',
+    )
     cfg = load_building_config("bad", cfg_dir)
     stage = load_stage("import_photogrammetry")
     with pytest.raises(ConfigError) as e:
@@ -105,10 +116,12 @@ class _Outer:
 def test_from_dict_nested_and_strict():
     o = from_dict(_Outer, {"mode": "a", "parts": [{"size_m": [1, 2.5]}]})
     assert o == _Outer("a", (_Inner((1.0, 2.5)),), 3)
-    for bad, key in [({"mode": "c", "parts": []}, "mode"),
-                     ({"mode": "a", "parts": [{"size_m": [1]}]}, "parts[0].size_m"),
-                     ({"mode": "a", "parts": [], "count": 1.5}, "count"),
-                     ({"mode": "a", "parts": [], "count": True}, "count"),
-                     ({"mode": "a"}, "parts")]:
+    for bad, key in [
+        ({"mode": "c", "parts": []}, "mode"),
+        ({"mode": "a", "parts": [{"size_m": [1]}]}, "parts[0].size_m"),
+        ({"mode": "a", "parts": [], "count": 1.5}, "count"),
+        ({"mode": "a", "parts": [], "count": True}, "count"),
+        ({"mode": "a"}, "parts"),
+    ]:
         with pytest.raises(ConfigError, match=re.escape(key)):
             from_dict(_Outer, bad)

@@ -51,7 +51,9 @@ def test_list_shows_existing_stages_in_pipeline_order(real):
     out = doit(["list", "building=testreal"], env, layout.data_root)
     names = [line.split()[0] for line in out.splitlines() if line.strip()]
     assert names == [s for s in PIPELINE if s != "synthesize"]
-    assert all(len(line.split(None, 1)) == 2 for line in out.splitlines() if line.strip())  # each has a description
+    assert all(
+        len(line.split(None, 1)) == 2 for line in out.splitlines() if line.strip()
+    )  # each has a description
     out = doit(["list", "building=synthetic64"], env, layout.data_root)
     assert [line.split()[0] for line in out.splitlines() if line.strip()] == list(PIPELINE)
 
@@ -67,18 +69,22 @@ def test_second_run_executes_nothing_and_edits_rerun_dependants(real):
     img.write_bytes(img.read_bytes())  # same content: nothing to do
     assert executed(doit([IMPORT, "building=testreal"], env, root)) == []
     from facade_pipeline.io.images import read_image, write_image
+
     pixels = read_image(img)
     pixels[0, 0] = 255 - pixels[0, 0]
     write_image(img, pixels)
     assert executed(doit([IMPORT, "building=testreal"], env, root)) == [IMPORT]
     # (c) one parameter changed: that stage reruns
     (cfg / "buildings" / "testreal.toml").write_text(
-        '[building]\nkind = "real"\ndescription = "test"\n[import_photogrammetry]\norigin_rounding_m = 10.0\n')
+        '[building]\nkind = "real"\ndescription = "test"\n[import_photogrammetry]\norigin_rounding_m = 10.0\n'
+    )
     assert executed(doit([IMPORT, "building=testreal"], env, root)) == [IMPORT]
     assert executed(doit([IMPORT, "building=testreal"], env, root)) == []
     # (d) one stage alone, forced after `doit forget`
     doit(["forget", "import_photogrammetry", "building=testreal"], env, root)
-    assert executed(doit(["-s", "import_photogrammetry", "building=testreal"], env, root)) == ["import_photogrammetry"]
+    assert executed(doit(["-s", "import_photogrammetry", "building=testreal"], env, root)) == [
+        "import_photogrammetry"
+    ]
 
 
 def test_manifest_deleted_means_rerun(real):
@@ -99,6 +105,7 @@ def test_synthetic_building_hand_edit_reruns_only_downstream(tmp_path):
     assert executed(doit([IMPORT, "building=synthetic64"], env, root)) == ["synthesize", IMPORT]
     assert executed(doit([IMPORT, "building=synthetic64"], env, root)) == []
     from facade_pipeline.io.images import read_image, write_image
+
     img = sorted(layout.raw_images_dir.iterdir())[0]
     pixels = read_image(img)
     pixels[:4, :4] = 0

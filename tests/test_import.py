@@ -34,8 +34,12 @@ def test_import_writes_scene_and_keeps_raw_untouched(layout):
         img = cv2.imread(str(layout.root / v.image))
         assert img.shape[:2] == (v.camera.height, v.camera.width)
     assert manifest["metrics"]["n_undistorted_images"] == 2 * rec.num_reg_images()
-    assert set(manifest["outputs"]) >= {"01_import/scene.json", "01_import/coarse_mesh.ply",
-                                        "01_import/coarse_points.ply", "01_import/sparse/0/cameras.bin"}
+    assert set(manifest["outputs"]) >= {
+        "01_import/scene.json",
+        "01_import/coarse_mesh.ply",
+        "01_import/coarse_points.ply",
+        "01_import/sparse/0/cameras.bin",
+    }
     # the normalised model is a pinhole COLMAP model that pycolmap reads back
     out = pycolmap.Reconstruction(str(layout.import_sparse_dir))
     assert {c.model.name for c in out.cameras.values()} == {"PINHOLE"}
@@ -70,8 +74,13 @@ def _blob_image(h, w, centres, sigma=2.0):
 
 def test_undistortion_reprojects_known_points_within_0_1px(layout):
     w, h = 320, 240
-    rec = synthetic_reconstruction(n_images=6, width=w, height=h, model="OPENCV",
-                                   params=(260.0, 255.0, 161.0, 119.0, -0.12, 0.03, 0.001, -0.0015))
+    rec = synthetic_reconstruction(
+        n_images=6,
+        width=w,
+        height=h,
+        model="OPENCV",
+        params=(260.0, 255.0, 161.0, 119.0, -0.12, 0.03, 0.001, -0.0015),
+    )
     make_raw(layout, rec=rec)
     # redraw each image: Gaussian blobs where known 3D points land through the distorted camera
     pts = np.array([p.xyz for p in rec.points3D.values()])
@@ -79,7 +88,10 @@ def test_undistortion_reprojects_known_points_within_0_1px(layout):
         uv = np.array([im.project_point(p) for p in pts if im.project_point(p) is not None])
         inside = (uv[:, 0] > 12) & (uv[:, 0] < w - 12) & (uv[:, 1] > 12) & (uv[:, 1] < h - 12)
         img = _blob_image(h, w, uv[inside])
-        write_image(layout.raw_image(im.name), np.repeat((np.clip(img, 0, 1) * 255).round().astype(np.uint8)[..., None], 3, 2))
+        write_image(
+            layout.raw_image(im.name),
+            np.repeat((np.clip(img, 0, 1) * 255).round().astype(np.uint8)[..., None], 3, 2),
+        )
     execute(stage, layout, PARAMS)
     scene = ImportedScene.load(layout)
     pts_local = transform_points(np.linalg.inv(scene.georef_from_local), pts)
@@ -93,10 +105,10 @@ def test_undistortion_reprojects_known_points_within_0_1px(layout):
             if not (15 < x < v.camera.width - 15 and 15 < y < v.camera.height - 15):
                 continue
             x0, y0 = int(x), int(y)
-            win = rgb[y0 - 6:y0 + 7, x0 - 6:x0 + 7]
+            win = rgb[y0 - 6 : y0 + 7, x0 - 6 : x0 + 7]
             if win.sum() < 1.0 or win.max() < 0.5:
                 continue  # the blob was outside the distorted image
-            yy, xx = np.mgrid[y0 - 6:y0 + 7, x0 - 6:x0 + 7] + 0.5
+            yy, xx = np.mgrid[y0 - 6 : y0 + 7, x0 - 6 : x0 + 7] + 0.5
             cx, cy = (win * xx).sum() / win.sum(), (win * yy).sum() / win.sum()
             errors.append(np.hypot(cx - x, cy - y))
     assert len(errors) >= 8
@@ -104,6 +116,7 @@ def test_undistortion_reprojects_known_points_within_0_1px(layout):
 
 
 # --- bad input: one clear error naming the file ---
+
 
 def _corrupt(layout):
     (layout.raw_sparse_dir / "images.bin").write_bytes(b"\x07\x00\x00\x00garbage")
@@ -120,8 +133,10 @@ def _wrong_size(layout):
 
 def _no_faces(layout):
     p = layout.raw_coarse_mesh_candidates[0]
-    p.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
-                 "element face 0\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n")
+    p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 0\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    )
 
 
 def _nan_vertices(layout):
@@ -141,15 +156,18 @@ def _spherical_camera(layout):
     rec.write(str(layout.raw_sparse_dir))
 
 
-@pytest.mark.parametrize("damage, file_part, words", [
-    (_missing_model, "sparse/0", "missing cameras, images, points3D"),
-    (_corrupt, "sparse/0", "damaged model"),
-    (_missing_image, "raw/images/", "no file"),
-    (_wrong_size, "raw/images/", "12x10"),
-    (_no_faces, "coarse_mesh.ply", "no face"),
-    (_nan_vertices, "coarse_mesh.ply", "NaN or Inf"),
-    (_spherical_camera, "sparse/0/cameras", "EQUIRECTANGULAR"),
-])
+@pytest.mark.parametrize(
+    "damage, file_part, words",
+    [
+        (_missing_model, "sparse/0", "missing cameras, images, points3D"),
+        (_corrupt, "sparse/0", "damaged model"),
+        (_missing_image, "raw/images/", "no file"),
+        (_wrong_size, "raw/images/", "12x10"),
+        (_no_faces, "coarse_mesh.ply", "no face"),
+        (_nan_vertices, "coarse_mesh.ply", "NaN or Inf"),
+        (_spherical_camera, "sparse/0/cameras", "EQUIRECTANGULAR"),
+    ],
+)
 def test_bad_input_names_the_file(layout, damage, file_part, words):
     make_raw(layout)
     damage(layout)
@@ -217,6 +235,7 @@ def test_text_model_and_obj_mesh(layout):
 def test_two_meshes_is_ambiguous(layout):
     make_raw(layout)
     import shutil
+
     shutil.copy(layout.raw_coarse_mesh_candidates[0], layout.raw_coarse_mesh_candidates[1])
     with pytest.raises(InputError, match="exactly one coarse mesh"):
         execute(stage, layout, PARAMS)

@@ -33,16 +33,25 @@ def read_reconstruction(model_dir: str | Path) -> pycolmap.Reconstruction:
     """Read a COLMAP model (``.bin`` or ``.txt``) or raise ``InputError`` naming the folder."""
     model_dir = Path(model_dir)
     if not model_dir.is_dir():
-        raise InputError(model_dir, "a COLMAP model folder (cameras, images, points3D as .bin or .txt)", "no folder")
-    present = [f for f in MODEL_FILES if (model_dir / f"{f}.bin").is_file() or (model_dir / f"{f}.txt").is_file()]
+        raise InputError(
+            model_dir, "a COLMAP model folder (cameras, images, points3D as .bin or .txt)", "no folder"
+        )
+    present = [
+        f for f in MODEL_FILES if (model_dir / f"{f}.bin").is_file() or (model_dir / f"{f}.txt").is_file()
+    ]
     missing = [f for f in MODEL_FILES if f not in present]
     if missing:
-        raise InputError(model_dir, "COLMAP files cameras, images, points3D (.bin or .txt)",
-                         f"missing {', '.join(missing)}")
+        raise InputError(
+            model_dir,
+            "COLMAP files cameras, images, points3D (.bin or .txt)",
+            f"missing {', '.join(missing)}",
+        )
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises ValueError, IndexError, RuntimeError for damaged files
-        raise InputError(model_dir, "a readable COLMAP model", f"a damaged model ({type(e).__name__}: {e})") from None
+        raise InputError(
+            model_dir, "a readable COLMAP model", f"a damaged model ({type(e).__name__}: {e})"
+        ) from None
     if rec.num_reg_images() == 0:
         raise InputError(model_dir, "a COLMAP model with registered images", "no registered image")
     return rec
@@ -84,13 +93,26 @@ def write_pinhole_model(
         if key not in cam_ids:
             cam_ids[key] = len(cam_ids) + 1
             fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]
-            rec.add_camera_with_trivial_rig(pycolmap.Camera(
-                model="PINHOLE", width=c.width, height=c.height, params=[fx, fy, cx, cy], camera_id=cam_ids[key]))
+            rec.add_camera_with_trivial_rig(
+                pycolmap.Camera(
+                    model="PINHOLE",
+                    width=c.width,
+                    height=c.height,
+                    params=[fx, fy, cx, cy],
+                    camera_id=cam_ids[key],
+                )
+            )
         image = pycolmap.Image(name=view.name, camera_id=cam_ids[key], image_id=image_id)
         T = c.cam_from_world
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3].copy()))
+        rec.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3].copy())
+        )
     if points_xyz is not None:
-        rgb = np.zeros_like(points_xyz, dtype=np.uint8) if points_rgb is None else np.asarray(points_rgb, np.uint8)
+        rgb = (
+            np.zeros_like(points_xyz, dtype=np.uint8)
+            if points_rgb is None
+            else np.asarray(points_rgb, np.uint8)
+        )
         for xyz, col in zip(np.asarray(points_xyz, dtype=np.float64), rgb, strict=True):
             rec.add_point3D(xyz, pycolmap.Track(), col)
     write_reconstruction(rec, model_dir, binary=binary)
@@ -118,18 +140,26 @@ def write_reconstruction(rec: pycolmap.Reconstruction, model_dir: str | Path, bi
 def check_camera_supported(camera: pycolmap.Camera, model_dir: Path) -> None:
     """Raise ``InputError`` for a camera model that cannot be undistorted to a pinhole camera."""
     if camera.is_spherical() or not (camera.is_perspective() or camera.is_perspective_fisheye()):
-        raise InputError(model_dir / "cameras", "a perspective or fisheye camera model that COLMAP can undistort",
-                         f"camera {camera.camera_id} with model {camera_model_name(camera)}")
+        raise InputError(
+            model_dir / "cameras",
+            "a perspective or fisheye camera model that COLMAP can undistort",
+            f"camera {camera.camera_id} with model {camera_model_name(camera)}",
+        )
     if camera.has_bogus_params(0.1, 10.0, 2.0):
-        raise InputError(model_dir / "cameras", "plausible camera parameters (focal length, distortion)",
-                         f"camera {camera.camera_id} ({camera_model_name(camera)}) with params {list(camera.params)}")
+        raise InputError(
+            model_dir / "cameras",
+            "plausible camera parameters (focal length, distortion)",
+            f"camera {camera.camera_id} ({camera_model_name(camera)}) with params {list(camera.params)}",
+        )
 
 
 def is_pinhole(camera: pycolmap.Camera) -> bool:
     return camera_model_name(camera) in ("SIMPLE_PINHOLE", "PINHOLE")
 
 
-def undistort_options(blank_pixels: float, min_scale: float, max_scale: float) -> pycolmap.UndistortCameraOptions:
+def undistort_options(
+    blank_pixels: float, min_scale: float, max_scale: float
+) -> pycolmap.UndistortCameraOptions:
     o = pycolmap.UndistortCameraOptions()
     o.blank_pixels, o.min_scale, o.max_scale = blank_pixels, min_scale, max_scale
     return o
@@ -140,9 +170,13 @@ def undistort_camera(options: pycolmap.UndistortCameraOptions, camera: pycolmap.
     return camera if is_pinhole(camera) else pycolmap.undistort_camera(options, camera)
 
 
-def undistort_rgb(options: pycolmap.UndistortCameraOptions, rgb: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
+def undistort_rgb(
+    options: pycolmap.UndistortCameraOptions, rgb: np.ndarray, camera: pycolmap.Camera
+) -> np.ndarray:
     """Resample an RGB uint8 image [H, W, 3] of ``camera`` into its undistorted pinhole camera."""
     if is_pinhole(camera):
         return rgb
-    bitmap, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(rgb)), camera)
+    bitmap, _ = pycolmap.undistort_image(
+        options, pycolmap.Bitmap.from_array(np.ascontiguousarray(rgb)), camera
+    )
     return bitmap.to_array()

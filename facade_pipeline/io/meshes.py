@@ -20,7 +20,9 @@ def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
     mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False, print_progress=False)
     n_v, n_f = len(mesh.vertices), len(mesh.triangles)
     if n_v == 0:
-        raise InputError(path, "a triangle mesh with vertices (PLY or OBJ)", "no vertex (empty or unreadable file)")
+        raise InputError(
+            path, "a triangle mesh with vertices (PLY or OBJ)", "no vertex (empty or unreadable file)"
+        )
     if n_f == 0:
         raise InputError(path, "a triangle mesh with faces", f"{n_v} vertices and no face")
     v = np.asarray(mesh.vertices)
@@ -51,7 +53,9 @@ def read_points(path: str | Path) -> o3d.geometry.PointCloud:
 def write_mesh(path: str | Path, mesh: o3d.geometry.TriangleMesh) -> None:
     """Write a mesh as binary PLY atomically."""
     with atomic_path(path) as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False, print_progress=False):
+        if not o3d.io.write_triangle_mesh(
+            str(tmp), mesh, write_ascii=False, compressed=False, print_progress=False
+        ):
             raise OSError(f"{path}: open3d could not write the mesh")
 
 
@@ -62,10 +66,14 @@ def write_points(path: str | Path, pcd: o3d.geometry.PointCloud) -> None:
             raise OSError(f"{path}: open3d could not write the point cloud")
 
 
-def make_mesh(vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray | None = None) -> o3d.geometry.TriangleMesh:
+def make_mesh(
+    vertices: np.ndarray, triangles: np.ndarray, colors: np.ndarray | None = None
+) -> o3d.geometry.TriangleMesh:
     """open3d mesh from [V, 3] vertices, [F, 3] triangle indices and optional [V, 3] colours in [0, 1]."""
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
-                                     o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)))
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
+        o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)),
+    )
     if colors is not None:
         mesh.vertex_colors = o3d.utility.Vector3dVector(np.asarray(colors, np.float64))
     return mesh
