@@ -66,17 +66,6 @@ from stages._runner import StageReport, main
 NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
 UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "import_photogrammetry")
-LIBRARY = (
-    "evaluation",
-    "training",
-    "shading",
-    "splatting",
-    "meshing/metrics.py",
-    "geometry",
-    "io",
-    "scene.py",
-    "panels.py",
-)
 MAIN_VARIANT = "07_train"
 
 
