@@ -20,7 +20,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -34,6 +33,8 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from _common import append_results, machine  # noqa: E402
 
 from facade_pipeline.config import load_building_config, to_dict  # noqa: E402
 from facade_pipeline.evaluation.image_eval import LpipsSetting, mean_metrics, region_masks, view_metrics  # noqa: E402
@@ -278,22 +279,6 @@ def dag_times(data_root: str, building: str) -> str | None:
     )
 
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        cpu = next(
-            line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")
-        )
-    except (OSError, StopIteration):
-        pass
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    return (
-        f"Machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch "
-        f"{torch.__version__}, {platform.system()}; load average at the end {load} "
-        "(other work shares the cores)."
-    )
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
@@ -364,8 +349,7 @@ def main() -> None:
     Path(a.out + ".json").write_text(json.dumps(rows, indent=1) + "\n")
     print(text)
     if a.append:
-        with open(REPO / "benchmarks" / "RESULTS.md", "a") as f:
-            f.write("\n" + text + "\n")
+        append_results(text)
 
 
 if __name__ == "__main__":

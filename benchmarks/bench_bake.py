@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -26,6 +25,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from _common import append_results, machine  # noqa: E402
 
 from facade_pipeline.geometry.bake import bake_view  # noqa: E402
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at  # noqa: E402
@@ -148,21 +149,11 @@ def main() -> None:
     load_start = os.getloadavg()
     speed = [run_child(4, a.data_root) for _ in range(a.repeat)]
     mem = {n: run_child(n, a.data_root) for n in (1, 4, 16)}
-    cpu = next(
-        (
-            ln.split(":", 1)[1].strip()
-            for ln in Path("/proc/cpuinfo").read_text().splitlines()
-            if ln.startswith("model name")
-        ),
-        platform.processor(),
-    )
     lines = [
         f"\n## bake_normals, {datetime.now():%Y-%m-%d %H:%M}\n",
-        f"Machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}; "
-        f"load average at the start {', '.join(f'{x:.1f}' for x in load_start)}, at the end "
-        f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (other work on the machine slows the wall-clock "
-        "figures: best of the repeats is reported; rays per CPU-second counts the time the bake's threads "
-        "really ran, so two idle cores give about twice it).\n",
+        f"{machine()} Load average at the start {', '.join(f'{x:.1f}' for x in load_start)}: the best of "
+        "the repeats is reported; rays per CPU-second counts the time the bake's threads really ran, so two "
+        "idle cores give about twice it.\n",
         f"Mesh: {mesh_desc}; views {W} x {H}, chunk {CHUNK} rays; rays per second over whole views (ray "
         "generation, casting, normals and labels by triangle, depth), target >= 5,000,000.\n",
         "| repeat | rays/s (wall) | rays per CPU-second | 1-min load | valid fraction |",
@@ -197,8 +188,7 @@ def main() -> None:
         ]
     text = "\n".join(lines) + "\n"
     print(text)
-    with open(REPO / "benchmarks" / "RESULTS.md", "a") as fh:
-        fh.write(text)
+    append_results(text)
 
 
 if __name__ == "__main__":

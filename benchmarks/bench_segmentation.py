@@ -10,7 +10,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +18,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from _common import append_results, machine  # noqa: E402
 
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
@@ -76,13 +77,10 @@ def main() -> None:
             capture_output=True,
         )
         rows.append(row(b, BuildingLayout(Path(args.data_root), b)))
-    cpu = platform.processor() or platform.machine()
     text = "\n".join(
         [
             f"\n## rectify + segment_panels, {datetime.datetime.now():%Y-%m-%d %H:%M}\n",
-            f"Machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}; load "
-            f"average at the end "
-            f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (other work shares the cores).\n",
+            f"{machine()}\n",
             "Against gt/ (reflections on). Corner errors: predicted corners off the image border "
             "against the nearest "
             "projected true glass corner (true camera, gt/frontal/sparse/0). "
@@ -101,8 +99,7 @@ def main() -> None:
             "",
         ]
     )
-    with open(REPO / "benchmarks" / "RESULTS.md", "a") as f:
-        f.write(text)
+    append_results(text)
     print(text)
 
 

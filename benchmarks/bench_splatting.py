@@ -17,14 +17,13 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
+from _common import append_results, machine
+
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "RESULTS.md"
-HEADER = "# Benchmark results\n\nAppended by the scripts in `benchmarks/`; newest last.\n"
 
 # (splats, width, height, target s)
 CASES = [(2_000, 64, 64, 0.015), (10_000, 128, 128, 0.15), (50_000, 256, 256, 1.0), (200_000, 512, 384, 5.0)]
@@ -114,21 +113,6 @@ def run_case(n: int, width: int, height: int, backend: str, repeats: int) -> dic
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import torch
-
-    return (f"{model}, {os.cpu_count()} cores, torch {torch.__version__} with torch.set_num_threads(2), "
-            f"Python {platform.python_version()}, {platform.system()}")
-
-
 def ratio(r: dict | None, base: dict | None) -> str:
     return "-" if r is None or base is None else f"{r['best_s'] / base['best_s']:.0f}x"
 
@@ -161,14 +145,11 @@ def main() -> None:
     table = "\n".join(lines)
     print(table)
     if not args.no_record:
-        if not RESULTS.exists():
-            RESULTS.write_text(HEADER)
         stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
         note = ("Forward + backward of `render_2dgs` (loss on all six maps), best of several runs in a fresh "
                 "process per cell; other jobs shared the 2 cores, so medians are noisy. Peak RSS includes "
                 "the interpreter and torch (~300 MB).")
-        with RESULTS.open("a") as fh:
-            fh.write(f"\n## bench_splatting ({stamp})\n\nMachine: {machine()}\n\n{note}\n\n{table}\n")
+        append_results(f"\n## bench_splatting ({stamp})\n\n{machine()}\n\n{note}\n\n{table}\n")
 
 
 if __name__ == "__main__":

@@ -15,16 +15,15 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from _common import append_results, machine
+
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "benchmarks" / "RESULTS.md"
-HEADER = "# Benchmark results\n\nAppended by the scripts in `benchmarks/`; newest last.\n"
 
 # (label, building, UAV views or None for the shipped number, target seconds or None)
 CASES = [
@@ -64,20 +63,6 @@ def run_case(building: str, uav: int | None, data_root: str) -> dict:
     return result
 
 
-def machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    return (f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}; "
-            f"load average at the end {load} (other work on the machine slows the figures)")
-
-
 def table(rows: list[tuple[str, dict, float | None]]) -> str:
     lines = ["| case | views | px/view | wall s (process) | stage s | render s | peak MB | target | ok |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -108,10 +93,8 @@ def main() -> int:
     print(text)
     print(note)
     if not args.no_record:
-        old = RESULTS.read_text() if RESULTS.exists() else HEADER
         stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-        section = f"\n## synthesize, {stamp}\n\nMachine: {machine()}.\n\n{text}\n\n{note}\n"
-        RESULTS.write_text(old.rstrip("\n") + "\n" + section)
+        append_results(f"\n## synthesize, {stamp}\n\n{machine()}\n\n{text}\n\n{note}\n")
     failed = [label for label, r, target in rows if target is not None and r["wall_s"] > target]
     return 1 if failed else 0
 

@@ -14,18 +14,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import platform
 import sys
 import time
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
-import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from _common import append_results, machine  # noqa: E402
 
 from facade_pipeline.config import load_building_config  # noqa: E402
 from facade_pipeline.io.exr import read_exr  # noqa: E402
@@ -148,15 +147,9 @@ def main() -> None:
 
 
 def report(a, p: TrainParams, prior: str, data: TrainData, rows) -> None:
-    cpu = next(
-        (ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?"
-    )
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     lines = [
         f"\n## train_gs accuracy, {datetime.now():%Y-%m-%d %H:%M}\n",
-        f"Machine: {cpu}, {os.cpu_count()} cores, torch {torch.__version__} "
-        f"({torch.get_num_threads()} threads), "
-        f"Python {platform.python_version()}; load average at the end {load} (shared machine).\n",
+        f"{machine()}\n",
         f"Building `{a.building}`: {len(data.train_idx)} training and {len(data.test_idx)} held-out views "
         f"({data.views[0].camera.width} x {data.views[0].camera.height} px); prior and masks: {prior}.",
         f"CPU budget per variant: {p.iterations} iterations on {p.patch_px} px patches, at most "
@@ -184,8 +177,7 @@ def report(a, p: TrainParams, prior: str, data: TrainData, rows) -> None:
     text = "\n".join(lines) + "\n"
     print(text)
     if not a.no_write:
-        with open(REPO / "benchmarks" / "RESULTS.md", "a") as f:
-            f.write(text)
+        append_results(text)
 
 
 if __name__ == "__main__":
