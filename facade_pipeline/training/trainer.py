@@ -22,6 +22,8 @@ import torch
 from torch import Tensor, nn
 
 from facade_pipeline.errors import PipelineError
+from facade_pipeline.evaluation import metrics
+from facade_pipeline.evaluation.errors import EmptyMaskError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
 from facade_pipeline.training import losses
@@ -391,16 +393,21 @@ def evaluate(tr: Trainer, indices: tuple[int, ...] | list[int]) -> dict[str, Any
             {
                 "view": tr.data.views[i].stem,
                 "psnr": losses.psnr(rgb, vt.image, vt.mask),
-                "ssim": float(
-                    losses.masked_mean(
-                        losses.ssim_map(rgb * vt.mask[..., None], vt.image * vt.mask[..., None]), vt.mask
-                    )
-                ),
+                "ssim": _masked_ssim(rgb, vt.image, vt.mask),
                 "psnr_glass": losses.psnr(rgb, vt.image, glass),
                 "normal_error_glass_deg": None if ang is None else float(ang.mean()),
             }
         )
     return {"views": per_view, **_means(per_view)}
+
+
+def _masked_ssim(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
+    """SSIM over the facade mask exactly as the evaluate stage reports it (statistics renormalised over
+    the mask, so nothing outside it counts); None for a view with no facade pixel."""
+    try:
+        return metrics.ssim(rgb.cpu().numpy(), image.cpu().numpy(), mask.cpu().numpy(), border="renormalize")
+    except EmptyMaskError:
+        return None
 
 
 def _means(per_view: list[dict[str, Any]]) -> dict[str, float | None]:

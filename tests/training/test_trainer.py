@@ -247,3 +247,23 @@ def test_save_checkpoint_is_atomic(data64, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(tr, ckpt, "fp")
     assert ckpt.read_bytes() == good and [q.name for q in tmp_path.iterdir()] == ["c.pt"]
+
+
+def test_evaluate_reports_the_evaluate_stages_masked_ssim(data64):
+    """train_gs's log and the evaluate stage give one SSIM: statistics over the facade mask only, so what
+    is outside the mask (rendered or true) cannot change it."""
+    from facade_pipeline.evaluation import metrics
+
+    tr = build_trainer(small_params(iterations=1), data64, RASTER)
+    i = data64.test_idx[0]
+    ev = evaluate(tr, (i,))
+    cam = tr.cameras[i]
+    r, vt = render_window(tr, i, (0, 0, cam.width, cam.height))
+    rgb, img, m = r.rgb.detach().clamp(0, 1).numpy(), vt.image.numpy(), vt.mask.numpy()
+    expected = metrics.ssim(rgb, img, m, border="renormalize")
+    assert ev["views"][0]["ssim"] == pytest.approx(expected, abs=1e-6)
+    off = ~m
+    assert off.any() and m.any()
+    scrambled = img.copy()
+    scrambled[off] = 1.0 - scrambled[off]
+    assert metrics.ssim(rgb, scrambled, m, border="renormalize") == pytest.approx(expected, abs=1e-12)
