@@ -43,6 +43,10 @@ DOIT_CONFIG = {
 }
 
 
+# stages whose inputs include a folder a person adds files to, so the list of files must be made anew each run
+RESCANNED = ("import_photogrammetry", "evaluate")
+
+
 def _inputs_action(stage, params):
     """calc_dep action: the files the stage will read, now that its upstream ran."""
 
@@ -75,8 +79,9 @@ def _stage_tasks(name):
         "doc": f"(hidden) list the files {name} reads",
         "actions": [_inputs_action(stage, params)],
         "file_dep": [str(LAYOUT.manifest(u)) for u in upstream],
-        # raw/ can change at any time, so the first stage rescans it on every run (it costs milliseconds)
-        "uptodate": [False] if name == "import_photogrammetry" else [],
+        # folders a person adds files to are rescanned on every run (it costs milliseconds): raw/ (the
+        # first stage) and variants/ (trained models that evaluate compares)
+        "uptodate": [False] if name in RESCANNED else [],
         "verbosity": 0,
     }
     yield {
