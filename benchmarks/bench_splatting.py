@@ -27,6 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # (splats, width, height, target s)
 CASES = [(2_000, 64, 64, 0.015), (10_000, 128, 128, 0.15), (50_000, 256, 256, 1.0), (200_000, 512, 384, 5.0)]
+GPU_CASES = [(n, w, h) for n, w, h, _ in CASES] + [(1_000_000, 1920, 1080)]
+GPU_TORCH_MAX_PIXELS_X_SPLATS = 200_000 * 512 * 384  # the exact torch backend on the GPU up to this size
 TORCH_MAX_SPLATS = 10_000  # the pure-torch reference backend is timed up to this size
 DENSE_MAX_PAIRS = 10_000_000  # splats x pixels up to which the dense reference is timed
 
@@ -39,8 +41,12 @@ from facade_pipeline.splatting import render_2dgs
 from facade_pipeline.splatting.render import resolve_backend
 from facade_pipeline.geometry.camera import look_at, intrinsics
 
-n, width, height, backend, _, repeats = sys.argv[1:7]
-n, width, height, repeats = int(n), int(width), int(height), int(repeats)
+n, width, height, backend, _, repeats, device = sys.argv[1:8]
+n, width, height, repeats, device = int(n), int(width), int(height), int(repeats), torch.device(device)
+cuda = device.type == "cuda"
+def sync():
+    if cuda:
+        torch.cuda.synchronize()
 g = torch.Generator().manual_seed(0)
 def rand(*shape):
     return torch.rand(*shape, generator=g)
@@ -66,10 +72,10 @@ opacities = 0.2 + 0.8 * rand(n)
 features = rand(n, 8)
 yaw = math.radians(25)
 eye = [35 * math.sin(yaw), 35 * math.cos(yaw), 12.0]
-cam_from_world = torch.tensor(look_at(eye, [0.0, 0.0, 15.0]), dtype=torch.float32)
+cam_from_world = torch.tensor(look_at(eye, [0.0, 0.0, 15.0]), dtype=torch.float32, device=device)
 f = 0.9 * width
-K = torch.tensor(intrinsics(f, f, width / 2, height / 2), dtype=torch.float32)
-params = [x.clone().requires_grad_() for x in (means, quats, scales, opacities, features)]
+K = torch.tensor(intrinsics(f, f, width / 2, height / 2), dtype=torch.float32, device=device)
+params = [x.to(device).requires_grad_() for x in (means, quats, scales, opacities, features)]
 weights = None
 
 def step():
@@ -83,29 +89,41 @@ def step():
         out = {k: getattr(r, k) for k in ("features", "alpha", "depth_expected", "depth_median", "normal",
                                           "distortion")}
     if weights is None:
-        weights = {k: torch.rand(v.shape, generator=g) for k, v in out.items()}
+        weights = {k: torch.rand(v.shape, generator=g).to(device) for k, v in out.items()}
     loss = sum((out[k] * weights[k]).sum() for k in out)
     loss.backward()
     return float(out["alpha"].mean())
 
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-chosen = backend if backend == "dense" else resolve_backend(backend, torch.device("cpu"))
+chosen = backend if backend == "dense" else resolve_backend(backend, device)
 if backend != "dense":
     step()  # warm-up (kernel load, allocator); the dense reference is too slow to run twice
+    for p in params:
+        p.grad = None
+if cuda:
+    torch.cuda.reset_peak_memory_stats()
 times = []
 for _ in range(repeats):
+    sync()
     t0 = time.perf_counter()
-    coverage = step()
+    coverage = step()  # float(): synchronises
+    sync()
     times.append(time.perf_counter() - t0)
+    for p in params:
+        p.grad = None
+if cuda:
+    peak = torch.cuda.max_memory_allocated() / 2**20
+else:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"best_s": min(times), "median_s": sorted(times)[len(times) // 2], "backend": chosen,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "base_mb": rss0,
-                  "mean_alpha": coverage}))
+                  "peak_mb": peak, "base_mb": rss0, "mean_alpha": coverage}))
 """
 
 
-def run_case(n: int, width: int, height: int, backend: str, repeats: int) -> dict | None:
+def run_case(n: int, width: int, height: int, backend: str, repeats: int, device: str = "cpu") -> dict | None:
     env = dict(os.environ, OMP_NUM_THREADS="2")
-    args = [sys.executable, "-c", CHILD, str(n), str(width), str(height), backend, str(ROOT), str(repeats)]
+    args = [sys.executable, "-c", CHILD, str(n), str(width), str(height), backend, str(ROOT), str(repeats),
+            device]
     out = subprocess.run(args, cwd=ROOT, env=env, capture_output=True, text=True, timeout=3600)
     if out.returncode != 0:
         print(out.stderr[-2000:], file=sys.stderr)
@@ -121,12 +139,42 @@ def fmt(r: dict | None, key: str = "best_s") -> str:
     return "-" if r is None else f"{r[key]:.4f}"
 
 
+def gpu_table(repeats: int) -> str:
+    """gsplat and the exact torch backend on the GPU, forward + backward."""
+    import torch
+
+    lines = [
+        f"GPU: {torch.cuda.get_device_name(0)}, torch {torch.__version__}, CUDA {torch.version.cuda}",
+        "",
+        "| splats | image | gsplat best s (median) | gsplat peak GPU MB | torch (exact) best s | "
+        "torch peak GPU MB | torch / gsplat | mean alpha |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for n, w, h in GPU_CASES:
+        gs = run_case(n, w, h, "gsplat", repeats, "cuda")
+        tr = run_case(n, w, h, "torch", 3, "cuda") if n * w * h <= GPU_TORCH_MAX_PIXELS_X_SPLATS else None
+        line = (f"| {n:,} | {w}x{h} | {fmt(gs)} ({fmt(gs, 'median_s')}) | {fmt(gs, 'peak_mb')[:-2]} | "
+                f"{fmt(tr)} | {fmt(tr, 'peak_mb')[:-2]} | {ratio(tr, gs)} | "
+                f"{'-' if gs is None else round(gs['mean_alpha'], 3)} |")
+        lines.append(line)
+        print(line, flush=True)
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--no-record", action="store_true", help="print only, do not append to RESULTS.md")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--cases", type=int, default=len(CASES), help="run only the first N cases")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     args = ap.parse_args()
+    if args.device == "cuda":
+        table = gpu_table(args.repeats)
+        print(table)
+        if not args.no_record:
+            stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
+            append_results(f"\n## bench_splatting on a GPU ({stamp})\n\n{machine()}\n\n{table}\n")
+        return
     lines = ["| splats | image | target s | cpp best s (median) | cpp peak RSS MB | torch best s | "
              "dense ref best s | torch / cpp | dense / cpp | mean alpha | ok |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]

@@ -9,6 +9,11 @@ The normal prior and masks are the baked ones (06_bake_normals, through the stag
 has completed, else the ground truth of gt/ (stated in the table). Every variant trains from the same
 initialisation with the building's [train_gs] parameters (demo's carry a CPU budget: the one `make run`
 trains with), overridden by the command-line options that are given.
+
+On a GPU machine without the I/O stack (open3d, OpenEXR, pycolmap), train from a bundle made here:
+
+    .venv/bin/python benchmarks/bench_train.py --data-root /tmp/bench --save-bundle demo.npz
+    python benchmarks/bench_train.py --bundle demo.npz --device cuda --iterations 3000 --patch-px 0
 """
 
 from __future__ import annotations
@@ -28,20 +33,27 @@ sys.path.insert(0, str(REPO))
 from _common import append_results, machine  # noqa: E402
 
 from facade_pipeline.config import load_building_config  # noqa: E402
-from facade_pipeline.io.exr import read_exr  # noqa: E402
-from facade_pipeline.io.images import read_image, read_mask  # noqa: E402
-from facade_pipeline.io.meshes import read_mesh, read_points  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
-from facade_pipeline.scene import ImportedScene  # noqa: E402
-from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views  # noqa: E402
+from facade_pipeline.training.data import (  # noqa: E402
+    InitGeometry,
+    TrainData,
+    TrainView,
+    load_bundle,
+    save_bundle,
+    split_views,
+)
 from facade_pipeline.training.params import TrainParams  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
-from facade_pipeline.training.trainer import build_trainer, evaluate, train  # noqa: E402
-from stages import load_stage  # noqa: E402
-from stages._runner import execute, load_params  # noqa: E402
+from facade_pipeline.training.trainer import build_trainer, evaluate, resolve_device, train  # noqa: E402
+
+# The building's files are read with the I/O stack (open3d, OpenEXR, pycolmap), imported where they are read
+# so that `--bundle` runs on a machine with torch alone.
 
 
 def ensure_building(layout: BuildingLayout) -> None:
+    from stages import load_stage
+    from stages._runner import execute, load_params
+
     for name in ("synthesize", "import_photogrammetry"):
         stage = load_stage(name)
         if not layout.manifest(name).is_file():
@@ -51,6 +63,11 @@ def ensure_building(layout: BuildingLayout) -> None:
 
 def gt_data(layout: BuildingLayout, test_every: int) -> TrainData:
     """Views with the true normals and masks as prior (when bake_normals has not run)."""
+    from facade_pipeline.io.exr import read_exr
+    from facade_pipeline.io.images import read_image, read_mask
+    from facade_pipeline.io.meshes import read_mesh, read_points
+    from facade_pipeline.scene import ImportedScene
+
     scene = ImportedScene.load(layout)
     local_from_georef = np.linalg.inv(scene.georef_from_local)
     views = []
@@ -99,9 +116,10 @@ def main() -> None:
     ap.add_argument("--max-gaussians", type=int, default=0, help="0: the building's")
     ap.add_argument("--only", default="", help="comma-separated variant names to run (default: all)")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
+    ap.add_argument("--bundle", default="", help="train on this .npz (from --save-bundle) instead")
     a = ap.parse_args()
-    layout = BuildingLayout(Path(a.data_root), a.building)
-    ensure_building(layout)
     base = load_building_config(a.building).section("train_gs", TrainParams)
     base = dataclasses.replace(
         base,
@@ -117,42 +135,68 @@ def main() -> None:
             base.densify, max_gaussians=a.max_gaussians or base.densify.max_gaussians
         ),
     )
-    if layout.manifest("bake_normals").is_file():
-        from stages.train_gs import load_train_data
-
-        data, prior = load_train_data(layout, base), "baked (06_bake_normals)"
-    else:
-        data, prior = gt_data(layout, base.test_every), "ground truth (gt/; bake_normals not run)"
+    data, prior = building_data(a, base)
+    if a.save_bundle:
+        save_bundle(data, a.save_bundle)
+        Path(a.save_bundle).with_suffix(".prior.txt").write_text(prior)
+        print(f"wrote {a.save_bundle} ({len(data.views)} views; prior: {prior})")
+        return
+    device = resolve_device(a.device)
     raster = splatting_rasterizer(base.raster_backend)
     rows = []
     for name, p in variants(base):
         if a.only and name not in a.only.split(","):
             continue
         t0 = time.perf_counter()
-        tr = build_trainer(p, data, raster)
+        tr = build_trainer(p, data, raster, device)
         train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
         ev = evaluate(tr, data.test_idx)
         wall = time.perf_counter() - t0
         rows.append((name, ev, wall, tr.model.n))
+        if device.type == "cuda":
+            import torch
+
+            torch.cuda.synchronize()
         print(
             f"\n{name}: glass PSNR {ev['psnr_glass']:.2f} dB, facade PSNR {ev['psnr']:.2f} dB, "
             f"normal error {ev['normal_error_glass_deg']:.2f} deg, {wall:.0f} s",
             flush=True,
         )
-    report(a, base, prior, data, rows)
+    report(a, base, prior, data, rows, device)
 
 
-def report(a, p: TrainParams, prior: str, data: TrainData, rows) -> None:
+def building_data(a, base: TrainParams) -> tuple[TrainData, str]:
+    """The training data (from ``--bundle``, else the building's files) and where its prior comes from."""
+    if a.bundle:
+        prior_file = Path(a.bundle).with_suffix(".prior.txt")
+        prior = prior_file.read_text() if prior_file.is_file() else "unknown"
+        return load_bundle(a.bundle), f"{prior}, from the bundle {Path(a.bundle).name}"
+    layout = BuildingLayout(Path(a.data_root), a.building)
+    ensure_building(layout)
+    if layout.manifest("bake_normals").is_file():
+        from stages.train_gs import load_train_data
+
+        return load_train_data(layout, base), "baked (06_bake_normals)"
+    return gt_data(layout, base.test_every), "ground truth (gt/; bake_normals not run)"
+
+
+def report(a, p: TrainParams, prior: str, data: TrainData, rows, device) -> None:
+    where = machine()
+    if device.type == "cuda":
+        import torch
+
+        where += f" GPU: {torch.cuda.get_device_name(device)} (torch {torch.__version__}), training on it."
     lines = [
         f"\n## train_gs accuracy, {datetime.now():%Y-%m-%d %H:%M}\n",
-        f"{machine()}\n",
+        f"{where}\n",
         f"Building `{a.building}`: {len(data.train_idx)} training and {len(data.test_idx)} held-out views "
         f"({data.views[0].camera.width} x {data.views[0].camera.height} px); prior and masks: {prior}.",
-        f"CPU budget per variant: {p.iterations} iterations on {p.patch_px} px patches, at most "
+        f"{'GPU' if device.type == 'cuda' else 'CPU'} budget per variant: {p.iterations} iterations on "
+        f"{p.patch_px or 'whole-image'} px patches, at most "
         f"{p.mlp_max_pixels} MLP pixels per step, {p.init_max_points} + {p.init_mesh_samples} initial "
         f"splats (cap {p.densify.max_gaussians}), reflection MLP {p.mlp_depth} x {p.mlp_width}, "
         f"L = {p.fourier_levels}, skip {p.mlp_skip}. The paper trains 2 x 10^5 iterations on an A40: "
-        "these are short CPU runs.\n",
+        "these are short runs.\n",
         "| variant | glass PSNR dB (test) | facade PSNR dB (test) | SSIM | normal error on glass deg "
         "| splats "
         "| wall s |",

@@ -1,6 +1,7 @@
 import os
 
 import pytest
+import torch
 
 from facade_pipeline.layout import BuildingLayout
 
@@ -11,3 +12,11 @@ os.environ.setdefault("TQDM_DISABLE", "1")
 def layout(tmp_path):
     """A building folder under a temporary data root."""
     return BuildingLayout(tmp_path / "data", "testbuilding")
+
+
+@pytest.fixture
+def cuda_device():
+    """The CUDA device for the GPU tests (marked ``gpu``); skips where there is none."""
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA device")
+    return torch.device("cuda")

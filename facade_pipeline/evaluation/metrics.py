@@ -52,7 +52,6 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-import open3d as o3d
 
 from facade_pipeline.evaluation.errors import EmptyMaskError, MetricInputError
 
@@ -269,6 +268,8 @@ def points_to_mesh_distance(points: Any, mesh: Any) -> np.ndarray:
     p = _as_f64(points, "points")
     if p.ndim != 2 or p.shape[1] != 3:
         raise MetricInputError("points [N, 3]", f"shape {p.shape}")
+    import open3d as o3d  # here, not at the top: the image metrics (used by training) need no open3d
+
     v, f = _mesh_arrays(mesh)
     origin = 0.5 * (v.min(axis=0) + v.max(axis=0))
     scene = o3d.t.geometry.RaycastingScene()

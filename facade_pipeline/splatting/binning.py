@@ -104,7 +104,8 @@ def pixel_support_bounds(
     )
     bounds = torch.nan_to_num(bounds, nan=math.inf, posinf=math.inf, neginf=-math.inf)
     empty = ~alive | ~(disk_ok | centre_ok)
-    bounds[empty] = torch.tensor([math.inf, math.inf, -math.inf, -math.inf], dtype=bounds.dtype)
+    none = torch.tensor([math.inf, math.inf, -math.inf, -math.inf], dtype=bounds.dtype, device=bounds.device)
+    bounds[empty] = none
     return bounds
 
 

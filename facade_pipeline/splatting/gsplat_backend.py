@@ -57,8 +57,9 @@ def render(
     K_win[0, 2] -= window.x0
     K_win[1, 2] -= window.y0
     scales3 = torch.cat([scales, torch.zeros_like(scales[:, :1])], dim=-1)  # [N, 3]
+    # features as [C=1, N, F]: gsplat 1.5 takes post-activation colours per camera ([N, F] only with SH)
     colors, alphas, normals, _, distort, median, _ = rasterization_2dgs(
-        means, quats, scales3, opacities, features, cam_from_world[None], K_win[None], window.width,
+        means, quats, scales3, opacities, features[None], cam_from_world[None], K_win[None], window.width,
         window.height, near_plane=near, far_plane=GSPLAT_FAR, render_mode="RGB+ED", distloss=True,
     )  # fmt: skip
     alpha = alphas[0, ..., 0]  # [H, W]

@@ -74,3 +74,42 @@ def split_views(n_views: int, test_every: int) -> tuple[tuple[int, ...], tuple[i
         return tuple(range(n_views)), ()
     test = tuple(i for i in range(n_views) if i % test_every == 0)
     return tuple(i for i in range(n_views) if i % test_every != 0), test
+
+
+INIT_FIELDS = ("points", "colors", "mesh_vertices", "mesh_triangles")
+
+
+def save_bundle(data: TrainData, path) -> None:
+    """Write ``data`` to one compressed ``.npz`` file (written atomically): everything training needs, so
+    that a machine without the I/O stack (open3d, OpenEXR, pycolmap), a GPU machine say, can train on it."""
+    from facade_pipeline.io.atomic import atomic_path
+
+    arrays: dict[str, np.ndarray] = {
+        "train_idx": np.asarray(data.train_idx, np.int64),
+        "test_idx": np.asarray(data.test_idx, np.int64),
+        "stems": np.asarray([v.stem for v in data.views]),
+        **{f"init_{k}": getattr(data.init, k) for k in INIT_FIELDS},
+    }
+    for i, v in enumerate(data.views):
+        c = v.camera
+        arrays[f"v{i}_camera"] = np.concatenate([c.K.ravel(), c.cam_from_world.ravel(), [c.width, c.height]])
+        for name in ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid"):
+            arrays[f"v{i}_{name}"] = getattr(v, name)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+
+
+def load_bundle(path) -> TrainData:
+    """The TrainData written by ``save_bundle``."""
+    with np.load(path) as z:
+        views = []
+        for i, stem in enumerate(z["stems"]):
+            cam = z[f"v{i}_camera"]
+            camera = PinholeCamera(cam[:9].reshape(3, 3), cam[9:25].reshape(4, 4), int(cam[25]), int(cam[26]))
+            views.append(
+                TrainView(str(stem), camera, *(z[f"v{i}_{n}"] for n in
+                          ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid")))
+            )  # fmt: skip
+        init = InitGeometry(*(z[f"init_{k}"] for k in INIT_FIELDS))
+        return TrainData(tuple(views), tuple(int(i) for i in z["train_idx"]),
+                         tuple(int(i) for i in z["test_idx"]), init)  # fmt: skip

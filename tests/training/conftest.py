@@ -10,20 +10,20 @@ import pytest
 import torch
 
 from facade_pipeline.config import load_building_config
-from facade_pipeline.io.exr import read_exr
-from facade_pipeline.io.images import read_image, read_mask
-from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.scene import ImportedScene
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import TrainParams
-from stages import load_stage
-from stages._runner import execute, load_params
+
+# The synthetic-data fixtures import the I/O stack (open3d, OpenEXR, pycolmap) inside their bodies, so the
+# GPU tests of this folder run on a machine that has only torch (and gsplat).
 
 
 @pytest.fixture(scope="session")
 def synth64(tmp_path_factory) -> BuildingLayout:
     """synthetic64 synthesized and imported into a session folder."""
+    from stages import load_stage
+    from stages._runner import execute, load_params
+
     layout = BuildingLayout(tmp_path_factory.mktemp("data"), "synthetic64")
     for name in ("synthesize", "import_photogrammetry"):
         stage = load_stage(name)
@@ -33,6 +33,9 @@ def synth64(tmp_path_factory) -> BuildingLayout:
 
 def gt_view(layout: BuildingLayout, view) -> TrainView:
     """A training view whose normal prior and masks are the ground truth (what bake_normals approximates)."""
+    from facade_pipeline.io.exr import read_exr
+    from facade_pipeline.io.images import read_image, read_mask
+
     normals = read_exr(layout.gt("normal_map", view.stem))
     return TrainView(
         view.stem,
@@ -46,6 +49,9 @@ def gt_view(layout: BuildingLayout, view) -> TrainView:
 
 
 def gt_train_data(layout: BuildingLayout, test_every: int = 8, max_views: int | None = None) -> TrainData:
+    from facade_pipeline.io.meshes import read_mesh, read_points
+    from facade_pipeline.scene import ImportedScene
+
     scene = ImportedScene.load(layout)
     views = tuple(gt_view(layout, v) for v in scene.uav_views[:max_views])
     mesh = read_mesh(layout.gt("facade_mesh"))
