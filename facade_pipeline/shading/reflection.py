@@ -93,6 +93,13 @@ class ReflectionMLPModule(nn.Module):
         self.first = nn.ModuleList(first)
         self.second = nn.ModuleList(second)
         self.out = nn.Linear(cfg.width, 3)
+        # He initialisation of the ReLU layers: with torch's default (variance 1/(3 fan_in)) the signal
+        # shrinks about 3x per layer, so the 8-layer MLP starts as a constant R whose gradients vanish, and
+        # Adam then drives the output bias into the sigmoid's flat end (R = 1 everywhere within 20 steps on
+        # demo, measured), where it stays.
+        for layer in (*self.first, *self.second):
+            nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+            nn.init.zeros_(layer.bias)
 
     def forward(self, x_norm: Tensor, w_r: Tensor) -> Tensor:  # [P, 3] in [-1, 1], [P, 3] unit -> [P, 3]
         gx = fourier_features(x_norm, self.cfg.fourier_levels)  # [P, 6L]

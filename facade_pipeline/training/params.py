@@ -26,8 +26,10 @@ class LearningRates:
     reflectivity: float
     f0: float
     reflection_init: float
-    """of the reflection module (MLP weights or environment map), decayed exponentially to ..."""
+    """of the reflection MLP's weights, decayed exponentially to ..."""
     reflection_final: float
+    envmap: float
+    """of the environment map's texel logits (constant): each texel sees few pixels, like a splat colour"""
 
 
 @dataclass(frozen=True)

@@ -113,7 +113,7 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
         reflection = build_reflection_module(p.reflection(), device)
     opt = _gaussian_optimizer(model, p, data.extent)
     opt_refl = (
-        None if reflection is None else torch.optim.Adam(reflection.parameters(), lr=p.lr.reflection_init)
+        None if reflection is None else torch.optim.Adam(reflection.parameters(), lr=_reflection_lr(p, 0))
     )
     lo, hi = data.bounds
     f32 = dict(dtype=torch.float32, device=device)
@@ -244,7 +244,14 @@ def _set_learning_rates(tr: Trainer) -> None:
             )
     if tr.opt_refl is not None:
         for g in tr.opt_refl.param_groups:
-            g["lr"] = exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
+            g["lr"] = _reflection_lr(p, it)
+
+
+def _reflection_lr(p: TrainParams, it: int) -> float:
+    """The reflection module's rate at iteration ``it``: the MLP's decays, the environment map's is fixed."""
+    if p.reflection_model == "envmap":
+        return p.lr.envmap
+    return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
 
 
 def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -> dict[str, Tensor]:
