@@ -135,7 +135,11 @@ def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[lis
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     W, H = view.camera.width, view.camera.height
     valid = valid_region(rect, W, H)
-    seg = segment_image(read_image(layout.path("rectify_image", stem=view.stem)), params, valid)
+    centre = view.camera.K[:2, 2][None]  # [1, 2] the principal point, about which frames show parallax
+    if rect.kind == "curved":
+        centre = rect.forward(centre)
+    image = read_image(layout.path("rectify_image", stem=view.stem))
+    seg = segment_image(image, params, valid, (float(centre[0, 0]), float(centre[0, 1])))
     labels = panel_labels(seg.panels, rect, W, H)
     found = seg.facade_found and bool((labels >= 0).any())
     panels = seg.panels if found else []

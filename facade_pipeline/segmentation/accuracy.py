@@ -6,7 +6,11 @@ reads gt/). Pure functions over arrays and the parsed ``gt/panels.json``.
   camera (gt/frontal/sparse/0: with "pose_noise" the imported camera is off by the noise), in pixels;
 - count: true panels visible in the view = connected components (4-connected) of the true glass mask with
   at least ``min_area_px`` pixels, against the panels in the corners file;
-- mask IoU per predicted panel against the true glass component it overlaps most.
+- mask IoU per predicted panel against the true panel it overlaps most: the true panel's outline (its
+  four edges along the true surface, projected through the true camera) rasterised at pixel centres. The
+  segmentation's masks are panel quads through the glass corners, so glass hidden behind a proud frame
+  counts as panel; the IoU against the visible glass (connected components of gt's glass mask) is reported
+  beside it.
 """
 
 from __future__ import annotations
@@ -81,6 +85,57 @@ def panel_ious(pred_labels: np.ndarray, glass: np.ndarray, min_area_px: int) -> 
     return np.array(out)
 
 
+def true_panel_labels(
+    panels_json: dict,
+    parts: list[dict],
+    camera: PinholeCamera,
+    local_from_world: np.ndarray,
+    samples: int = 9,
+) -> np.ndarray:
+    """Labels [H, W] of the true panels in ``camera`` (index into panels_json["panels"], -1: none): pixel
+    centres inside the projected outline, whose edges follow the true surface (``samples`` per edge)."""
+    from skimage.measure import points_in_poly
+
+    W, H = camera.width, camera.height
+    ys, xs = np.mgrid[0:H, 0:W]
+    centres = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
+    out = np.full(H * W, -1, dtype=np.int32)
+    by_index = {part["index"]: part for part in parts}
+    for k, p in enumerate(panels_json["panels"]):
+        c = np.asarray(p["corners"], dtype=np.float64)
+        along = surface_interpolator(by_index[p["part_index"]])
+        t = np.linspace(0.0, 1.0, samples)[:-1]
+        outline = np.concatenate([along(c[i], c[(i + 1) % 4], t) for i in range(4)])
+        uv, z = camera.project(transform_points(local_from_world, outline))
+        if not np.all(z > 0):
+            continue
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        if hi[0] < 0 or hi[1] < 0 or lo[0] > W or lo[1] > H:
+            continue
+        box = (centres[:, 0] >= lo[0]) & (centres[:, 0] <= hi[0]) & (centres[:, 1] >= lo[1]) & (
+            centres[:, 1] <= hi[1]
+        )
+        idx = np.flatnonzero(box & (out < 0))
+        out[idx[points_in_poly(centres[idx], uv)]] = k
+    return out.reshape(H, W)
+
+
+def panel_ious_vs_panels(pred_labels: np.ndarray, true_labels: np.ndarray) -> np.ndarray:
+    """IoU [P] of each predicted panel (pred_labels == p) with the true panel (true_labels) it overlaps
+    most; 0 for a predicted panel over no true panel."""
+    out = []
+    for p in range(int(pred_labels.max()) + 1):
+        mine = pred_labels == p
+        ids, counts = np.unique(true_labels[mine], return_counts=True)
+        counts = np.where(ids >= 0, counts, 0)
+        if not mine.any() or counts.max() == 0:
+            out.append(0.0)
+            continue
+        t = true_labels == ids[np.argmax(counts)]
+        out.append(float((mine & t).sum() / (mine | t).sum()))
+    return np.array(out)
+
+
 def line_deviation_px(points: np.ndarray) -> float:
     """Largest distance (px) of points [N, 2] from their total-least-squares line."""
     c = points - points.mean(axis=0)
@@ -141,7 +196,10 @@ def evaluate_view(
         Panel(p["row"], p["col"], np.array(p["corners_rectified_px"]), p["complete"], "")
         for p in corners["panels"]
     ]
-    ious = panel_ious(panel_labels(panels, rect, W, H), glass, min_area_px) if panels else np.zeros(0)
+    pred = panel_labels(panels, rect, W, H) if panels else None
+    ious = panel_ious(pred, glass, min_area_px) if panels else np.zeros(0)
+    truth = true_panel_labels(panels_json, scene_json["parts"], cam, local_from_world)
+    ious_panel = panel_ious_vs_panels(pred, truth) if panels else np.zeros(0)
     complete = np.array([p["complete"] for p in corners["panels"]], bool)
     straight = []
     for part in scene_json["parts"]:
@@ -153,8 +211,10 @@ def evaluate_view(
         "corner_errors_px": errors,
         "n_true": len(kept),
         "n_pred": len(corners["panels"]),
-        "iou_complete": ious[complete],
-        "iou_cut": ious[~complete],
+        "iou_complete": ious_panel[complete],
+        "iou_cut": ious_panel[~complete],
+        "iou_visible_glass_complete": ious[complete],
+        "iou_visible_glass_cut": ious[~complete],
         "edge_straightness_px": np.array(straight),
         "rectify_residual_px": max(rect.forward.max_px, rect.inverse.max_px),
         "kind": rect.kind,

@@ -13,6 +13,14 @@ line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its c
 beside it reflects, an object in front of it does not) over less than ``min_edge_support`` of any side's
 length is kept, with ``complete = False``.
 
+Parallax of proud frames: frames stand d in front of the glass, so in a view from distance Z the front face
+of a bar hides a strip of the glass beyond it (on its side away from the principal point c) of width
+(u - c) d / (Z - d) px, while on its side towards c the bar's side face shows. A bar's apparent width thus
+grows as w = B + k s, with k = d / (Z - d) and s the distance from c of its far (front-face) edge. k is
+fitted per family and view (``parallax_slope``) and the far edges are moved to c + (u - c) / (1 + k), where
+the glass meets the frame: corners are the glass panel's corners, and masks are the panels' quads, hidden
+strips included (``parallax_max_slope = 0`` keeps the visible glass instead).
+
 Masks: a pixel belongs to a panel when its centre lies inside the panel's quad, the way the views are
 sampled (one ray through each pixel centre); a centre exactly on a quad's edge is decided by the half-open
 rule (inside on the left and top edges, outside on the right and bottom ones), so that a panel whose edge
@@ -63,6 +71,10 @@ class SegmentParams:
     """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
     min_edge_support: float
     """A panel side supported over less than this fraction of its length is occluded (-)."""
+    parallax_max_slope: float
+    """Largest frame parallax d / (Z - d) accepted (frames d proud of glass seen from Z); 0: no correction."""
+    parallax_min_bars: int
+    """Fewer bars than this in a family leave its parallax uncorrected (-)."""
 
 
 @dataclass(frozen=True)
@@ -135,11 +147,58 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     return _Bars(edges, fit) if len(edges) >= 2 else None
 
 
+def parallax_slope(bars: _Bars, centre: float, min_bars: int, max_slope: float) -> float:
+    """The slope k = d / (Z - d) of one family's frame parallax about ``centre`` (px; module docstring).
+
+    Fits w_i = B + k_low s_low,i + k_high s_high,i to the bars' apparent widths, s the extent (px) of a bar
+    beyond the centre on either side, leaving out bars narrower than half the median (cut by the border),
+    and takes the larger side slope: where a bar's shaded side face looks like the glass, its near edge is
+    displaced too and its width does not grow on that side, so only the other side measures k. 0 (no
+    correction) with fewer than ``min_bars`` usable bars or k outside (0, ``max_slope``]."""
+    lows = np.array([e[0].a for e in bars.edges])
+    highs = np.array([e[1].a for e in bars.edges])
+    w = highs - lows
+    ok = w >= 0.5 * np.median(w)
+    s = np.stack([np.maximum(centre - lows, 0.0), np.maximum(highs - centre, 0.0)], axis=1)[ok]  # [n, 2]
+    sides = [j for j in (0, 1) if np.ptp(s[:, j]) >= 1.0] if ok.sum() >= min_bars else []
+    if not sides:
+        return 0.0
+    k = 0.0
+    for _ in range(2):  # the second fit takes the glass-level extents s / (1 + k)
+        A = np.concatenate([np.ones((len(s), 1)), s[:, sides] / (1.0 + k)], axis=1)
+        k = float(np.linalg.lstsq(A, w[ok], rcond=None)[0][1:].max())
+    return k if 0.0 < k <= max_slope else 0.0
+
+
+def _unparallax(line: EdgeLine, centre: float, k: float) -> EdgeLine:
+    """A front-face edge moved to where the glass-level edge projects: towards ``centre`` by 1 / (1 + k)."""
+    return dataclasses.replace(line, a=centre + (line.a - centre) / (1.0 + k), b=line.b / (1.0 + k))
+
+
+def correct_parallax(bars: _Bars, centre: float, k: float) -> _Bars:
+    """Bars whose front-face edges hiding glass (each bar's edge on the far side from ``centre``; both
+    edges of a bar over the centre) are moved by the slope ``k`` to where the glass meets the frame. The
+    near edges are left as found: there the side face shows, and whether the glass or the side face's far
+    end was found depends on its shading (both seen on demo)."""
+    if k <= 0.0:
+        return bars
+    edges = []
+    for low, high in bars.edges:
+        low = _unparallax(low, centre, k) if low.a < centre else low
+        high = _unparallax(high, centre, k) if high.a > centre else high
+        edges.append((low, high))
+    return _Bars(edges, bars.fit)
+
+
 def find_bars(
-    image: np.ndarray, params: SegmentParams, valid: np.ndarray | None = None
+    image: np.ndarray,
+    params: SegmentParams,
+    valid: np.ndarray | None = None,
+    centre: tuple[float, float] | None = None,
 ) -> tuple[_Bars | None, _Bars | None, dict]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
-    evidence over the other's extent only), then sub-pixel edges."""
+    evidence over the other's extent only), then sub-pixel edges, corrected for the frames' parallax about
+    ``centre`` (x, y) (the principal point in this image; None: not corrected)."""
     H, W = image.shape[:2]
     fam = group_segments(
         detect_segments(image, params.upsample, params.min_segment_px),
@@ -165,6 +224,15 @@ def find_bars(
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )
+    if centre is not None and params.parallax_max_slope > 0:
+        k = {
+            name: parallax_slope(bars, c, params.parallax_min_bars, params.parallax_max_slope)
+            for name, bars, c in (("x", bars_v, centre[0]), ("y", bars_h, centre[1]))
+            if bars is not None
+        }
+        metrics.update({f"parallax_slope_{name}": round(v, 5) for name, v in k.items()})
+        bars_v = correct_parallax(bars_v, centre[0], k["x"]) if bars_v is not None else None
+        bars_h = correct_parallax(bars_h, centre[1], k["y"]) if bars_h is not None else None
     return bars_v, bars_h, metrics
 
 
@@ -260,11 +328,17 @@ def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: 
     return panels
 
 
-def segment_image(image: np.ndarray, params: SegmentParams, valid: np.ndarray | None = None) -> Segmentation:
+def segment_image(
+    image: np.ndarray,
+    params: SegmentParams,
+    valid: np.ndarray | None = None,
+    centre: tuple[float, float] | None = None,
+) -> Segmentation:
     """The panels of an RGB image [H, W, 3] (a planar or rectified frontal view); ``valid`` [H, W] marks
-    the pixels that show the view (a rectified image has none outside the original)."""
+    the pixels that show the view (a rectified image has none outside the original); ``centre`` is the
+    camera's principal point in this image, about which the frames' parallax is corrected (None: not)."""
     H, W = image.shape[:2]
-    bars_v, bars_h, metrics = find_bars(image, params, valid)
+    bars_v, bars_h, metrics = find_bars(image, params, valid, centre)
     if bars_v is None or bars_h is None:
         return Segmentation(False, [], metrics)
     panels = build_panels(bars_v, bars_h, W, H, params)
