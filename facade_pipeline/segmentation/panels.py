@@ -16,10 +16,12 @@ length is kept, with ``complete = False``.
 Parallax of proud frames: frames stand d in front of the glass, so in a view from distance Z the front face
 of a bar hides a strip of the glass beyond it (on its side away from the principal point c) of width
 (u - c) d / (Z - d) px, while on its side towards c the bar's side face shows. A bar's apparent width thus
-grows as w = B + k s, with k = d / (Z - d) and s the distance from c of its far (front-face) edge. k is
-fitted per family and view (``parallax_slope``) and the far edges are moved to c + (u - c) / (1 + k), where
-the glass meets the frame: corners are the glass panel's corners, and masks are the panels' quads, hidden
-strips included (``parallax_max_slope = 0`` keeps the visible glass instead).
+grows as w = B + k s, with k = d / (Z - d) and s the distance from c of its far (front-face) edge; on a side
+of c where the side faces are shaded like the glass, the near edge found is the front face's as well, and
+the width does not grow there. k and those sides are fitted per family and view (``fit_parallax``) and the
+front-face edges are moved to c + (u - c) / (1 + k), where the glass meets the frame: corners are the glass
+panel's corners, and masks are the panels' quads, hidden strips included (``parallax_max_slope = 0`` keeps
+the visible glass instead).
 
 Masks: a pixel belongs to a panel when its centre lies inside the panel's quad, the way the views are
 sampled (one ray through each pixel centre); a centre exactly on a quad's edge is decided by the half-open
@@ -147,27 +149,45 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     return _Bars(edges, fit) if len(edges) >= 2 else None
 
 
-def parallax_slope(bars: _Bars, centre: float, min_bars: int, max_slope: float) -> float:
-    """The slope k = d / (Z - d) of one family's frame parallax about ``centre`` (px; module docstring).
+@dataclass(frozen=True)
+class Parallax:
+    """One family's frame parallax about ``centre`` (px; module docstring): slope ``k``, and per side of
+    the centre (low, high) whether the bars' near edges are displaced like their far edges; bars narrower
+    than ``min_width_px`` (cut by the border) are left as found."""
 
-    Fits w_i = B + k_low s_low,i + k_high s_high,i to the bars' apparent widths, s the extent (px) of a bar
-    beyond the centre on either side, leaving out bars narrower than half the median (cut by the border),
-    and takes the larger side slope: where a bar's shaded side face looks like the glass, its near edge is
-    displaced too and its width does not grow on that side, so only the other side measures k. 0 (no
-    correction) with fewer than ``min_bars`` usable bars or k outside (0, ``max_slope``]."""
+    centre: float
+    k: float = 0.0
+    near_displaced: tuple[bool, bool] = (False, False)
+    min_width_px: float = 0.0
+
+
+def fit_parallax(bars: _Bars, centre: float, min_bars: int, max_slope: float) -> Parallax:
+    """The frame parallax of one family (module docstring), from the bars' apparent widths.
+
+    Fits w_i = B + k_low s_low,i + k_high s_high,i, s the extent (px) of a bar beyond the centre on either
+    side (at glass level: a second fit divides by 1 + k), leaving out bars narrower than half the median
+    (cut by the border). k is the larger side slope. A side whose slope is under half of k has its
+    bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found is the
+    front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars or k outside
+    (0, ``max_slope``]."""
     lows = np.array([e[0].a for e in bars.edges])
     highs = np.array([e[1].a for e in bars.edges])
     w = highs - lows
-    ok = w >= 0.5 * np.median(w)
+    min_width = 0.5 * float(np.median(w))
+    ok = w >= min_width
     s = np.stack([np.maximum(centre - lows, 0.0), np.maximum(highs - centre, 0.0)], axis=1)[ok]  # [n, 2]
     sides = [j for j in (0, 1) if np.ptp(s[:, j]) >= 1.0] if ok.sum() >= min_bars else []
     if not sides:
-        return 0.0
+        return Parallax(centre)
     k = 0.0
-    for _ in range(2):  # the second fit takes the glass-level extents s / (1 + k)
+    for _ in range(2):
         A = np.concatenate([np.ones((len(s), 1)), s[:, sides] / (1.0 + k)], axis=1)
-        k = float(np.linalg.lstsq(A, w[ok], rcond=None)[0][1:].max())
-    return k if 0.0 < k <= max_slope else 0.0
+        slopes = dict(zip(sides, np.linalg.lstsq(A, w[ok], rcond=None)[0][1:], strict=True))
+        k = float(max(slopes.values()))
+    if not 0.0 < k <= max_slope:
+        return Parallax(centre)
+    near = tuple(bool(j in slopes and slopes[j] < 0.5 * k) for j in (0, 1))
+    return Parallax(centre, k, near, min_width)  # type: ignore[arg-type]
 
 
 def _unparallax(line: EdgeLine, centre: float, k: float) -> EdgeLine:
@@ -175,17 +195,23 @@ def _unparallax(line: EdgeLine, centre: float, k: float) -> EdgeLine:
     return dataclasses.replace(line, a=centre + (line.a - centre) / (1.0 + k), b=line.b / (1.0 + k))
 
 
-def correct_parallax(bars: _Bars, centre: float, k: float) -> _Bars:
-    """Bars whose front-face edges hiding glass (each bar's edge on the far side from ``centre``; both
-    edges of a bar over the centre) are moved by the slope ``k`` to where the glass meets the frame. The
-    near edges are left as found: there the side face shows, and whether the glass or the side face's far
-    end was found depends on its shading (both seen on demo)."""
-    if k <= 0.0:
+def correct_parallax(bars: _Bars, par: Parallax) -> _Bars:
+    """Bars whose front-face edges are moved by the parallax to where the glass meets the frame: each
+    bar's edge on the far side from the centre, both edges of a bar over the centre, and the near edges
+    on a side where they are displaced too (``par.near_displaced``)."""
+    if par.k <= 0.0:
         return bars
+    c, k = par.centre, par.k
     edges = []
     for low, high in bars.edges:
-        low = _unparallax(low, centre, k) if low.a < centre else low
-        high = _unparallax(high, centre, k) if high.a > centre else high
+        if high.a - low.a < par.min_width_px:
+            edges.append((low, high))
+            continue
+        below, above = high.a <= c, low.a >= c  # the bar lies wholly on the low / high side
+        if low.a < c or (above and par.near_displaced[1]):
+            low = _unparallax(low, c, k)
+        if high.a > c or (below and par.near_displaced[0]):
+            high = _unparallax(high, c, k)
         edges.append((low, high))
     return _Bars(edges, bars.fit)
 
@@ -225,14 +251,14 @@ def find_bars(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )
     if centre is not None and params.parallax_max_slope > 0:
-        k = {
-            name: parallax_slope(bars, c, params.parallax_min_bars, params.parallax_max_slope)
+        fits = {
+            name: fit_parallax(bars, c, params.parallax_min_bars, params.parallax_max_slope)
             for name, bars, c in (("x", bars_v, centre[0]), ("y", bars_h, centre[1]))
             if bars is not None
         }
-        metrics.update({f"parallax_slope_{name}": round(v, 5) for name, v in k.items()})
-        bars_v = correct_parallax(bars_v, centre[0], k["x"]) if bars_v is not None else None
-        bars_h = correct_parallax(bars_h, centre[1], k["y"]) if bars_h is not None else None
+        metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
+        bars_v = correct_parallax(bars_v, fits["x"]) if bars_v is not None else None
+        bars_h = correct_parallax(bars_h, fits["y"]) if bars_h is not None else None
     return bars_v, bars_h, metrics
 
 

@@ -136,12 +136,14 @@ def test_image_without_facade():
     assert not seg.facade_found and seg.panels == []
 
 
-def test_parallax_of_proud_frames_is_fitted_and_far_edges_corrected():
-    """Bars 8 px wide at glass level, seen with the parallax k = d / (Z - d) = 0.01 about c = 192: every
-    bar's far edge is pushed away from c; right of c the shaded side faces make the near edges move too
-    (the bars keep their width there), so k comes from the left side. The far edges are put back."""
+def test_parallax_of_proud_frames_is_fitted_and_corrected():
+    """Bars 8 px wide at glass level seen with the parallax k = d / (Z - d) = 0.01 about c = 192: every
+    bar's far edge is pushed away from c; right of c shaded side faces make the near edges move too (the
+    bars keep their width there), left of c the near edges are found where they are. k comes from the
+    left side, the right side is recognised as displaced, and every edge is put back; a bar cut by the
+    border (narrower than half the median) is left as found."""
     from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import _Bars, correct_parallax, parallax_slope
+    from facade_pipeline.segmentation.panels import _Bars, correct_parallax, fit_parallax
 
     c, k = 192.0, 0.01
     true = [(x - 4.0, x + 4.0) for x in (30.0, 110.0, 190.0, 270.0, 350.0)]
@@ -149,23 +151,16 @@ def test_parallax_of_proud_frames_is_fitted_and_far_edges_corrected():
     def seen(u: float) -> float:
         return c + (u - c) * (1.0 + k)
 
-    apparent = []
-    for lo, hi in true:
-        far_lo, far_hi = lo < c, hi > c
-        near_moves = lo > c  # right of c the near (low) edge is displaced as well
-        apparent.append((seen(lo) if far_lo or near_moves else lo, seen(hi) if far_hi else hi))
+    apparent = [(seen(lo) if lo < c or lo > c else lo, seen(hi) if hi > c else hi) for lo, hi in true]
     line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
-    bars = _Bars([(line(lo), line(hi)) for lo, hi in apparent], None)
-    fitted = parallax_slope(bars, c, 3, 0.05)
-    assert abs(fitted - k) < 2e-4  # the model uses the seen distances: k / (1 + k) to first order
-    fixed = correct_parallax(bars, c, fitted)
-    for (lo, hi), (f_lo, f_hi), (a_lo, a_hi) in zip(true, fixed.edges, apparent, strict=True):
-        if lo < c:  # far low edge restored
-            assert abs(f_lo.a - lo) < 0.05
-        else:  # near edges are left as found
-            assert f_lo.a == a_lo
-        if hi > c:
-            assert abs(f_hi.a - hi) < 0.05
-    assert parallax_slope(bars, c, 6, 0.05) == 0.0  # too few bars: no correction
-    assert parallax_slope(bars, c, 3, 0.005) == 0.0  # beyond the largest slope accepted
-    assert correct_parallax(bars, c, 0.0) is bars
+    cut = (line(380.0), line(382.5))
+    bars = _Bars([(line(lo), line(hi)) for lo, hi in apparent] + [cut], None)
+    par = fit_parallax(bars, c, 3, 0.05)
+    assert abs(par.k - k) < 3e-4 and par.near_displaced == (False, True)  # 2 % bias: second order in k
+    fixed = correct_parallax(bars, par)
+    for (lo, hi), (f_lo, f_hi) in zip(true, fixed.edges, strict=False):
+        assert abs(f_lo.a - lo) < 0.05 and abs(f_hi.a - hi) < 0.05
+    assert fixed.edges[-1] == cut
+    assert fit_parallax(bars, c, 7, 0.05).k == 0.0  # too few bars: no correction
+    assert fit_parallax(bars, c, 3, 0.005).k == 0.0  # beyond the largest slope accepted
+    assert correct_parallax(bars, fit_parallax(bars, c, 7, 0.05)) is bars
