@@ -153,10 +153,6 @@ def main() -> None:
         ev = evaluate(tr, data.test_idx)
         wall = time.perf_counter() - t0
         rows.append((name, ev, wall, tr.model.n))
-        if device.type == "cuda":
-            import torch
-
-            torch.cuda.synchronize()
         print(
             f"\n{name}: glass PSNR {ev['psnr_glass']:.2f} dB, facade PSNR {ev['psnr']:.2f} dB, "
             f"normal error {ev['normal_error_glass_deg']:.2f} deg, {wall:.0f} s",
