@@ -1,10 +1,10 @@
 """Stage ``train_gs``: reflection-aware 2D Gaussian Splatting (the paper's section 3.2).
 
-Reads the imported views and coarse points (01_import), the corrected mesh (05_correct_mesh) and, per UAV
-view, the baked normal prior and the facade/glass masks (06_bake_normals). Trains on every view but the
-held-out ones (every ``test_every``-th), checkpointing atomically so that a killed run resumes where it
-stopped, and writes the Gaussians (3DGS-style PLY with reflectivity and F0), the reflection module's
-weights, the train/test split and the training log into 07_train/.
+Reads the imported views and coarse points (01_import), the corrected mesh and its triangle labels
+(05_correct_mesh) and, per UAV view, the baked normal prior and the facade/glass masks (06_bake_normals).
+Trains on every view but the held-out ones (every ``test_every``-th), checkpointing atomically so that a
+killed run resumes where it stopped, and writes the Gaussians (3DGS-style PLY with reflectivity and F0),
+the reflection module's weights, the train/test split and the training log into 07_train/.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from facade_pipeline.io.images import read_image, read_mask
 from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
+from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.shading.reflection import model_name
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
@@ -59,7 +60,12 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     for stage in ("bake_normals", "correct_mesh"):
         read_manifest(layout, stage)
     scene = ImportedScene.load(layout)
-    files = [layout.import_scene, layout.import_coarse_points, layout.path("correct_mesh")]
+    files = [
+        layout.import_scene,
+        layout.import_coarse_points,
+        layout.path("correct_mesh"),
+        layout.path("correct_mesh_labels"),
+    ]
     for view in scene.uav_views:
         files += [layout.root / view.image, *_baked(layout, view.stem).values()]
     for f in files:
@@ -107,7 +113,8 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
     pcd = read_points(layout.import_coarse_points)
     pts = np.asarray(pcd.points)
     colors = np.asarray(pcd.colors) if pcd.has_colors() else np.full_like(pts, 0.5)
-    init = InitGeometry(pts, colors, np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
+    init = InitGeometry(pts, colors, np.asarray(mesh.vertices), np.asarray(mesh.triangles), labels == GLASS)
     train_idx, test_idx = split_views(len(views), params.test_every)
     return TrainData(views, train_idx, test_idx, init)
 

@@ -125,14 +125,14 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
         found = f"an unreadable file ({type(e).__name__}: {e})"
         raise InputError(variant.reflection, "train_gs reflection weights", found) from None
     strategy = reflection_from_config(name, config, variant.reflection)
-    module = build_reflection_module(strategy, device)
+    lo, hi = (torch.as_tensor(np.asarray(b), dtype=torch.float32, device=device) for b in bounds)
+    module = build_reflection_module(strategy, device, (lo, hi))
     if module is not None:
         try:
             module.load_state_dict(refl["state_dict"])
         except RuntimeError as e:
             raise InputError(variant.reflection, f"weights of a {strategy}", str(e).splitlines()[0]) from None
         module.eval()
-    lo, hi = (torch.as_tensor(np.asarray(b), dtype=torch.float32, device=device) for b in bounds)
     p = variant.params
     shading = ShadingOptions(float(p["refl_threshold"]), lo, hi)
     backend = str(p.get("raster_backend", "auto"))

@@ -17,6 +17,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from facade_pipeline.shading.fourier import fourier_dim, fourier_features
+from facade_pipeline.shading.proxy import ProxyFeatures, ProxyGeometry
+
+#: Standard deviation of the proxy feature maps' initial values.
+PROXY_INIT_STD = 0.1
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,15 @@ class ReflectionMLP:
     """hidden units per layer"""
     skip: bool = True
     """re-inject gamma(X_r) at the middle layer beside gamma(w_r)"""
+    proxy_channels: int = 0
+    """feature channels read where the reflected ray meets the environment proxy (``shading.proxy``), given
+    to the middle layer beside gamma(w_r); 0: none, the paper's network"""
+    proxy_resolution_px: int = 512
+    """texels across the proxy's finest floor map (and around its finest wall map)"""
+    proxy_levels: int = 3
+    """proxy feature maps per part, each a quarter of the resolution of the one before"""
+    proxy_radius_m: float = 0.0
+    """radius of the proxy around the facade (m); 0: twice the facade bounds' horizontal half-diagonal"""
 
 
 ReflectionModel = SHOnly | EnvMap | ReflectionMLP
@@ -77,17 +90,31 @@ class ReflectionMLPModule(nn.Module):
     """The reflection MLP of Fig. 7: gamma(X_r) through the first half; at the middle layer concatenate the
     features with gamma(w_r) and (skip) gamma(X_r) again; ReLU hidden layers; sigmoid RGB out."""
 
-    def __init__(self, cfg: ReflectionMLP):
+    def __init__(self, cfg: ReflectionMLP, bounds: tuple[Tensor, Tensor] | None = None):
+        """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features."""
         super().__init__()
         if cfg.depth < 2 or cfg.width < 1:
             raise ValueError(f"reflection MLP needs depth >= 2 and width >= 1, got {cfg.depth}x{cfg.width}")
         self.cfg = cfg
+        self.proxy: ProxyFeatures | None = None
+        if cfg.proxy_channels > 0:
+            if bounds is None:
+                raise ValueError("a reflection MLP with proxy features needs the facade bounds")
+            lo, hi = (b.detach().float() for b in bounds)
+            self.register_buffer("bounds_lo", lo.clone(), persistent=False)
+            self.register_buffer("bounds_hi", hi.clone(), persistent=False)
+            geometry = ProxyGeometry.around(lo, hi, cfg.proxy_radius_m)
+            self.proxy = ProxyFeatures(
+                geometry, cfg.proxy_channels, cfg.proxy_resolution_px, cfg.proxy_levels, PROXY_INIT_STD
+            )
         enc = fourier_dim(cfg.fourier_levels)
         self.n_first = cfg.depth // 2
         first = [nn.Linear(enc, cfg.width)] + [
             nn.Linear(cfg.width, cfg.width) for _ in range(self.n_first - 1)
         ]
-        mid_in = cfg.width + enc + (enc if cfg.skip else 0)
+        mid_in = (
+            cfg.width + enc + (enc if cfg.skip else 0) + (0 if self.proxy is None else self.proxy.out_dim)
+        )
         second = [nn.Linear(mid_in, cfg.width)]
         second += [nn.Linear(cfg.width, cfg.width) for _ in range(cfg.depth - self.n_first - 1)]
         self.first = nn.ModuleList(first)
@@ -107,21 +134,28 @@ class ReflectionMLPModule(nn.Module):
         h = gx
         for layer in self.first:
             h = F.relu(layer(h))
-        h = torch.cat([h, gw, gx] if self.cfg.skip else [h, gw], dim=-1)
+        mid = [h, gw, gx] if self.cfg.skip else [h, gw]
+        if self.proxy is not None:
+            x = self.bounds_lo + 0.5 * (x_norm + 1.0) * (self.bounds_hi - self.bounds_lo)
+            mid.append(self.proxy(x, w_r))
+        h = torch.cat(mid, dim=-1)
         for layer in self.second:
             h = F.relu(layer(h))
         return torch.sigmoid(self.out(h))
 
 
-def build_reflection_module(model: ReflectionModel, device: torch.device | str) -> nn.Module | None:
-    """The trainable module of a reflection model (None for ``SHOnly``), on ``device``, in float32."""
+def build_reflection_module(
+    model: ReflectionModel, device: torch.device | str, bounds: tuple[Tensor, Tensor] | None = None
+) -> nn.Module | None:
+    """The trainable module of a reflection model (None for ``SHOnly``), on ``device``, in float32.
+    ``bounds``: the facade's [lo, hi] (m), which an MLP with proxy features is built around."""
     match model:
         case SHOnly():
             return None
         case EnvMap():
             return EnvMapModule(model).to(device)
         case ReflectionMLP():
-            return ReflectionMLPModule(model).to(device)
+            return ReflectionMLPModule(model, bounds).to(device)
         case _:
             assert_never(model)
 

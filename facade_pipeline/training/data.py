@@ -44,6 +44,7 @@ class InitGeometry:
     colors: np.ndarray  # [P, 3] in [0, 1]
     mesh_vertices: np.ndarray  # [V, 3] corrected mesh
     mesh_triangles: np.ndarray  # [T, 3] int
+    mesh_glass: np.ndarray | None = None  # [T] bool: glass triangles (correct_mesh's labels); None: unknown
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,6 +91,8 @@ def save_bundle(data: TrainData, path) -> None:
         "stems": np.asarray([v.stem for v in data.views]),
         **{f"init_{k}": getattr(data.init, k) for k in INIT_FIELDS},
     }
+    if data.init.mesh_glass is not None:
+        arrays["init_mesh_glass"] = data.init.mesh_glass
     for i, v in enumerate(data.views):
         c = v.camera
         arrays[f"v{i}_camera"] = np.concatenate([c.K.ravel(), c.cam_from_world.ravel(), [c.width, c.height]])
@@ -110,6 +113,7 @@ def load_bundle(path) -> TrainData:
                 TrainView(str(stem), camera, *(z[f"v{i}_{n}"] for n in
                           ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid")))
             )  # fmt: skip
-        init = InitGeometry(*(z[f"init_{k}"] for k in INIT_FIELDS))
+        glass = z["init_mesh_glass"] if "init_mesh_glass" in z else None
+        init = InitGeometry(*(z[f"init_{k}"] for k in INIT_FIELDS), mesh_glass=glass)
         return TrainData(tuple(views), tuple(int(i) for i in z["train_idx"]),
                          tuple(int(i) for i in z["test_idx"]), init)  # fmt: skip

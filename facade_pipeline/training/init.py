@@ -13,23 +13,24 @@ from facade_pipeline.training.model import GaussianModel, quat_from_normal
 
 def sample_mesh(
     vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` points uniformly by area on a triangle mesh [V, 3] / [T, 3], with their unit face normals.
-    Degenerate (zero-area) triangles are never chosen."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``count`` points uniformly by area on a triangle mesh [V, 3] / [T, 3], with their unit face normals
+    and the index of the triangle each lies on. Degenerate (zero-area) triangles are never chosen."""
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))
     if count <= 0 or len(triangles) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return empty
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
     cross = np.cross(b - a, c - a)
     area = 0.5 * np.linalg.norm(cross, axis=1)
     if area.sum() <= 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return empty
     tri = rng.choice(len(triangles), size=count, p=area / area.sum())
     u, v = rng.random(count), rng.random(count)
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     pts = a[tri] + u[:, None] * (b[tri] - a[tri]) + v[:, None] * (c[tri] - a[tri])
     normals = cross[tri] / np.linalg.norm(cross[tri], axis=1, keepdims=True)
-    return pts, normals
+    return pts, normals, tri
 
 
 def crop_to_bounds(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin_m: float) -> np.ndarray:
@@ -55,6 +56,7 @@ def initial_model(
     knn: int,
     opacity: float,
     reflectivity: float,
+    reflectivity_glass: float,
     f0: float,
     sh_degree: int,
     seed: int,
@@ -62,13 +64,19 @@ def initial_model(
 ) -> GaussianModel:
     """The initial model: up to ``max_points`` coarse points within the bounds (random rotations) and
     ``mesh_samples`` mesh samples lying in the surface; scales from the k-nearest-neighbour distance;
-    colours from the points (mesh samples take their nearest point's colour)."""
+    colours from the points (mesh samples take their nearest point's colour). Reflectivity
+    ``reflectivity_glass`` for samples of the mesh's glass triangles (when it has labels), else
+    ``reflectivity``."""
     rng = np.random.default_rng(seed)
     keep = np.flatnonzero(crop_to_bounds(geom.points, *bounds, margin_m))
     if len(keep) > max_points:
         keep = np.sort(rng.choice(keep, size=max_points, replace=False))
     pts, cols = geom.points[keep], geom.colors[keep]
-    mpts, mnormals = sample_mesh(geom.mesh_vertices, geom.mesh_triangles, mesh_samples, rng)
+    mpts, mnormals, mtri = sample_mesh(geom.mesh_vertices, geom.mesh_triangles, mesh_samples, rng)
+    on_glass = np.zeros(len(mpts), bool) if geom.mesh_glass is None else geom.mesh_glass[mtri]
+    refl = np.concatenate(
+        [np.full(len(pts), reflectivity), np.where(on_glass, reflectivity_glass, reflectivity)]
+    )
     if len(pts):
         _, nearest = cKDTree(pts).query(mpts, k=1) if len(mpts) else (None, np.zeros(0, int))
         mcols = cols[nearest]
@@ -94,7 +102,7 @@ def initial_model(
         torch.as_tensor(np.stack([dist, dist], 1), **f32),
         torch.as_tensor(np.concatenate([cols, mcols]), **f32),
         opacity,
-        reflectivity,
+        torch.as_tensor(refl, **f32),
         f0,
         sh_degree,
     )

@@ -99,11 +99,12 @@ class GaussianModel:
         scales: Tensor,
         colors: Tensor,
         opacity: float,
-        reflectivity: float,
+        reflectivity: float | Tensor,
         f0: float,
         sh_degree: int,
     ) -> GaussianModel:
-        """A model from initial centres [N, 3], rotations [N, 4], scales [N, 2] (m) and colours [N, 3]."""
+        """A model from initial centres [N, 3], rotations [N, 4], scales [N, 2] (m) and colours [N, 3];
+        ``reflectivity`` one value for all or one per splat [N]."""
         from facade_pipeline.shading.sh import rgb_to_sh_dc
 
         n = means.shape[0]
@@ -117,7 +118,9 @@ class GaussianModel:
                 "opacity_logits": inverse_sigmoid(torch.full((n,), opacity, dtype=dt, device=dev)),
                 "sh_dc": rgb_to_sh_dc(colors).unsqueeze(1),
                 "sh_rest": torch.zeros(n, k - 1, 3, dtype=dt, device=dev),
-                "refl_logits": inverse_sigmoid(torch.full((n,), reflectivity, dtype=dt, device=dev)),
+                "refl_logits": inverse_sigmoid(
+                    torch.as_tensor(reflectivity, dtype=dt, device=dev).expand(n).clone()
+                ),
                 "f0_logits": inverse_sigmoid(torch.full((n, 3), f0, dtype=dt, device=dev)),
             },
             dev,

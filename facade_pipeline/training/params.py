@@ -30,6 +30,8 @@ class LearningRates:
     reflection_final: float
     envmap: float
     """of the environment map's texel logits (constant): each texel sees few pixels, like a splat colour"""
+    proxy: float
+    """of the reflection MLP's proxy feature maps (constant), for the same reason"""
 
 
 @dataclass(frozen=True)
@@ -69,11 +71,16 @@ class TrainParams:
     mlp_depth: int
     mlp_width: int
     mlp_skip: bool
+    mlp_proxy_channels: int
+    mlp_proxy_resolution_px: int
+    mlp_proxy_levels: int
+    mlp_proxy_radius_m: float
     envmap_height_px: int
     envmap_width_px: int
     sh_degree: int
     sh_degree_interval: int
     refl_threshold: float
+    reflection_normal_grad: bool
     mlp_max_pixels: int
     patch_px: int
     test_every: int
@@ -98,6 +105,7 @@ class TrainParams:
     init_bounds_margin_m: float
     init_opacity: float
     init_reflectivity: float
+    init_reflectivity_glass: float
     init_f0: float
     init_knn: int
     checkpoint_every: int
@@ -114,6 +122,15 @@ class TrainParams:
             case "envmap":
                 return EnvMap(self.envmap_height_px, self.envmap_width_px)
             case "mlp":
-                return ReflectionMLP(self.fourier_levels, self.mlp_depth, self.mlp_width, self.mlp_skip)
+                return ReflectionMLP(
+                    self.fourier_levels,
+                    self.mlp_depth,
+                    self.mlp_width,
+                    self.mlp_skip,
+                    self.mlp_proxy_channels,
+                    self.mlp_proxy_resolution_px,
+                    self.mlp_proxy_levels,
+                    self.mlp_proxy_radius_m,
+                )
             case _:
                 assert_never(self.reflection_model)

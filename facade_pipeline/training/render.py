@@ -70,6 +70,9 @@ class ShadingOptions:
     """R is evaluated only where the rendered reflectivity exceeds this"""
     bounds_lo: Tensor  # [3] facade bounds, for normalising X_r to [-1, 1]
     bounds_hi: Tensor  # [3]
+    normal_grad: bool = True
+    """the specular term's gradient reaches the rendered normal (through w_r and F); False: the normal is
+    a constant there and only the colour's other terms and the normal losses move it"""
 
 
 @dataclass
@@ -170,6 +173,8 @@ def render_view(
     points = deferred.surface_points(centre, rays, ras.depth)
     w_o = deferred.directions_to_camera(rays)
     n_unit = deferred.safe_normalize(ras.normal)
+    if not shading.normal_grad:
+        n_unit = n_unit.detach()
     fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
     candidates = refl.detach() > shading.refl_threshold
     if spec_mask is not None:

@@ -52,6 +52,8 @@ from facade_pipeline.training.schedule import at_fraction, exp_decay, step_sched
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 1
 EVAL_CHUNK = 65536
+#: Pixels nearer than this to the edge of a view's glass mask are left out of ``psnr_glass_interior``.
+INTERIOR_MARGIN_PX = 2
 
 
 class TrainingDivergedError(PipelineError):
@@ -108,16 +110,16 @@ def _gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> 
 
 
 def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: GaussianModel):
-    with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
-        torch.manual_seed(p.seed)
-        reflection = build_reflection_module(p.reflection(), device)
-    opt = _gaussian_optimizer(model, p, data.extent)
-    opt_refl = (
-        None if reflection is None else torch.optim.Adam(reflection.parameters(), lr=_reflection_lr(p, 0))
-    )
     lo, hi = data.bounds
     f32 = dict(dtype=torch.float32, device=device)
-    shading = ShadingOptions(p.refl_threshold, torch.as_tensor(lo, **f32), torch.as_tensor(hi, **f32))
+    shading = ShadingOptions(
+        p.refl_threshold, torch.as_tensor(lo, **f32), torch.as_tensor(hi, **f32), p.reflection_normal_grad
+    )
+    with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
+        torch.manual_seed(p.seed)
+        reflection = build_reflection_module(p.reflection(), device, (shading.bounds_lo, shading.bounds_hi))
+    opt = _gaussian_optimizer(model, p, data.extent)
+    opt_refl = None if reflection is None else _reflection_optimizer(p, reflection)
     cameras = [
         Camera(
             torch.as_tensor(v.camera.K, **f32),
@@ -146,6 +148,7 @@ def build_trainer(
         p.init_knn,
         p.init_opacity,
         p.init_reflectivity,
+        p.init_reflectivity_glass,
         p.init_f0,
         p.sh_degree,
         p.seed,
@@ -244,11 +247,27 @@ def _set_learning_rates(tr: Trainer) -> None:
             )
     if tr.opt_refl is not None:
         for g in tr.opt_refl.param_groups:
-            g["lr"] = _reflection_lr(p, it)
+            g["lr"] = _reflection_lr(p, it, g["name"])
 
 
-def _reflection_lr(p: TrainParams, it: int) -> float:
-    """The reflection module's rate at iteration ``it``: the MLP's decays, the environment map's is fixed."""
+def _reflection_optimizer(p: TrainParams, module: nn.Module) -> torch.optim.Adam:
+    """Adam over the reflection module, one group per rate: the proxy feature maps (``proxy``) apart from
+    the network's weights (``reflection``)."""
+    proxy = [prm for name, prm in module.named_parameters() if name.startswith("proxy.")]
+    rest = [prm for name, prm in module.named_parameters() if not name.startswith("proxy.")]
+    groups = [{"params": rest, "name": "reflection"}]
+    if proxy:
+        groups.append({"params": proxy, "name": "proxy"})
+    for g in groups:
+        g["lr"] = _reflection_lr(p, 0, g["name"])
+    return torch.optim.Adam(groups)
+
+
+def _reflection_lr(p: TrainParams, it: int, group: str = "reflection") -> float:
+    """A reflection parameter group's rate at iteration ``it``: the MLP's decays; the environment map's and
+    the proxy feature maps' are fixed."""
+    if group == "proxy":
+        return p.lr.proxy
     if p.reflection_model == "envmap":
         return p.lr.envmap
     return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
@@ -383,7 +402,8 @@ def _densify_if_due(tr: Trainer) -> None:
 
 @torch.no_grad()
 def evaluate(tr: Trainer, indices: tuple[int, ...] | list[int]) -> dict[str, Any]:
-    """Render whole views and measure them: PSNR and SSIM over the facade mask, PSNR over glass, and the
+    """Render whole views and measure them: PSNR and SSIM over the facade mask, PSNR over glass and over
+    its interior (``INTERIOR_MARGIN_PX`` from the mask's edge: the frames' edges left out), and the
     rendered normals' angle error (deg) on glass against the view's normal prior. Means over the views
     (a view without glass pixels is left out of the glass means)."""
     per_view = []
@@ -402,10 +422,29 @@ def evaluate(tr: Trainer, indices: tuple[int, ...] | list[int]) -> dict[str, Any
                 "psnr": losses.psnr(rgb, vt.image, vt.mask),
                 "ssim": _masked_ssim(rgb, vt.image, vt.mask),
                 "psnr_glass": losses.psnr(rgb, vt.image, glass),
+                "psnr_glass_interior": _psnr_or_none(rgb, vt.image, erode(glass, INTERIOR_MARGIN_PX)),
                 "normal_error_glass_deg": None if ang is None else float(ang.mean()),
             }
         )
     return {"views": per_view, **_means(per_view)}
+
+
+def _psnr_or_none(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
+    """PSNR over ``mask``, None where it is empty (JSON has no NaN)."""
+    return losses.psnr(rgb, image, mask) if bool(mask.any()) else None
+
+
+def erode(mask: Tensor, px: int) -> Tensor:  # [H, W] bool -> [H, W] bool
+    """``mask`` without the pixels within ``px`` (Chebyshev distance) of a pixel outside it or of the
+    image border."""
+    if px <= 0:
+        return mask
+    k = 2 * px + 1
+    outside = (~mask).float()[None, None]
+    near = torch.nn.functional.max_pool2d(outside, k, stride=1, padding=px)[0, 0] > 0
+    border = torch.ones_like(mask)
+    border[px:-px, px:-px] = False
+    return mask & ~near & ~border
 
 
 def _masked_ssim(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
@@ -419,7 +458,7 @@ def _masked_ssim(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
 
 def _means(per_view: list[dict[str, Any]]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
-    for key in ("psnr", "ssim", "psnr_glass", "normal_error_glass_deg"):
+    for key in ("psnr", "ssim", "psnr_glass", "psnr_glass_interior", "normal_error_glass_deg"):
         vals = [v[key] for v in per_view if v[key] is not None and math.isfinite(v[key])]
         out[key] = float(np.mean(vals)) if vals else None
     return out

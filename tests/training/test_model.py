@@ -38,7 +38,7 @@ def test_quat_from_normal_rotates_z_onto_the_normal():
 
 def test_sample_mesh_on_the_surface_with_its_normal():
     v, f = _quad(1.5)
-    pts, nrm = sample_mesh(v, f, 500, np.random.default_rng(0))
+    pts, nrm, tri = sample_mesh(v, f, 500, np.random.default_rng(0))
     assert pts.shape == (500, 3) and np.allclose(pts[:, 2], 1.5)
     assert np.all((pts[:, 0] >= 0) & (pts[:, 0] <= 4) & (pts[:, 1] >= 0) & (pts[:, 1] <= 2))
     assert np.allclose(np.abs(nrm[:, 2]), 1.0)
@@ -52,7 +52,7 @@ def test_initial_model_crops_points_and_orients_mesh_samples():
     outside = rng.uniform([50, 50, 50], [60, 60, 60], (30, 3))  # environment points far from the facade
     geom = InitGeometry(np.concatenate([inside, outside]), np.full((70, 3), 0.3), v[:4], f[:2])
     lo, hi = v[:4].min(0), v[:4].max(0)
-    m = initial_model(geom, (lo, hi), 1000, 25, 0.5, 3, 0.1, 0.2, 0.04, 2, 0, "cpu")
+    m = initial_model(geom, (lo, hi), 1000, 25, 0.5, 3, 0.1, 0.2, 0.9, 0.04, 2, 0, "cpu")
     assert m.n == 40 + 25
     assert m.sh_rest.shape == (65, 8, 3)
     assert torch.allclose(m.opacities(), torch.full((65,), 0.1), atol=1e-6)
@@ -60,6 +60,25 @@ def test_initial_model_crops_points_and_orients_mesh_samples():
     assert torch.allclose(m.normals()[40:].abs()[:, 2], torch.ones(25), atol=1e-6)  # in the mesh plane
     rgb = m.sh_dc[:, 0] * 0.28209479177387814 + 0.5
     assert torch.allclose(rgb, torch.full((65, 3), 0.3), atol=1e-6)  # mesh samples take point colours
+
+
+def test_initial_reflectivity_of_samples_on_glass_triangles():
+    """Samples of the corrected mesh's glass triangles start at the glass reflectivity, the rest (coarse
+    points, other triangles) at the other; without labels every splat starts at the other."""
+    v, f = _quad()
+    pts = np.random.default_rng(1).uniform([0, 0, -0.2], [4, 2, 0.2], (40, 3))
+    glass = np.array([True, False, False])  # triangle 0 (below the diagonal y = x / 2) is glass
+    lo, hi = v[:4].min(0), v[:4].max(0)
+    for labels in (glass, None):
+        geom = InitGeometry(pts, np.full((40, 3), 0.3), v, f, labels)
+        m = initial_model(geom, (lo, hi), 1000, 200, 0.5, 3, 0.1, 0.2, 0.9, 0.04, 2, 0, "cpu")
+        r, xy = m.reflectivity(), m.means[:, :2]
+        on_glass = torch.zeros(m.n, dtype=torch.bool)
+        if labels is not None:
+            on_glass[40:] = xy[40:, 1] < xy[40:, 0] / 2
+        assert 50 < int(on_glass.sum()) < 150 or labels is None
+        assert torch.allclose(r[on_glass], torch.full_like(r[on_glass], 0.9), atol=1e-6)
+        assert torch.allclose(r[~on_glass], torch.full_like(r[~on_glass], 0.2), atol=1e-6)
 
 
 def _model(n: int = 6, seed: int = 0) -> GaussianModel:

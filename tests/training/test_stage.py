@@ -16,8 +16,10 @@ from facade_pipeline.errors import InputError, UpstreamMissingError
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.exr import read_exr, write_exr
 from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.io.meshes import read_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
+from facade_pipeline.meshing.correct import FRAME, GLASS, write_labels
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.ply import read_ply
@@ -37,7 +39,10 @@ def upstream(synth64, tmp_path) -> BuildingLayout:
     layout = BuildingLayout(tmp_path / "data", "synthetic64")
     shutil.copytree(synth64.root, layout.root)
     layout.path("correct_mesh").parent.mkdir(parents=True)
-    shutil.copy(layout.gt("facade_mesh"), layout.path("correct_mesh"))
+    glass, frames = read_mesh(layout.gt("glass_mesh")), read_mesh(layout.gt("frame_mesh"))
+    write_mesh(layout.path("correct_mesh"), glass + frames)
+    labels = [GLASS] * len(glass.triangles) + [FRAME] * len(frames.triangles)
+    write_labels(layout.path("correct_mesh_labels"), np.array(labels, np.uint8))
     _fake_manifest(layout, "correct_mesh")
     for v in ImportedScene.load(layout).uav_views:
         n = read_exr(layout.gt("normal_map", v.stem))

@@ -15,6 +15,7 @@ from facade_pipeline.training.trainer import (
     TrainingDivergedError,
     build_trainer,
     compute_losses,
+    erode,
     evaluate,
     load_checkpoint,
     render_window,
@@ -115,13 +116,15 @@ def test_held_out_views_are_never_trained_on(data64):
 
 
 @pytest.mark.parametrize("refl", [-30.0, 30.0])  # reflectivity 0 or 1 everywhere
-@pytest.mark.parametrize("model", ["envmap", "mlp"])
+@pytest.mark.parametrize("model", ["envmap", "mlp", "mlp+proxy"])
 def test_hard_scene_stays_finite(model, refl):
     """Grazing and from-behind views, pixels no splat covers, reflectivity 0 or 1, an empty high-frequency
     set (tau above any residual): every loss, gradient and parameter stays finite."""
     data = hard_scene()
     p = small_params(
-        reflection_model=model,
+        reflection_model=model.split("+")[0],
+        mlp_proxy_channels=4 if model.endswith("proxy") else 0,
+        mlp_proxy_resolution_px=64,
         iterations=8,
         patch_px=0,
         mask_by_facade=False,
@@ -147,6 +150,56 @@ def test_hard_scene_stays_finite(model, refl):
     assert _finite_state(tr) and all(np.isfinite(rec["loss"]) for rec in tr.log)
     ev = evaluate(tr, (0,))
     assert np.isfinite(ev["psnr"])
+
+
+def test_proxy_features_train_at_their_own_rate(data64):
+    """With proxy features the reflection optimiser has two groups: the network's decaying rate and the
+    feature maps' constant one; a few steps move both."""
+    p = small_params(mlp_proxy_channels=4, mlp_proxy_resolution_px=64, iterations=6, mlp_max_pixels=0)
+    tr = build_trainer(p, data64, RASTER)
+    groups = {g["name"]: g for g in tr.opt_refl.param_groups}
+    assert set(groups) == {"reflection", "proxy"} and groups["proxy"]["lr"] == p.lr.proxy
+    maps = [q.detach().clone() for q in tr.reflection.proxy.parameters()]
+    train(tr)
+    assert groups["proxy"]["lr"] == p.lr.proxy and groups["reflection"]["lr"] < p.lr.reflection_init
+    assert any(not torch.equal(a, b) for a, b in zip(maps, tr.reflection.proxy.parameters(), strict=True))
+    assert _finite_state(tr)
+
+
+@pytest.mark.parametrize("normal_grad", [True, False])
+def test_reflection_normal_grad_switch(data64, normal_grad):
+    """``reflection_normal_grad`` false: the specular term sends no gradient into the rendered normal."""
+    seen = {}
+
+    def keeping(*args):
+        out = RASTER(*args)
+        out.normal.retain_grad()
+        seen["normal"] = out.normal
+        return out
+
+    p = small_params(reflection_normal_grad=normal_grad)
+    tr = build_trainer(p, data64, keeping)
+    with torch.no_grad():
+        tr.model.refl_logits.fill_(2.0)
+    r, vt = render_window(tr, 1, (0, 0, 64, 64))
+    assert bool(r.spec_pixels.any())
+    (r.rgb * vt.mask.unsqueeze(-1)).sum().backward()
+    g = seen["normal"].grad
+    moved = g is not None and float(g.abs().sum()) > 0
+    assert moved == normal_grad
+
+
+def test_erode_leaves_out_pixels_near_the_mask_edge_and_the_border():
+    m = torch.zeros(12, 12, dtype=torch.bool)
+    m[2:10, 3:9] = True  # 8 x 6 block
+    inner = erode(m, 2)
+    expected = torch.zeros_like(m)
+    expected[4:8, 5:7] = True
+    assert torch.equal(inner, expected) and torch.equal(erode(m, 0), m)
+    full = torch.ones(12, 12, dtype=torch.bool)
+    expected = torch.zeros_like(full)
+    expected[2:10, 2:10] = True  # a mask reaching the border loses the border too
+    assert torch.equal(erode(full, 2), expected)
 
 
 def test_cos_theta_negative_normals_are_clamped():
@@ -183,6 +236,7 @@ def test_full_size_mlp_on_tiny_inputs():
         mlp_width=512,
         fourier_levels=12,
         mlp_skip=True,
+        mlp_proxy_channels=0,
         mask_by_facade=False,
     )
     tr = build_trainer(p, hard_scene(), RASTER)
