@@ -62,7 +62,13 @@ def sweep(quick: bool) -> list[tuple[str, dict[str, Any]]]:
     if quick:
         iters = [20, 80]
         gaussians = [(500, 1000), (2000, 6000)]
-        arch = [dict(fourier_levels=4), dict(mlp_depth=2), dict(mlp_width=32), dict(mlp_skip=False)]
+        arch = [
+            dict(fourier_levels=4),
+            dict(mlp_depth=2),
+            dict(mlp_width=32),
+            dict(mlp_skip=False),
+            dict(mlp_proxy_channels=0),
+        ]
         scales = [0.5]
     else:
         iters = [1000, 3000, 10000]
@@ -74,6 +80,7 @@ def sweep(quick: bool) -> list[tuple[str, dict[str, Any]]]:
             dict(mlp_depth=6),
             dict(mlp_width=256),
             dict(mlp_skip=False),
+            dict(mlp_proxy_channels=0),
         ]
         scales = [0.25, 0.5]
     runs: list[tuple[str, dict[str, Any]]] = [(f"iterations={n}", {"iterations": n}) for n in iters]
@@ -331,7 +338,8 @@ def main() -> None:
             "",
             f"One factor at a time around the base: {base.iterations} iterations, reflection "
             f"`{base.reflection_model}` (L={base.fourier_levels}, depth {base.mlp_depth}, width "
-            f"{base.mlp_width}, skip {base.mlp_skip}), at most {base.densify.max_gaussians} Gaussians. "
+            f"{base.mlp_width}, skip {base.mlp_skip}, environment proxy {base.mlp_proxy_channels} channels), "
+            f"at most {base.densify.max_gaussians} Gaussians. "
             f"Metrics on the {rows[0]['test_views']} held-out views "
             f"(full resolution) over the facade mask; train s = training wall time of the run, peak MB = its "
             f"process's peak RSS. Whole sweep: {sweep_s / 60:.1f} min.",

@@ -263,14 +263,14 @@ _NOT_TRAINING = ("device", "raster_backend", "checkpoint_every", "log_every")
 
 def ablation_group(params: dict[str, Any]) -> str:
     """A digest of the training parameters other than the MLP architecture: variants with the same one
-    differ only in L, depth, width and skip, and form a Table 3 ablation."""
+    differ only in L, depth, width, skip and the environment proxy, and form a Table 3 ablation."""
     rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + _NOT_TRAINING}
     return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _variant_entry(v: TrainedVariant, tm: TrainedModel) -> dict[str, Any]:
     p = v.params
-    arch = {k: p[k] for k in ARCHITECTURE_KEYS} if p["reflection_model"] == "mlp" else None
+    arch = {k: p[k] for k in ARCHITECTURE_KEYS if k in p} if p["reflection_model"] == "mlp" else None
     return {
         "reflection_model": p["reflection_model"],
         "architecture": arch,

@@ -19,7 +19,7 @@ from typing import Any
 from facade_pipeline.evaluation.lpips import CONVENTIONS
 
 #: the reflection MLP's architecture (Table 3 varies these)
-ARCHITECTURE_KEYS = ("fourier_levels", "mlp_depth", "mlp_width", "mlp_skip")
+ARCHITECTURE_KEYS = ("fourier_levels", "mlp_depth", "mlp_width", "mlp_skip", "mlp_proxy_channels")
 _COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
 
 
@@ -41,11 +41,13 @@ def primary_convention(metrics: dict[str, Any]) -> str:
 
 
 def architecture_label(arch: dict[str, Any]) -> str:
-    """Table 3's wording: "L = 12, 8 layers, 512 hidden dim, w/ skip connection"."""
+    """Table 3's wording: "L = 12, 8 layers, 512 hidden dim, w/ skip connection", and the environment
+    proxy when there is one (a model saved before the proxy existed has none)."""
     skip = "w/" if arch["mlp_skip"] else "w/o"
+    proxy = int(arch.get("mlp_proxy_channels") or 0)
     return (
         f"L = {arch['fourier_levels']}, {arch['mlp_depth']} layers, {arch['mlp_width']} hidden dim, "
-        f"{skip} skip connection"
+        f"{skip} skip connection" + (f", environment proxy ({proxy} channels)" if proxy else "")
     )
 
 
