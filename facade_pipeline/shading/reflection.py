@@ -3,7 +3,8 @@
 - ``SHOnly``: no reflection term (vanilla 2DGS: I = D); the baseline the paper calls 2DGS.
 - ``EnvMap``: R looked up in a learnable environment map by the reflection direction alone, the infinitely
   distant light of GaussianShader and Ref-Gaussian (cannot represent near-field parallax).
-- ``ReflectionMLP``: the paper's network (section 3.2.2, Fig. 7): R = MLP(gamma(X_r), gamma(w_r)).
+- ``ReflectionMLP``: the paper's network (section 3.2.2, Fig. 7): R = MLP(gamma(X_r), gamma(w_r)), optionally
+  also fed features read where the reflected ray meets a proxy of the surroundings (``shading.proxy``).
 """
 
 from __future__ import annotations
@@ -88,7 +89,8 @@ class EnvMapModule(nn.Module):
 
 class ReflectionMLPModule(nn.Module):
     """The reflection MLP of Fig. 7: gamma(X_r) through the first half; at the middle layer concatenate the
-    features with gamma(w_r) and (skip) gamma(X_r) again; ReLU hidden layers; sigmoid RGB out."""
+    features with gamma(w_r), (skip) gamma(X_r) again and (proxy) the environment proxy's features at the
+    reflected ray's hit; ReLU hidden layers; sigmoid RGB out."""
 
     def __init__(self, cfg: ReflectionMLP, bounds: tuple[Tensor, Tensor] | None = None):
         """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features."""
