@@ -32,6 +32,10 @@ class LearningRates:
     """of the environment map's texel logits (constant): each texel sees few pixels, like a splat colour"""
     proxy: float
     """of the reflection MLP's proxy feature maps (constant), for the same reason"""
+    pose_rotation: float
+    """of the per-view pose corrections' rotations (rad, constant)"""
+    pose_translation: float
+    """of their translations (m, constant)"""
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,7 @@ class TrainParams:
     sh_degree_interval: int
     refl_threshold: float
     reflection_normal_grad: bool
+    pose_refinement: bool
     mlp_max_pixels: int
     patch_px: int
     test_every: int

@@ -38,6 +38,7 @@ from facade_pipeline.training.densify import (
 from facade_pipeline.training.init import initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
 from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.poses import PoseCorrections
 from facade_pipeline.training.render import (
     Camera,
     Rasterizer,
@@ -78,6 +79,9 @@ class Trainer:
     cameras: list[Camera]
     iteration: int = 0
     log: list[dict[str, Any]] = field(default_factory=list)
+    poses: PoseCorrections | None = None
+    """per-view pose corrections (``pose_refinement``), else None"""
+    opt_pose: torch.optim.Adam | None = None
 
     @property
     def extent(self) -> float:
@@ -132,6 +136,27 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     return reflection, opt, opt_refl, shading, cameras
 
 
+def _build_poses(
+    p: TrainParams, n_views: int, device: torch.device
+) -> tuple[PoseCorrections | None, torch.optim.Adam | None]:
+    if not p.pose_refinement:
+        return None, None
+    poses = PoseCorrections(n_views, device)
+    groups = [
+        {"params": [poses.rotation], "lr": p.lr.pose_rotation, "name": "pose_rotation"},
+        {"params": [poses.translation], "lr": p.lr.pose_translation, "name": "pose_translation"},
+    ]
+    return poses, torch.optim.Adam(groups)
+
+
+def camera(tr: Trainer, index: int) -> Camera:
+    """View ``index``'s camera as training sees it: with its pose correction when poses are refined."""
+    cam = tr.cameras[index]
+    if tr.poses is None:
+        return cam
+    return Camera(cam.K, tr.poses.apply(index, cam.cam_from_world), cam.width, cam.height)
+
+
 def build_trainer(
     p: TrainParams, data: TrainData, rasterize: Rasterizer, device: torch.device | str = "cpu"
 ) -> Trainer:
@@ -157,6 +182,7 @@ def build_trainer(
     reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
     gen = torch.Generator(device="cpu")
     gen.manual_seed(p.seed)
+    poses, opt_pose = _build_poses(p, len(data.views), device)
     return Trainer(
         p,
         data,
@@ -170,6 +196,8 @@ def build_trainer(
         DensifyStats.zeros(model.n, device),
         shading,
         cameras,
+        poses=poses,
+        opt_pose=opt_pose,
     )
 
 
@@ -329,7 +357,7 @@ def render_window(
     tr: Trainer, index: int, window: Window, select=None, chunk: int = 0
 ) -> tuple[Render, ViewTensors]:
     """Render a window of view ``index`` with the current model; returns it with the view's data there."""
-    cam = tr.cameras[index]
+    cam = camera(tr, index)
     vt = view_tensors(tr.data.views[index], window, tr.params.mask_by_facade, tr.device)
     r = render_view(
         tr.model,
@@ -353,7 +381,7 @@ def step(tr: Trainer) -> dict[str, float]:
     p = tr.params
     _set_learning_rates(tr)
     index = tr.data.train_idx[_randint(tr.generator, len(tr.data.train_idx))]
-    cam = tr.cameras[index]
+    cam = tr.cameras[index]  # the imported pose: the view-space gradients for densification
     window = _window(tr, index)
     r, vt = render_window(
         tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.generator)
@@ -374,7 +402,13 @@ def step(tr: Trainer) -> dict[str, float]:
             p.near_m,
         )
         accumulate(tr.stats, g, vis)
-    for opt in (tr.opt, tr.opt_refl):
+    if tr.poses is not None:
+        _check_finite(
+            tr,
+            "gradients",
+            {"pose_rotation": tr.poses.rotation.grad, "pose_translation": tr.poses.translation.grad},
+        )
+    for opt in (tr.opt, tr.opt_refl, tr.opt_pose):
         if opt is not None:
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -474,6 +508,8 @@ def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
         "opt": tr.opt.state_dict(),
         "reflection": None if tr.reflection is None else tr.reflection.state_dict(),
         "opt_refl": None if tr.opt_refl is None else tr.opt_refl.state_dict(),
+        "poses": None if tr.poses is None else tr.poses.state_dict(),
+        "opt_pose": None if tr.opt_pose is None else tr.opt_pose.state_dict(),
         "generator": tr.generator.get_state(),
         "stats": {"grad_accum": tr.stats.grad_accum, "count": tr.stats.count},
         "log": tr.log,
@@ -519,6 +555,10 @@ def load_checkpoint(
     if reflection is not None:
         reflection.load_state_dict(state["reflection"])
         opt_refl.load_state_dict(state["opt_refl"])
+    poses, opt_pose = _build_poses(p, len(data.views), device)
+    if poses is not None:
+        poses.load_state_dict(state["poses"])
+        opt_pose.load_state_dict(state["opt_pose"])
     gen = torch.Generator(device="cpu")
     gen.set_state(state["generator"])
     stats = DensifyStats(state["stats"]["grad_accum"].to(device), state["stats"]["count"].to(device))
@@ -537,6 +577,8 @@ def load_checkpoint(
         cameras,
         state["iteration"],
         list(state["log"]),
+        poses,
+        opt_pose,
     )
 
 

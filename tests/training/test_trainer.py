@@ -14,6 +14,7 @@ from facade_pipeline.training.render import random_subset, splatting_rasterizer
 from facade_pipeline.training.trainer import (
     TrainingDivergedError,
     build_trainer,
+    camera,
     compute_losses,
     erode,
     evaluate,
@@ -189,6 +190,22 @@ def test_reflection_normal_grad_switch(data64, normal_grad):
     assert moved == normal_grad
 
 
+def test_pose_refinement_moves_training_views_only(data64):
+    """Training views' corrections move; held-out views keep the imported pose exactly; without
+    refinement the trainer renders the imported poses."""
+    p = small_params(iterations=10, pose_refinement=True, lr=dataclasses.replace(small_params().lr,
+                     pose_rotation=1e-3, pose_translation=1e-2))  # fmt: skip
+    tr = build_trainer(p, data64, RASTER)
+    train(tr)
+    moved = (tr.poses.rotation.detach().abs().sum(-1) + tr.poses.translation.detach().abs().sum(-1)) > 0
+    assert bool(moved[list(data64.train_idx)].any())
+    assert not bool(moved[list(data64.test_idx)].any())
+    for i in data64.test_idx:
+        assert torch.equal(camera(tr, i).cam_from_world, tr.cameras[i].cam_from_world)
+    plain = build_trainer(small_params(), data64, RASTER)
+    assert plain.poses is None and camera(plain, 1) is plain.cameras[1]
+
+
 def test_erode_leaves_out_pixels_near_the_mask_edge_and_the_border():
     m = torch.zeros(12, 12, dtype=torch.bool)
     m[2:10, 3:9] = True  # 8 x 6 block
@@ -258,10 +275,17 @@ def _states_equal(a, b) -> None:
         assert ka == kb and torch.equal(va, vb), ka
     assert torch.equal(a.generator.get_state(), b.generator.get_state())
     assert a.log == b.log
+    assert (a.poses is None) == (b.poses is None)
+    if a.poses is not None:
+        assert torch.equal(a.poses.rotation, b.poses.rotation)
+        assert torch.equal(a.poses.translation, b.poses.translation)
 
 
-def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path):
-    p = small_params(iterations=14, checkpoint_every=3)  # densification every 5 falls between checkpoints
+@pytest.mark.parametrize("pose_refinement", [False, True])
+def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, pose_refinement):
+    p = small_params(  # densification every 5 falls between checkpoints
+        iterations=14, checkpoint_every=3, pose_refinement=pose_refinement
+    )
     ref = train(build_trainer(p, data64, RASTER))
     ckpt = tmp_path / "ckpt.pt"
     part = train(
