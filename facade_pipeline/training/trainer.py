@@ -291,7 +291,7 @@ def _reflection_optimizer(p: TrainParams, module: nn.Module) -> torch.optim.Adam
     return torch.optim.Adam(groups)
 
 
-def _reflection_lr(p: TrainParams, it: int, group: str = "reflection") -> float:
+def _reflection_lr(p: TrainParams, it: int, group: str) -> float:
     """A reflection parameter group's rate at iteration ``it``: the MLP's decays; the environment map's and
     the proxy feature maps' are fixed."""
     if group == "proxy":
@@ -389,7 +389,10 @@ def step(tr: Trainer) -> dict[str, float]:
     terms = compute_losses(p, r, vt, tr.iteration)
     _check_finite(tr, "loss terms", terms)
     terms["loss"].backward()
-    _check_finite(tr, "gradients", {n: t.grad for n, t in tr.model.params().items()})
+    grads = {n: t.grad for n, t in tr.model.params().items()}
+    if tr.poses is not None:
+        grads |= {f"pose_{n}": t.grad for n, t in tr.poses.named_parameters()}
+    _check_finite(tr, "gradients", grads)
     densify_end = at_fraction(p.densify.end_fraction, p.iterations)
     if tr.iteration < densify_end and tr.model.means.grad is not None:
         g, vis = view_space_grad(
@@ -402,12 +405,6 @@ def step(tr: Trainer) -> dict[str, float]:
             p.near_m,
         )
         accumulate(tr.stats, g, vis)
-    if tr.poses is not None:
-        _check_finite(
-            tr,
-            "gradients",
-            {"pose_rotation": tr.poses.rotation.grad, "pose_translation": tr.poses.translation.grad},
-        )
     for opt in (tr.opt, tr.opt_refl, tr.opt_pose):
         if opt is not None:
             opt.step()
