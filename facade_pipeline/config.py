@@ -56,14 +56,18 @@ class BuildingConfig:
         return self.section("building", BuildingParams)
 
     def section(self, name: str, cls: type[T]) -> T:
-        """Section ``name`` as an instance of the frozen dataclass ``cls``."""
-        if name not in self.default_tables:
-            raise ConfigError(self.files[0], f"a [{name}] section", "none")
-        _build(cls, self.default_tables[name], name, (self.files[0],))
+        """Section ``name`` (dotted for a nested table: ``evaluate.align``) as an instance of the frozen
+        dataclass ``cls``."""
+        default, merged = self.default_tables, self.tables
+        for key in name.split("."):
+            if not isinstance(default.get(key), dict):
+                raise ConfigError(self.files[0], f"a [{name}] section", "none")
+            default, merged = default[key], merged[key]
+        _build(cls, default, name, (self.files[0],))
         # default.toml is valid on its own, so whatever fails now came from the building's file
         # (a dataclass's own cross-field check raises without a file: name it here).
         try:
-            return _build(cls, self.tables[name], name, (self.files[1],))
+            return _build(cls, merged, name, (self.files[1],))
         except ConfigError as e:
             if e.path is not None:
                 raise

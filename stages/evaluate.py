@@ -48,6 +48,7 @@ from facade_pipeline.evaluation.lpips import (
 from facade_pipeline.evaluation.render_views import (
     TrainedModel,
     TrainedVariant,
+    align_trained,
     load_trained,
     render_trained,
     variant_from_dir,
@@ -60,7 +61,8 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.training.trainer import resolve_device
+from facade_pipeline.training.corrections import AlignParams
+from facade_pipeline.training.trainer import alignment_summary, resolve_device
 from stages._runner import StageReport, main
 
 NAME = "evaluate"
@@ -92,6 +94,9 @@ class Params:
     """samples farther than this (m) from both true glass and frames are left out"""
     gaussian_min_opacity: float
     """Gaussians less opaque than this are left out of the geometry metrics"""
+    align: AlignParams
+    """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
+    against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
 
     def __post_init__(self) -> None:
         if not self.lpips_conventions:
@@ -199,9 +204,11 @@ def evaluate_split(
     split: str,
     setting: LpipsSetting,
     bar: tqdm,
-) -> tuple[dict[str, Any], list[Path]]:
-    """Render and measure ``views``; writes each render and its comparison image."""
-    per_view, written = [], []
+) -> tuple[dict[str, dict[str, Any]], list[Path]]:
+    """Render and measure ``views``; writes each render and its comparison image. Returns
+    ``{split: {"views", "mean"}}`` and, when ``params.align`` has steps, ``{split}_aligned`` with the
+    views measured after alignment (each with what the alignment changed)."""
+    per_view, aligned, written = [], [], []
     for view in views:
         truth = read_image(layout.root / view.image).astype(np.float64) / 255.0
         masks = region_masks(
@@ -222,8 +229,20 @@ def evaluate_split(
         write_image(comp_path, side_by_side(truth, r.rgb, heat))
         written += [render_path, comp_path]
         per_view.append({"view": view.stem, "metrics": view_metrics(r.rgb, truth, masks, setting)})
+        if params.align.steps > 0:
+            a = align_trained(tm, view.camera, truth, masks["facade"], params.align)
+            aligned.append(
+                {
+                    "view": view.stem,
+                    "metrics": view_metrics(a.render.rgb, truth, masks, setting),
+                    "alignment": alignment_summary(a.alignment),
+                }
+            )
         bar.update(1)
-    return {"views": per_view, "mean": mean_metrics(per_view, setting.conventions)}, written
+    out = {split: {"views": per_view, "mean": mean_metrics(per_view, setting.conventions)}}
+    if aligned:
+        out[f"{split}_aligned"] = {"views": aligned, "mean": mean_metrics(aligned, setting.conventions)}
+    return out, written
 
 
 def gaussian_geometry(tm: TrainedModel, truth: Truth, params: Params) -> dict[str, Any]:
@@ -322,7 +341,8 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             entry = _variant_entry(v, tm)
             for variant, split, views in jobs:
                 if variant is v:
-                    entry[split], written = evaluate_split(layout, params, tm, views, split, setting, bar)
+                    measured, written = evaluate_split(layout, params, tm, views, split, setting, bar)
+                    entry |= measured
                     outputs += written
             if truth is not None:
                 entry["geometry"] = gaussian_geometry(tm, truth, params)
@@ -355,6 +375,8 @@ def summary(metrics: dict[str, Any]) -> dict[str, Any]:
         out[f"{name}_test_psnr"] = f.get("psnr")
         out[f"{name}_test_ssim"] = f.get("ssim")
         out[f"{name}_test_lpips"] = (f.get("lpips") or {}).get(conv)
+        if "test_aligned" in v:
+            out[f"{name}_test_aligned_psnr"] = (v["test_aligned"]["mean"]["facade"] or {}).get("psnr")
     return out
 
 

@@ -125,3 +125,16 @@ def test_from_dict_nested_and_strict():
     ]:
         with pytest.raises(ConfigError, match=re.escape(key)):
             from_dict(_Outer, bad)
+
+
+def test_a_nested_section_by_its_dotted_name(cfg_dir):
+    """``evaluate.align`` is the [evaluate.align] table, as in the whole [evaluate] section; a building's
+    value wins; a name with no such table is one error naming it."""
+    from facade_pipeline.training.corrections import AlignParams
+
+    _write(cfg_dir, "nested", '[building]\nkind = "real"\ndescription = "x"\n[evaluate.align]\nsteps = 7\n')
+    cfg = load_building_config("nested", cfg_dir)
+    align = cfg.section("evaluate.align", AlignParams)
+    assert align.steps == 7 and align == cfg.section("evaluate", load_stage("evaluate").Params).align
+    with pytest.raises(ConfigError, match=r"\[evaluate.nosuch\]"):
+        cfg.section("evaluate.nosuch", AlignParams)

@@ -32,9 +32,16 @@ from facade_pipeline.shading.reflection import (
     build_reflection_module,
     model_name,
 )
+from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
-from facade_pipeline.training.render import Camera, ShadingOptions, render_view, splatting_rasterizer
+from facade_pipeline.training.render import (
+    Camera,
+    Render,
+    ShadingOptions,
+    render_view,
+    splatting_rasterizer,
+)
 from facade_pipeline.training.trainer import Trainer
 
 #: reflective pixels shaded per call of the reflection module (bounds memory on large views)
@@ -167,25 +174,28 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
     )
 
 
-@torch.no_grad()
-def render_trained(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndarray | None) -> RenderedView:
-    """Render a whole view (Eq. 7-9). ``facade_mask`` [H, W] bool limits the specular term to the facade,
-    as in training when ``mask_by_facade`` is set; None evaluates it wherever the reflectivity allows."""
+def _torch_camera(tm: TrainedModel, camera: PinholeCamera) -> Camera:
     f32 = {"dtype": torch.float32, "device": tm.device}
-    cam = Camera(
+    return Camera(
         torch.as_tensor(camera.K, **f32),
         torch.as_tensor(camera.cam_from_world, **f32),
         camera.width,
         camera.height,
     )
-    spec = None
-    if facade_mask is not None and tm.mask_by_facade:
-        spec = torch.as_tensor(np.asarray(facade_mask, bool), device=tm.device)
-    r = render_view(
+
+
+def _spec_mask(tm: TrainedModel, facade_mask: np.ndarray | None) -> torch.Tensor | None:
+    if facade_mask is None or not tm.mask_by_facade:
+        return None
+    return torch.as_tensor(np.asarray(facade_mask, bool), device=tm.device)
+
+
+def _render(tm: TrainedModel, cam: Camera, spec: torch.Tensor | None) -> Render:
+    return render_view(
         tm.model,
         tm.reflection,
         cam,
-        (0, 0, camera.width, camera.height),
+        (0, 0, cam.width, cam.height),
         splatting_rasterizer(tm.backend),
         tm.near_m,
         tm.sh_degree,
@@ -193,7 +203,48 @@ def render_trained(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndar
         spec_mask=spec,
         chunk=RENDER_CHUNK,
     )
+
+
+@torch.no_grad()
+def render_trained(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndarray | None) -> RenderedView:
+    """Render a whole view (Eq. 7-9). ``facade_mask`` [H, W] bool limits the specular term to the facade,
+    as in training when ``mask_by_facade`` is set; None evaluates it wherever the reflectivity allows."""
+    r = _render(tm, _torch_camera(tm, camera), _spec_mask(tm, facade_mask))
     return RenderedView(r.rgb.clamp(0, 1).cpu().numpy(), r.normal.cpu().numpy(), r.alpha.cpu().numpy())
+
+
+@dataclass(frozen=True)
+class AlignedView:
+    """A view aligned to a model (``align_trained``): its fitted camera and exposure gain, and the render
+    from them."""
+
+    camera: PinholeCamera
+    gain: np.ndarray  # [3]
+    alignment: Alignment
+    render: RenderedView
+
+
+def align_trained(
+    tm: TrainedModel, camera: PinholeCamera, image: np.ndarray, facade_mask: np.ndarray, params: AlignParams
+) -> AlignedView:
+    """Fit the view's pose (and exposure gain) to ``image`` [H, W, 3] in [0, 1] over ``facade_mask`` with
+    the model frozen (``training.corrections.align_view``), then render it so."""
+    cam = _torch_camera(tm, camera)
+    spec = _spec_mask(tm, facade_mask)
+    frozen = [*tm.model.params().values(), *([] if tm.reflection is None else tm.reflection.parameters())]
+    fit = align_view(
+        lambda M: _render(tm, Camera(cam.K, M, cam.width, cam.height), spec).rgb,
+        cam.cam_from_world,
+        torch.as_tensor(image, dtype=torch.float32, device=tm.device),
+        torch.as_tensor(np.asarray(facade_mask, bool), device=tm.device),
+        params,
+        frozen=frozen,
+    )
+    aligned = PinholeCamera(camera.K, fit.cam_from_world.double().cpu().numpy(), camera.width, camera.height)
+    r = render_trained(tm, aligned, facade_mask)
+    gain = fit.gain.cpu().numpy().astype(np.float64)
+    rgb = np.clip(r.rgb * gain, 0.0, 1.0).astype(r.rgb.dtype)
+    return AlignedView(aligned, gain, fit, RenderedView(rgb, r.normal, r.alpha))
 
 
 def variant_from_dir(folder: Path, name: str | None = None) -> TrainedVariant:

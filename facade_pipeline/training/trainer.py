@@ -9,6 +9,7 @@ in checkpoints, so a resumed run equals an uninterrupted one.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import logging
 import math
@@ -27,6 +28,12 @@ from facade_pipeline.evaluation.errors import EmptyMaskError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
 from facade_pipeline.training import losses
+from facade_pipeline.training.corrections import (
+    Alignment,
+    AlignParams,
+    ViewCorrections,
+    align_view,
+)
 from facade_pipeline.training.data import TrainData, TrainView
 from facade_pipeline.training.densify import (
     DensifyStats,
@@ -38,7 +45,6 @@ from facade_pipeline.training.densify import (
 from facade_pipeline.training.init import initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
 from facade_pipeline.training.params import TrainParams
-from facade_pipeline.training.poses import PoseCorrections
 from facade_pipeline.training.render import (
     Camera,
     Rasterizer,
@@ -51,7 +57,7 @@ from facade_pipeline.training.render import (
 from facade_pipeline.training.schedule import at_fraction, exp_decay, step_schedule
 
 log = logging.getLogger(__name__)
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
 EVAL_CHUNK = 65536
 #: Pixels nearer than this to the edge of a view's glass mask are left out of ``psnr_glass_interior``.
 INTERIOR_MARGIN_PX = 2
@@ -79,9 +85,9 @@ class Trainer:
     cameras: list[Camera]
     iteration: int = 0
     log: list[dict[str, Any]] = field(default_factory=list)
-    poses: PoseCorrections | None = None
+    corrections: ViewCorrections | None = None
     """per-view pose corrections (``pose_refinement``), else None"""
-    opt_pose: torch.optim.Adam | None = None
+    opt_corrections: torch.optim.Adam | None = None
 
     @property
     def extent(self) -> float:
@@ -136,25 +142,21 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     return reflection, opt, opt_refl, shading, cameras
 
 
-def _build_poses(
+def _build_corrections(
     p: TrainParams, n_views: int, device: torch.device
-) -> tuple[PoseCorrections | None, torch.optim.Adam | None]:
+) -> tuple[ViewCorrections | None, torch.optim.Adam | None]:
     if not p.pose_refinement:
         return None, None
-    poses = PoseCorrections(n_views, device)
-    groups = [
-        {"params": [poses.rotation], "lr": p.lr.pose_rotation, "name": "pose_rotation"},
-        {"params": [poses.translation], "lr": p.lr.pose_translation, "name": "pose_translation"},
-    ]
-    return poses, torch.optim.Adam(groups)
+    corr = ViewCorrections(n_views, device, pose=True, exposure=False)
+    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, 0.0)
 
 
 def camera(tr: Trainer, index: int) -> Camera:
     """View ``index``'s camera as training sees it: with its pose correction when poses are refined."""
     cam = tr.cameras[index]
-    if tr.poses is None:
+    if tr.corrections is None or tr.corrections.rotation is None:
         return cam
-    return Camera(cam.K, tr.poses.apply(index, cam.cam_from_world), cam.width, cam.height)
+    return Camera(cam.K, tr.corrections.cam_from_world(index, cam.cam_from_world), cam.width, cam.height)
 
 
 def build_trainer(
@@ -182,7 +184,7 @@ def build_trainer(
     reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
     gen = torch.Generator(device="cpu")
     gen.manual_seed(p.seed)
-    poses, opt_pose = _build_poses(p, len(data.views), device)
+    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
     return Trainer(
         p,
         data,
@@ -196,8 +198,8 @@ def build_trainer(
         DensifyStats.zeros(model.n, device),
         shading,
         cameras,
-        poses=poses,
-        opt_pose=opt_pose,
+        corrections=corrections,
+        opt_corrections=opt_corrections,
     )
 
 
@@ -354,10 +356,11 @@ def _check_extent(tr: Trainer) -> None:
 
 
 def render_window(
-    tr: Trainer, index: int, window: Window, select=None, chunk: int = 0
+    tr: Trainer, index: int, window: Window, select=None, chunk: int = 0, cam: Camera | None = None
 ) -> tuple[Render, ViewTensors]:
-    """Render a window of view ``index`` with the current model; returns it with the view's data there."""
-    cam = camera(tr, index)
+    """Render a window of view ``index`` with the current model (from its corrected pose, if poses are
+    refined); returns it with the view's data there. ``cam`` replaces the view's camera."""
+    cam = camera(tr, index) if cam is None else cam
     vt = view_tensors(tr.data.views[index], window, tr.params.mask_by_facade, tr.device)
     r = render_view(
         tr.model,
@@ -390,8 +393,8 @@ def step(tr: Trainer) -> dict[str, float]:
     _check_finite(tr, "loss terms", terms)
     terms["loss"].backward()
     grads = {n: t.grad for n, t in tr.model.params().items()}
-    if tr.poses is not None:
-        grads |= {f"pose_{n}": t.grad for n, t in tr.poses.named_parameters()}
+    if tr.corrections is not None:
+        grads |= {f"view_{n}": t.grad for n, t in tr.corrections.named_parameters()}
     _check_finite(tr, "gradients", grads)
     densify_end = at_fraction(p.densify.end_fraction, p.iterations)
     if tr.iteration < densify_end and tr.model.means.grad is not None:
@@ -405,7 +408,7 @@ def step(tr: Trainer) -> dict[str, float]:
             p.near_m,
         )
         accumulate(tr.stats, g, vis)
-    for opt in (tr.opt, tr.opt_refl, tr.opt_pose):
+    for opt in (tr.opt, tr.opt_refl, tr.opt_corrections):
         if opt is not None:
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -432,32 +435,71 @@ def _densify_if_due(tr: Trainer) -> None:
 
 
 @torch.no_grad()
-def evaluate(tr: Trainer, indices: tuple[int, ...] | list[int]) -> dict[str, Any]:
+def evaluate(
+    tr: Trainer, indices: tuple[int, ...] | list[int], align: AlignParams | None = None
+) -> dict[str, Any]:
     """Render whole views and measure them: PSNR and SSIM over the facade mask, PSNR over glass and over
     its interior (``INTERIOR_MARGIN_PX`` from the mask's edge: the frames' edges left out), and the
     rendered normals' angle error (deg) on glass against the view's normal prior. Means over the views
-    (a view without glass pixels is left out of the glass means)."""
+    (a view without glass pixels is left out of the glass means). With ``align`` (and steps), each view
+    is first aligned to the frozen model (``corrections.align_view``, over its facade mask) and measured
+    as aligned; each view's entry then says what the alignment changed."""
     per_view = []
     for i in indices:
-        cam = tr.cameras[i]
-        r, vt = render_window(tr, i, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK)
+        cam = camera(tr, i)
+        full = (0, 0, cam.width, cam.height)
+        r, vt = render_window(tr, i, full, chunk=EVAL_CHUNK)
+        fit = None
+        if align is not None and align.steps > 0:
+            fit = align_view(
+                lambda M, i=i, cam=cam: _render_posed(tr, i, cam, M).rgb,
+                cam.cam_from_world,
+                vt.image,
+                vt.mask,
+                align,
+                frozen=[*tr.model.params().values(), *_module_params(tr.reflection)],
+            )
+            r = _render_posed(tr, i, cam, fit.cam_from_world)
+            r = dataclasses.replace(r, rgb=r.rgb * fit.gain)
         rgb = r.rgb.clamp(0, 1)
         glass = vt.glass & vt.mask
         n = torch.nn.functional.normalize(r.normal, dim=-1)
         cos = (n * vt.prior).sum(-1).clamp(-1, 1)
         ok = glass & vt.prior_valid
         ang = torch.rad2deg(torch.arccos(cos[ok])) if bool(ok.any()) else None
-        per_view.append(
-            {
-                "view": tr.data.views[i].stem,
-                "psnr": losses.psnr(rgb, vt.image, vt.mask),
-                "ssim": _masked_ssim(rgb, vt.image, vt.mask),
-                "psnr_glass": losses.psnr(rgb, vt.image, glass),
-                "psnr_glass_interior": _psnr_or_none(rgb, vt.image, erode(glass, INTERIOR_MARGIN_PX)),
-                "normal_error_glass_deg": None if ang is None else float(ang.mean()),
-            }
-        )
+        row = {
+            "view": tr.data.views[i].stem,
+            "psnr": losses.psnr(rgb, vt.image, vt.mask),
+            "ssim": _masked_ssim(rgb, vt.image, vt.mask),
+            "psnr_glass": losses.psnr(rgb, vt.image, glass),
+            "psnr_glass_interior": _psnr_or_none(rgb, vt.image, erode(glass, INTERIOR_MARGIN_PX)),
+            "normal_error_glass_deg": None if ang is None else float(ang.mean()),
+        }
+        if fit is not None:
+            row |= alignment_summary(fit)
+        per_view.append(row)
     return {"views": per_view, **_means(per_view)}
+
+
+def _render_posed(tr: Trainer, index: int, cam: Camera, cam_from_world: Tensor) -> Render:
+    """View ``index`` whole, seen from ``cam_from_world`` instead of its pose."""
+    posed = Camera(cam.K, cam_from_world, cam.width, cam.height)
+    return render_window(tr, index, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK, cam=posed)[0]
+
+
+def alignment_summary(fit: Alignment) -> dict[str, Any]:
+    """What an ``Alignment`` changed, as plain numbers for logs and JSON."""
+    return {
+        "align_rotation_deg": fit.rotation_deg,
+        "align_translation_m": fit.translation_m,
+        "align_gain": [float(g) for g in fit.gain],
+        "align_l1_before": fit.loss_before,
+        "align_l1_after": fit.loss_after,
+    }
+
+
+def _module_params(module: nn.Module | None) -> list[Tensor]:
+    return [] if module is None else list(module.parameters())
 
 
 def _psnr_or_none(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
@@ -505,8 +547,8 @@ def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
         "opt": tr.opt.state_dict(),
         "reflection": None if tr.reflection is None else tr.reflection.state_dict(),
         "opt_refl": None if tr.opt_refl is None else tr.opt_refl.state_dict(),
-        "poses": None if tr.poses is None else tr.poses.state_dict(),
-        "opt_pose": None if tr.opt_pose is None else tr.opt_pose.state_dict(),
+        "corrections": None if tr.corrections is None else tr.corrections.state_dict(),
+        "opt_corrections": None if tr.opt_corrections is None else tr.opt_corrections.state_dict(),
         "generator": tr.generator.get_state(),
         "stats": {"grad_accum": tr.stats.grad_accum, "count": tr.stats.count},
         "log": tr.log,
@@ -552,10 +594,10 @@ def load_checkpoint(
     if reflection is not None:
         reflection.load_state_dict(state["reflection"])
         opt_refl.load_state_dict(state["opt_refl"])
-    poses, opt_pose = _build_poses(p, len(data.views), device)
-    if poses is not None:
-        poses.load_state_dict(state["poses"])
-        opt_pose.load_state_dict(state["opt_pose"])
+    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
+    if corrections is not None:
+        corrections.load_state_dict(state["corrections"])
+        opt_corrections.load_state_dict(state["opt_corrections"])
     gen = torch.Generator(device="cpu")
     gen.set_state(state["generator"])
     stats = DensifyStats(state["stats"]["grad_accum"].to(device), state["stats"]["count"].to(device))
@@ -574,8 +616,8 @@ def load_checkpoint(
         cameras,
         state["iteration"],
         list(state["log"]),
-        poses,
-        opt_pose,
+        corrections,
+        opt_corrections,
     )
 
 

@@ -56,6 +56,11 @@ def test_whole_dag_on_synthetic64_reaches_evaluate(tmp_path):
     assert 5.0 < facade["psnr"] < 60.0 and 0.0 < facade["ssim"] <= 1.0
     for region in ("glass", "frames"):
         assert main["test"]["mean"][region]["psnr"] != facade["psnr"]
+    aligned = main["test_aligned"]
+    assert [v["view"] for v in aligned["views"]] == split["test"]
+    assert all(
+        v["alignment"]["align_l1_after"] <= v["alignment"]["align_l1_before"] for v in aligned["views"]
+    )
     geo = m["geometry"]
     # the corrected mesh is closer to the true glass than the coarse one (what correct_mesh is for)
     assert geo["corrected_mesh"]["glass_distance_mean_m"] < geo["coarse_mesh"]["glass_distance_mean_m"]
@@ -69,13 +74,17 @@ def test_whole_dag_on_synthetic64_reaches_evaluate(tmp_path):
     assert "src='comparisons" not in page  # nothing outside the page
     manifest = json.loads(layout.manifest("evaluate").read_text())
     assert manifest["metrics"]["07_train_test_psnr"] == facade["psnr"]
+    assert manifest["metrics"]["07_train_test_aligned_psnr"] == aligned["mean"]["facade"]["psnr"]
     assert _executed(_doit(["building=synthetic64"], env, root)) == []
 
     # a model saved under variants/ by a person (or the benchmark) is picked up: evaluate alone reruns
     saved = layout.path("variant_dir", variant="copy")
     saved.mkdir(parents=True)
-    for key, name in (("train_ply", "gaussians.ply"), ("train_reflection", "reflection.pt"),
-                      ("train_split", "split.json")):
+    for key, name in (
+        ("train_ply", "gaussians.ply"),
+        ("train_reflection", "reflection.pt"),
+        ("train_split", "split.json"),
+    ):
         shutil.copy(layout.path(key), saved / name)
     trained_with = json.loads(layout.manifest("train_gs").read_text())["params"]
     (saved / "params.json").write_text(json.dumps(trained_with))

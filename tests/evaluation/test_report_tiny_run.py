@@ -20,6 +20,7 @@ from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.image_eval import LpipsSetting
 from facade_pipeline.evaluation.metrics import psnr, ssim
 from facade_pipeline.evaluation.render_views import (
+    align_trained,
     from_trainer,
     load_trained,
     render_trained,
@@ -88,9 +89,10 @@ def test_report_builds_from_a_tiny_run(tiny):
     views = [scene_views[data.views[i].stem] for i in data.test_idx]
     tm = from_trainer(tr, "tiny_run")
     with tqdm(total=len(views), disable=True) as bar:
-        result, written = stage.evaluate_split(layout, params, tm, views, "test", setting, bar)
+        measured, written = stage.evaluate_split(layout, params, tm, views, "test", setting, bar)
+    result, aligned = measured["test"], measured["test_aligned"]
     metrics = stage.metrics_header(layout, params, 4)
-    metrics["variants"]["tiny_run"] = {"reflection_model": "mlp", "architecture": None, "test": result}
+    metrics["variants"]["tiny_run"] = {"reflection_model": "mlp", "architecture": None, **measured}
     outputs = stage.write_reports(layout, params, metrics)
     assert all(p.is_file() for p in outputs + written)
 
@@ -106,9 +108,22 @@ def test_report_builds_from_a_tiny_run(tiny):
     saved = json.loads(layout.path("eval_metrics").read_text())
     assert saved["variants"]["tiny_run"]["test"]["mean"] == json.loads(json.dumps(result["mean"]))
 
+    # the aligned figures: the same views, each fitted to the model no worse than as imported (in the
+    # L1 it is fitted on), and the render from the fitted camera and gain is what was measured
+    assert [a["view"] for a in aligned["views"]] == [r["view"] for r in result["views"]]
+    for a in aligned["views"]:
+        fit = a["alignment"]
+        assert fit["align_l1_after"] <= fit["align_l1_before"] and len(fit["align_gain"]) == 3
+    fitted = align_trained(tm, v.camera, v.image, mask, params.align)
+    assert aligned["views"][0]["metrics"]["facade"]["psnr"] == pytest.approx(
+        psnr(fitted.render.rgb, v.image, mask), abs=1e-3
+    )
+
     md = layout.path("eval_report_md").read_text()
-    table_row = next(line for line in md.splitlines() if line.startswith("| tiny_run"))
+    table_row, aligned_row = [line for line in md.splitlines() if line.startswith("| tiny_run")]
     assert f"{result['mean']['facade']['psnr']:.2f}" in table_row
+    assert f"{aligned['mean']['facade']['psnr']:.2f}" in aligned_row
+    assert md.index("aligned to the model") < md.index(aligned_row)
     for link in re.findall(r"!\[[^]]*\]\(([^)]+)\)", md):
         assert (layout.path("eval_report_md").parent / link).is_file()
 
