@@ -62,7 +62,7 @@ from facade_pipeline.manifest import read_manifest
 from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
-from facade_pipeline.training.trainer import alignment_summary, resolve_device
+from facade_pipeline.training.trainer import resolve_device
 from stages._runner import StageReport, main
 
 NAME = "evaluate"
@@ -235,7 +235,7 @@ def evaluate_split(
                 {
                     "view": view.stem,
                     "metrics": view_metrics(a.render.rgb, truth, masks, setting),
-                    "alignment": alignment_summary(a.alignment),
+                    "alignment": a.alignment.summary(),
                 }
             )
         bar.update(1)

@@ -215,11 +215,10 @@ def render_trained(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndar
 
 @dataclass(frozen=True)
 class AlignedView:
-    """A view aligned to a model (``align_trained``): its fitted camera and exposure gain, and the render
-    from them."""
+    """A view aligned to a model (``align_trained``): its fitted camera, the fit (gain per channel and what
+    it changed), and the render from that camera with that gain."""
 
     camera: PinholeCamera
-    gain: np.ndarray  # [3]
     alignment: Alignment
     render: RenderedView
 
@@ -242,9 +241,8 @@ def align_trained(
     )
     aligned = PinholeCamera(camera.K, fit.cam_from_world.double().cpu().numpy(), camera.width, camera.height)
     r = render_trained(tm, aligned, facade_mask)
-    gain = fit.gain.cpu().numpy().astype(np.float64)
-    rgb = np.clip(r.rgb * gain, 0.0, 1.0).astype(r.rgb.dtype)
-    return AlignedView(aligned, gain, fit, RenderedView(rgb, r.normal, r.alpha))
+    rgb = np.clip(r.rgb * fit.gain.cpu().numpy(), 0.0, 1.0).astype(r.rgb.dtype)
+    return AlignedView(aligned, fit, RenderedView(rgb, r.normal, r.alpha))
 
 
 def variant_from_dir(folder: Path, name: str | None = None) -> TrainedVariant:

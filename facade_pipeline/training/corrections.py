@@ -105,6 +105,16 @@ class Alignment:
     loss_before: float
     loss_after: float
 
+    def summary(self) -> dict[str, float | list[float]]:
+        """What the fit changed, as plain numbers for logs and JSON."""
+        return {
+            "align_rotation_deg": self.rotation_deg,
+            "align_translation_m": self.translation_m,
+            "align_gain": [float(g) for g in self.gain],
+            "align_l1_before": self.loss_before,
+            "align_l1_after": self.loss_after,
+        }
+
 
 def align_view(
     render: Callable[[Tensor], Tensor],

@@ -29,7 +29,6 @@ from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
 from facade_pipeline.training import losses
 from facade_pipeline.training.corrections import (
-    Alignment,
     AlignParams,
     ViewCorrections,
     align_view,
@@ -476,7 +475,7 @@ def evaluate(
             "normal_error_glass_deg": None if ang is None else float(ang.mean()),
         }
         if fit is not None:
-            row |= alignment_summary(fit)
+            row |= fit.summary()
         per_view.append(row)
     return {"views": per_view, **_means(per_view)}
 
@@ -485,17 +484,6 @@ def _render_posed(tr: Trainer, index: int, cam: Camera, cam_from_world: Tensor) 
     """View ``index`` whole, seen from ``cam_from_world`` instead of its pose."""
     posed = Camera(cam.K, cam_from_world, cam.width, cam.height)
     return render_window(tr, index, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK, cam=posed)[0]
-
-
-def alignment_summary(fit: Alignment) -> dict[str, Any]:
-    """What an ``Alignment`` changed, as plain numbers for logs and JSON."""
-    return {
-        "align_rotation_deg": fit.rotation_deg,
-        "align_translation_m": fit.translation_m,
-        "align_gain": [float(g) for g in fit.gain],
-        "align_l1_before": fit.loss_before,
-        "align_l1_after": fit.loss_after,
-    }
 
 
 def _module_params(module: nn.Module | None) -> list[Tensor]:
