@@ -37,7 +37,14 @@ def real_building(tmp_path):
 def _start(layout, env):
     cmd = [sys.executable, "-m", "stages.import_photogrammetry", "--building", layout.building,
            "--data-root", str(layout.data_root)]
-    return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)  # fmt: skip
+
+
+def _default_sigint() -> None:
+    """In the child: SIGINT as a terminal delivers it. A shell's background job (``cmd &``) starts with
+    SIGINT ignored, which its children inherit, and Python then installs no KeyboardInterrupt for it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _wait_for_first_output(layout, proc, timeout=60.0):
