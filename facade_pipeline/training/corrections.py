@@ -102,10 +102,11 @@ class Alignment:
     gain: Tensor  # [3], detached
     rotation_deg: float
     translation_m: float
-    loss_before: float
-    loss_after: float
+    loss_before: float | None
+    """mean L1 over the mask at the given pose (None: nothing was fitted)"""
+    loss_after: float | None
 
-    def summary(self) -> dict[str, float | list[float]]:
+    def summary(self) -> dict[str, float | list[float] | None]:
         """What the fit changed, as plain numbers for logs and JSON."""
         return {
             "align_rotation_deg": self.rotation_deg,
@@ -132,7 +133,7 @@ def align_view(
     dev = cam_from_world.device
     corr = ViewCorrections(1, dev, pose=True, exposure=params.exposure)
     best = (math.inf, {k: v.detach().clone() for k, v in corr.state_dict().items()})
-    first = math.nan
+    first = None
     if params.steps > 0 and bool(mask.any()):
         opt = corr.optimizer(params.lr_rotation, params.lr_translation, params.lr_exposure)
         frozen = [t for t in frozen if t.requires_grad]
@@ -160,13 +161,11 @@ def align_view(
                 t.requires_grad_(True)
     corr.load_state_dict(best[1])
     with torch.no_grad():
-        rot = corr.rotation[0] if corr.rotation is not None else torch.zeros(3)
-        trans = corr.translation[0] if corr.translation is not None else torch.zeros(3)
         return Alignment(
             corr.cam_from_world(0, cam_from_world).detach(),
             corr.expose(0, torch.ones(3, device=dev)).detach(),
-            math.degrees(float(rot.norm())),
-            float(trans.norm()),
+            math.degrees(float(corr.rotation[0].norm())),
+            float(corr.translation[0].norm()),
             first,
             best[0] if math.isfinite(best[0]) else first,
         )

@@ -446,10 +446,12 @@ def evaluate(
     per_view = []
     for i in indices:
         cam = camera(tr, i)
-        full = (0, 0, cam.width, cam.height)
-        r, vt = render_window(tr, i, full, chunk=EVAL_CHUNK)
         fit = None
-        if align is not None and align.steps > 0:
+        if align is None or align.steps <= 0:
+            r, vt = render_window(tr, i, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK)
+        else:
+            full = (0, 0, cam.width, cam.height)  # the view's data alone: the fit renders it
+            vt = view_tensors(tr.data.views[i], full, tr.params.mask_by_facade, tr.device)
             fit = align_view(
                 lambda M, i=i, cam=cam: _render_posed(tr, i, cam, M).rgb,
                 cam.cam_from_world,
