@@ -141,6 +141,7 @@ def main() -> None:
     ap.add_argument("--mlp-max-pixels", type=int, default=-1, help="-1: the building's (0: all)")
     ap.add_argument("--init-points", type=int, default=0, help="0: the building's")
     ap.add_argument("--max-gaussians", type=int, default=0, help="0: the building's")
+    ap.add_argument("--supersample", type=int, default=0, help="samples per pixel side; 0: the building's")
     ap.add_argument("--only", default="", help="comma-separated variant names to run (default: all)")
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
@@ -160,6 +161,7 @@ def main() -> None:
         checkpoint_every=0,
         mlp_width=a.mlp_width or base.mlp_width,
         mlp_depth=a.mlp_depth or base.mlp_depth,
+        supersample=a.supersample or base.supersample,
         densify=dataclasses.replace(
             base.densify, max_gaussians=a.max_gaussians or base.densify.max_gaussians
         ),
@@ -226,7 +228,7 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}), initial reflectivity {p.init_reflectivity} "
         f"({p.init_reflectivity_glass} on glass), reflection gradient into normals "
         f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, high-frequency weight "
-        f"{p.lambda_hf_start} -> {p.lambda_hf_end}. "
+        f"{p.lambda_hf_start} -> {p.lambda_hf_end}, {p.supersample} x {p.supersample} samples per pixel. "
         "`mlp, as the paper` changes these to the paper's (`paper_mlp` in this file). The paper trains "
         "2 x 10^5 iterations on an A40: these are short runs. Wall time: training alone.\n",
     ]

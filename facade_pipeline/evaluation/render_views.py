@@ -141,7 +141,7 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
             raise InputError(variant.reflection, f"weights of a {strategy}", str(e).splitlines()[0]) from None
         module.eval()
     p = variant.params
-    shading = ShadingOptions(float(p["refl_threshold"]), lo, hi)
+    shading = ShadingOptions(float(p["refl_threshold"]), lo, hi, supersample=int(p.get("supersample", 1)))
     backend = str(p.get("raster_backend", "auto"))
     return TrainedModel(
         variant.name,

@@ -85,6 +85,8 @@ class TrainParams:
     sh_degree_interval: int
     refl_threshold: float
     reflection_normal_grad: bool
+    supersample: int
+    """sub-pixel samples per pixel side in every render (``ShadingOptions.supersample``)"""
     pose_refinement: bool
     mlp_max_pixels: int
     patch_px: int

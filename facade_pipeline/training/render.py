@@ -8,7 +8,7 @@ on patches.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import torch
@@ -73,6 +73,9 @@ class ShadingOptions:
     normal_grad: bool = True
     """the specular term's gradient reaches the rendered normal (through w_r and F); False: the normal is
     a constant there and only the colour's other terms and the normal losses move it"""
+    supersample: int = 1
+    """sub-pixel samples per pixel side: each pixel is the mean of supersample^2 shaded samples on a
+    regular grid, as a camera pixel integrates over its area (1: one sample at the pixel centre)"""
 
 
 @dataclass
@@ -152,7 +155,12 @@ def render_view(
     chunk: int = 0,
 ) -> Render:
     """Render ``window`` of a view and shade it (Eq. 7-9). ``reflection`` None means no specular term.
-    ``select`` subsamples the reflective pixels (CPU training); ``chunk`` > 0 evaluates R in chunks."""
+    ``select`` subsamples the reflective pixels (CPU training); ``chunk`` > 0 evaluates R in chunks.
+    With ``shading.supersample`` s > 1 every map is the mean over s x s sub-pixel samples (``select``
+    then picks sub-pixel samples, and a pixel is ``skipped`` when any of its samples is)."""
+    if shading.supersample > 1:
+        return _supersampled(model, reflection, camera, window, rasterize, near, sh_degree, shading,
+                             spec_mask, select, chunk)  # fmt: skip
     centre = camera.centre
     feats = splat_features(model, centre, sh_degree)
     ras = rasterize(
@@ -201,6 +209,55 @@ def render_view(
         ras.alpha,
         ras.distortion,
         points,
+    )
+
+
+def _supersampled(
+    model: GaussianModel,
+    reflection: nn.Module | None,
+    camera: Camera,
+    window: Window,
+    rasterize: Rasterizer,
+    near: float,
+    sh_degree: int,
+    shading: ShadingOptions,
+    spec_mask: Tensor | None,
+    select: Callable[[Tensor], Tensor] | None,
+    chunk: int,
+) -> Render:
+    """``render_view`` with s x s samples per pixel: the view rendered by a camera with s times the
+    resolution (its sub-pixel (j + 0.5) / s lands at (j + 0.5) / s of a pixel), each map averaged over
+    s x s blocks (masks: any sample)."""
+    s = shading.supersample
+    K = camera.K.clone()
+    K[:2] = K[:2] * s
+    fine = Camera(K, camera.cam_from_world, camera.width * s, camera.height * s)
+    x0, y0, w, h = window
+    mask = None if spec_mask is None else spec_mask.repeat_interleave(s, 0).repeat_interleave(s, 1)
+    one = replace(shading, supersample=1)
+    r = render_view(model, reflection, fine, (x0 * s, y0 * s, w * s, h * s), rasterize, near, sh_degree,
+                    one, mask, select, chunk)  # fmt: skip
+
+    def mean(t: Tensor) -> Tensor:  # [H s, W s, ...] -> [H, W, ...]
+        return t.reshape(h, s, w, s, *t.shape[2:]).mean(dim=(1, 3))
+
+    def any_(t: Tensor) -> Tensor:
+        return t.reshape(h, s, w, s).any(dim=3).any(dim=1)
+
+    return Render(
+        mean(r.rgb),
+        mean(r.diffuse),
+        mean(r.refl),
+        mean(r.fresnel),
+        mean(r.specular),
+        any_(r.spec_pixels),
+        any_(r.skipped),
+        mean(r.normal),
+        mean(r.depth),
+        mean(r.alpha),
+        mean(r.distortion),
+        mean(r.points),
+        r.n_features,
     )
 
 

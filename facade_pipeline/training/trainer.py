@@ -121,8 +121,14 @@ def _gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> 
 def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: GaussianModel):
     lo, hi = data.bounds
     f32 = dict(dtype=torch.float32, device=device)
+    if p.supersample < 1:
+        raise PipelineError(None, "train_gs.supersample of at least 1", str(p.supersample))
     shading = ShadingOptions(
-        p.refl_threshold, torch.as_tensor(lo, **f32), torch.as_tensor(hi, **f32), p.reflection_normal_grad
+        p.refl_threshold,
+        torch.as_tensor(lo, **f32),
+        torch.as_tensor(hi, **f32),
+        p.reflection_normal_grad,
+        p.supersample,
     )
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)

@@ -5,6 +5,7 @@ into metrics.json, Markdown and a self-contained HTML page."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import io
 import json
 import re
@@ -76,6 +77,15 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     assert a.rgb.shape == (v.camera.height, v.camera.width, 3)
     assert float(a.alpha.max()) > 0.1  # the facade is in view: something was rendered
     np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)  # PLY stores activated values: float32 round trip
+    # a variant trained with supersampling is rendered with it
+    params = to_dict(tr.params) | {"supersample": 2}
+    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, params)
+    ss = load_trained(variant_from_dir(folder))
+    assert ss.shading.supersample == 2
+    live2 = dataclasses.replace(live, shading=dataclasses.replace(live.shading, supersample=2))
+    c = render_trained(ss, v.camera, v.facade_mask)
+    np.testing.assert_allclose(c.rgb, render_trained(live2, v.camera, v.facade_mask).rgb, atol=1e-5)
+    assert float(np.abs(c.rgb - a.rgb).max()) > 1e-3  # and that is not the one-sample render
     (folder / "params.json").write_text("{not json")
     with pytest.raises(InputError, match="params.json"):
         variant_from_dir(folder)
