@@ -158,9 +158,12 @@ def render_view(
     ``select`` subsamples the reflective pixels (CPU training); ``chunk`` > 0 evaluates R in chunks.
     With ``shading.supersample`` s > 1 every map is the mean over s x s sub-pixel samples (``select``
     then picks sub-pixel samples, and a pixel is ``skipped`` when any of its samples is)."""
-    if shading.supersample > 1:
-        return _supersampled(model, reflection, camera, window, rasterize, near, sh_degree, shading,
-                             spec_mask, select, chunk)  # fmt: skip
+    if (s := shading.supersample) > 1:
+        fine, fine_window, fine_mask = _sub_pixel_view(camera, window, spec_mask, s)
+        one = replace(shading, supersample=1)
+        r = render_view(model, reflection, fine, fine_window, rasterize, near, sh_degree, one, fine_mask,
+                        select, chunk)  # fmt: skip
+        return _block_mean(r, s)
     centre = camera.centre
     feats = splat_features(model, centre, sh_degree)
     ras = rasterize(
@@ -212,31 +215,22 @@ def render_view(
     )
 
 
-def _supersampled(
-    model: GaussianModel,
-    reflection: nn.Module | None,
-    camera: Camera,
-    window: Window,
-    rasterize: Rasterizer,
-    near: float,
-    sh_degree: int,
-    shading: ShadingOptions,
-    spec_mask: Tensor | None,
-    select: Callable[[Tensor], Tensor] | None,
-    chunk: int,
-) -> Render:
-    """``render_view`` with s x s samples per pixel: the view rendered by a camera with s times the
-    resolution (its sub-pixel (j + 0.5) / s lands at (j + 0.5) / s of a pixel), each map averaged over
-    s x s blocks (masks: any sample)."""
-    s = shading.supersample
+def _sub_pixel_view(
+    camera: Camera, window: Window, spec_mask: Tensor | None, s: int
+) -> tuple[Camera, Window, Tensor | None]:
+    """The camera, window and mask of s x s samples per pixel: a camera with s times the resolution,
+    whose pixel centre j + 0.5 lands at (j + 0.5) / s of a pixel."""
     K = camera.K.clone()
     K[:2] = K[:2] * s
-    fine = Camera(K, camera.cam_from_world, camera.width * s, camera.height * s)
     x0, y0, w, h = window
     mask = None if spec_mask is None else spec_mask.repeat_interleave(s, 0).repeat_interleave(s, 1)
-    one = replace(shading, supersample=1)
-    r = render_view(model, reflection, fine, (x0 * s, y0 * s, w * s, h * s), rasterize, near, sh_degree,
-                    one, mask, select, chunk)  # fmt: skip
+    fine = Camera(K, camera.cam_from_world, camera.width * s, camera.height * s)
+    return fine, (x0 * s, y0 * s, w * s, h * s), mask
+
+
+def _block_mean(r: Render, s: int) -> Render:
+    """A render of s x s samples per pixel, each map averaged over its s x s blocks (masks: any sample)."""
+    h, w = r.rgb.shape[0] // s, r.rgb.shape[1] // s
 
     def mean(t: Tensor) -> Tensor:  # [H s, W s, ...] -> [H, W, ...]
         return t.reshape(h, s, w, s, *t.shape[2:]).mean(dim=(1, 3))
