@@ -159,7 +159,7 @@ def _build_corrections(
 def camera(tr: Trainer, index: int) -> Camera:
     """View ``index``'s camera as training sees it: with its pose correction when poses are refined."""
     cam = tr.cameras[index]
-    if tr.corrections is None or tr.corrections.rotation is None:
+    if tr.corrections is None:
         return cam
     return Camera(cam.K, tr.corrections.cam_from_world(index, cam.cam_from_world), cam.width, cam.height)
 
