@@ -37,6 +37,7 @@ from facade_pipeline.training.trainer import (
     Trainer,
     build_trainer,
     evaluate,
+    exposure_gains,
     load_checkpoint,
     resolve_device,
     save_torch,
@@ -141,13 +142,14 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Pa
     lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": metrics})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")
     views = tr.data.views
-    write_json(
-        layout.path("train_split"),
-        {
-            "train": [views[i].stem for i in tr.data.train_idx],
-            "test": [views[i].stem for i in tr.data.test_idx],
-        },
-    )
+    split = {
+        "train": [views[i].stem for i in tr.data.train_idx],
+        "test": [views[i].stem for i in tr.data.test_idx],
+    }
+    gains = exposure_gains(tr)
+    if gains:
+        split["exposure_gain"] = gains
+    write_json(layout.path("train_split"), split)
     return targets(layout, tr.params)
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Literal, assert_never
 
 from facade_pipeline.shading.reflection import EnvMap, ReflectionMLP, ReflectionModel, SHOnly
+from facade_pipeline.training.exposure import ExposureParams
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,8 @@ class LearningRates:
     """of the per-view pose corrections' rotations (rad, constant)"""
     pose_translation: float
     """of their translations (m, constant)"""
+    exposure: float
+    """of the per-view log exposure gains (``exposure_refinement``, constant)"""
 
 
 @dataclass(frozen=True)
@@ -88,6 +91,12 @@ class TrainParams:
     supersample: int
     """sub-pixel samples per pixel side in every render (``ShadingOptions.supersample``)"""
     pose_refinement: bool
+    exposure_estimate: bool
+    """estimate an exposure gain per training view and colour channel from the facade's opaque parts
+    before training (``training.exposure``), and train with it"""
+    exposure_refinement: bool
+    """learn an exposure gain per training view and colour channel (on top of the estimate, if any),
+    relative to their mean"""
     mlp_max_pixels: int
     patch_px: int
     test_every: int
@@ -120,6 +129,7 @@ class TrainParams:
     divergence_extent_factor: float
     lr: LearningRates
     densify: DensifyParams
+    exposure: ExposureParams
 
     def reflection(self) -> ReflectionModel:
         """The reflection model strategy these parameters select."""

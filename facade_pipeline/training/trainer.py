@@ -41,6 +41,7 @@ from facade_pipeline.training.densify import (
     reset_opacity,
     view_space_grad,
 )
+from facade_pipeline.training.exposure import ExposureEstimate, estimate_exposures
 from facade_pipeline.training.init import initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
 from facade_pipeline.training.params import TrainParams
@@ -85,8 +86,10 @@ class Trainer:
     iteration: int = 0
     log: list[dict[str, Any]] = field(default_factory=list)
     corrections: ViewCorrections | None = None
-    """per-view pose corrections (``pose_refinement``), else None"""
+    """per-view pose and exposure corrections (``pose_refinement``, ``exposure_refinement``), else None"""
     opt_corrections: torch.optim.Adam | None = None
+    exposure: ExposureEstimate | None = None
+    """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
 
     @property
     def extent(self) -> float:
@@ -150,10 +153,52 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
 def _build_corrections(
     p: TrainParams, n_views: int, device: torch.device
 ) -> tuple[ViewCorrections | None, torch.optim.Adam | None]:
-    if not p.pose_refinement:
+    if not (p.pose_refinement or p.exposure_refinement):
         return None, None
-    corr = ViewCorrections(n_views, device, pose=True, exposure=False)
-    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, 0.0)
+    corr = ViewCorrections(n_views, device, pose=p.pose_refinement, exposure=p.exposure_refinement)
+    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, p.lr.exposure)
+
+
+def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
+    if not p.exposure_estimate:
+        return None
+    m = data.init
+    est = estimate_exposures(
+        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, p.exposure, p.seed
+    )
+    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < p.exposure.min_samples]
+    if few:
+        log.warning("exposure estimate: too few samples of the facade's opaque parts in %s; gain 1", few)
+    return est
+
+
+def exposure_gain(tr: Trainer, index: int) -> Tensor | None:
+    """View ``index``'s exposure gain per colour channel [3]: the estimate (``exposure_estimate``) times
+    the learnt correction (``exposure_refinement``), each relative to the training views' geometric mean,
+    so that the splats keep the mean exposure and the gains have no common factor to trade with the
+    colours; None for held-out views and when neither is on."""
+    if index not in tr.data.train_idx:
+        return None
+    log_gain = None
+    if tr.exposure is not None:
+        log_gain = torch.as_tensor(tr.exposure.log_gain[index], device=tr.device)
+    if tr.corrections is not None and tr.corrections.log_gain is not None:
+        g = tr.corrections.log_gain
+        learnt = g[index] - g[list(tr.data.train_idx)].mean(0)
+        log_gain = learnt if log_gain is None else log_gain + learnt
+    return None if log_gain is None else log_gain.exp()
+
+
+@torch.no_grad()
+def exposure_gains(tr: Trainer) -> dict[str, list[float]]:
+    """Each training view's exposure gain per colour channel as trained (stem -> [r, g, b]); empty when
+    training assumed one exposure for all views."""
+    out = {}
+    for i in tr.data.train_idx:
+        gain = exposure_gain(tr, i)
+        if gain is not None:
+            out[tr.data.views[i].stem] = [round(float(x), 5) for x in gain]
+    return out
 
 
 def camera(tr: Trainer, index: int) -> Camera:
@@ -205,6 +250,7 @@ def build_trainer(
         cameras,
         corrections=corrections,
         opt_corrections=opt_corrections,
+        exposure=_estimate_exposure(p, data),
     )
 
 
@@ -364,7 +410,8 @@ def render_window(
     tr: Trainer, index: int, window: Window, select=None, chunk: int = 0, cam: Camera | None = None
 ) -> tuple[Render, ViewTensors]:
     """Render a window of view ``index`` with the current model (from its corrected pose, if poses are
-    refined); returns it with the view's data there. ``cam`` replaces the view's camera."""
+    refined, and with its exposure gain, if exposures are); returns it with the view's data there. ``cam``
+    replaces the view's camera."""
     cam = camera(tr, index) if cam is None else cam
     vt = view_tensors(tr.data.views[index], window, tr.params.mask_by_facade, tr.device)
     r = render_view(
@@ -380,6 +427,9 @@ def render_window(
         select=select,
         chunk=chunk,
     )
+    gain = exposure_gain(tr, index)
+    if gain is not None:
+        r = dataclasses.replace(r, rgb=r.rgb * gain.to(r.rgb.dtype))
     return r, vt
 
 
@@ -614,6 +664,7 @@ def load_checkpoint(
         list(state["log"]),
         corrections,
         opt_corrections,
+        _estimate_exposure(p, data),
     )
 
 

@@ -77,6 +77,7 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     )
     split = json.loads(upstream.path("train_split").read_text())
     assert split["test"] == ["uav_0000", "uav_0008"] and len(split["train"]) == 8
+    assert "exposure_gain" not in split  # one exposure for all views
     lines = [json.loads(x) for x in upstream.path("train_log").read_text().splitlines()]
     assert [x["iteration"] for x in lines[:-1]] == [5, 6] and "evaluation" in lines[-1]
     refl = torch.load(upstream.path("train_reflection"), weights_only=True)
@@ -88,8 +89,10 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     assert upstream.path("train_ply").read_bytes() == ply_bytes
     assert again["outputs"] == manifest["outputs"]
     # other parameters: the old checkpoint is not trusted, training starts over
-    other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3))
+    other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3, exposure_estimate=True))
     assert other["metrics"]["resumed_from_iteration"] == 0 and other["metrics"]["iterations"] == 3
+    gains = json.loads(upstream.path("train_split").read_text())["exposure_gain"]
+    assert sorted(gains) == sorted(split["train"]) and all(len(g) == 3 and g[0] > 0 for g in gains.values())
 
 
 def test_stage_rejects_bad_or_missing_inputs(upstream):

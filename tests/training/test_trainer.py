@@ -257,6 +257,79 @@ def test_pose_corrections_move_training_views_only(data64):
     assert plain.corrections is None and camera(plain, 1) is plain.cameras[1]
 
 
+def test_exposure_gains_scale_training_views_only_relative_to_their_mean(data64):
+    """A training view renders at its learnt gain over the training views' geometric mean; held-out views
+    render at that mean, unchanged; without exposure refinement no gain exists."""
+    tr = build_trainer(small_params(exposure_refinement=True), data64, RASTER)
+    assert tr.corrections.log_gain is not None and tr.corrections.rotation is None
+    train_idx, test_idx = list(data64.train_idx), list(data64.test_idx)
+    plain = build_trainer(small_params(), data64, RASTER)
+    assert plain.corrections is None
+    with torch.no_grad():
+        tr.corrections.log_gain[train_idx[0]] = torch.tensor([0.3, 0.0, -0.3])
+    set_to = torch.tensor([0.3, 0.0, -0.3])
+    mean = set_to / len(train_idx)
+    win = (0, 0, 32, 24)
+    for i, gain in ((train_idx[0], (set_to - mean).exp()), (train_idx[1], (-mean).exp())):
+        with torch.no_grad():
+            a, _ = render_window(tr, i, win)
+            b, _ = render_window(plain, i, win)
+        torch.testing.assert_close(a.rgb, b.rgb * gain)
+        torch.testing.assert_close(a.diffuse, b.diffuse)
+    with torch.no_grad():
+        a, _ = render_window(tr, test_idx[0], win)
+        b, _ = render_window(plain, test_idx[0], win)
+    assert torch.equal(a.rgb, b.rgb)
+
+
+def test_exposure_refinement_finds_a_darker_training_view(data64):
+    """One training view photographed at 0.6 times the others' exposure (log gain -0.51): its learnt gain
+    comes out below every other view's and far below their median, and the held-out views' never move."""
+    dark = data64.train_idx[2]
+    views = list(data64.views)
+    views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
+    data = dataclasses.replace(data64, views=tuple(views))
+    lr = dataclasses.replace(small_params().lr, exposure=0.05)
+    p = small_params(iterations=60, exposure_refinement=True, lr=lr)
+    tr = train(build_trainer(p, data, RASTER))
+    g = tr.corrections.log_gain.detach().mean(-1)
+    others = [i for i in data.train_idx if i != dark]
+    assert float(g[dark]) < float(g[others].min())
+    assert float(g[dark]) < float(g[others].median()) - 0.3
+    assert bool((tr.corrections.log_gain.detach()[list(data.test_idx)] == 0).all())
+
+
+def test_estimated_exposure_renders_a_darker_training_view_darker(data64):
+    """``exposure_estimate``: one training photo at 0.6 times the exposure of the others is found from the
+    frames before training (log gain -0.51 against the others' median), and that view renders at its gain;
+    held-out views render unchanged. With refinement too, the learnt gain multiplies the estimate."""
+    dark = data64.train_idx[2]
+    views = list(data64.views)
+    views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
+    data = dataclasses.replace(data64, views=tuple(views))
+    est = dataclasses.replace(small_params().exposure, samples=40000, min_samples=10)  # small photos
+    tr = build_trainer(small_params(exposure_estimate=True, exposure=est), data, RASTER)
+    assert tr.corrections is None
+    g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
+    others = [i for i in data.train_idx if i != dark]
+    assert abs(float(g[dark] - g[others].median()) - math.log(0.6)) < 0.05
+    plain = build_trainer(small_params(), data, RASTER)
+    win = (0, 0, 32, 24)
+    with torch.no_grad():
+        for i, gain in ((dark, torch.as_tensor(tr.exposure.log_gain[dark]).exp()), (data.test_idx[0], None)):
+            a, _ = render_window(tr, i, win)
+            b, _ = render_window(plain, i, win)
+            torch.testing.assert_close(a.rgb, b.rgb if gain is None else b.rgb * gain)
+    both_p = small_params(exposure_estimate=True, exposure=est, exposure_refinement=True)
+    both = build_trainer(both_p, data, RASTER)
+    with torch.no_grad():
+        both.corrections.log_gain[dark] = 0.1
+        want = torch.as_tensor(tr.exposure.log_gain[dark]) + 0.1 - 0.1 / len(data.train_idx)
+        a, _ = render_window(both, dark, win)
+        b, _ = render_window(plain, dark, win)
+    torch.testing.assert_close(a.rgb, b.rgb * want.exp())
+
+
 def test_erode_leaves_out_pixels_near_the_mask_edge_and_the_border():
     m = torch.zeros(12, 12, dtype=torch.bool)
     m[2:10, 3:9] = True  # 8 x 6 block
@@ -334,10 +407,14 @@ def _states_equal(a, b) -> None:
             assert ka == kb and torch.equal(va, vb), ka
 
 
-@pytest.mark.parametrize("pose_refinement", [False, True])
-def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, pose_refinement):
+@pytest.mark.parametrize("refine", ["none", "pose", "exposure", "estimate"])
+def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     p = small_params(  # densification every 5 falls between checkpoints
-        iterations=14, checkpoint_every=3, pose_refinement=pose_refinement
+        iterations=14,
+        checkpoint_every=3,
+        pose_refinement=refine == "pose",
+        exposure_refinement=refine == "exposure",
+        exposure_estimate=refine == "estimate",
     )
     ref = train(build_trainer(p, data64, RASTER))
     ckpt = tmp_path / "ckpt.pt"
