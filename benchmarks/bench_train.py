@@ -104,7 +104,8 @@ def gt_data(layout: BuildingLayout, test_every: int) -> TrainData:
 def paper_mlp(base: TrainParams) -> TrainParams:
     """``base`` with the paper's reflection model and training as published: its 8 x 512 network without
     the environment proxy, reflection gradients into the normals, one initial reflectivity for every splat,
-    the high-frequency loss from the start (weight 1 -> 10); the MLP pixel cap of the old CPU budget."""
+    the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos; the MLP pixel cap of
+    the old CPU budget."""
     return dataclasses.replace(
         base,
         reflection_model="mlp",
@@ -117,6 +118,8 @@ def paper_mlp(base: TrainParams) -> TrainParams:
         lambda_hf_start=1.0,
         lambda_hf_end=10.0,
         hf_start_fraction=0.0,
+        exposure_estimate=False,
+        exposure_refinement=False,
     )
 
 
@@ -227,7 +230,8 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"L = {p.fourier_levels}, skip {p.mlp_skip}, environment proxy {p.mlp_proxy_channels} channels at "
         f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}), initial reflectivity {p.init_reflectivity} "
         f"({p.init_reflectivity_glass} on glass), reflection gradient into normals "
-        f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, high-frequency weight "
+        f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, exposure gains estimated "
+        f"{p.exposure_estimate} / learnt {p.exposure_refinement}, high-frequency weight "
         f"{p.lambda_hf_start} -> {p.lambda_hf_end}, {p.supersample} x {p.supersample} samples per pixel. "
         "`mlp, as the paper` changes these to the paper's (`paper_mlp` in this file). The paper trains "
         "2 x 10^5 iterations on an A40: these are short runs. Wall time: training alone.\n",
