@@ -84,6 +84,7 @@ def small_params(**changes) -> TrainParams:
         mlp_depth=4,
         fourier_levels=4,
         normal_start_fraction=0.0,
+        exposure_estimate=False,  # one exposure unless a test asks (synthetic64 has no exposure change)
     )
     densify = dict(interval=5, max_gaussians=400)
     for key in list(changes):
