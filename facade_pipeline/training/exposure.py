@@ -64,12 +64,6 @@ class ExposureEstimate:
     log_gain: np.ndarray
     samples: np.ndarray
 
-    def summary(self) -> dict[str, list[float] | list[int]]:
-        return {
-            "exposure_gain": np.exp(self.log_gain).mean(axis=1).round(4).tolist(),
-            "exposure_samples": self.samples.astype(int).tolist(),
-        }
-
 
 def usable_mask(view: TrainView, erode_px: int) -> np.ndarray:
     """[H, W] bool: the facade's opaque pixels of ``view`` at least ``erode_px`` from glass and from the
@@ -91,7 +85,7 @@ def observe(
         cam = v.camera
         uv, z = cam.project(points)
         with np.errstate(invalid="ignore"):
-            x, y = np.floor(uv[:, 0]).astype(np.int64, copy=False), np.floor(uv[:, 1]).astype(np.int64)
+            x, y = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         inside = (z > 0) & np.isfinite(uv).all(1) & (x >= 0) & (y >= 0) & (x < cam.width) & (y < cam.height)
         idx = np.flatnonzero(inside)
         idx = idx[usable_mask(v, params.erode_px)[y[idx], x[idx]]]
