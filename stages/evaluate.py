@@ -282,7 +282,8 @@ _NOT_TRAINING = ("device", "raster_backend", "checkpoint_every", "log_every")
 
 def ablation_group(params: dict[str, Any]) -> str:
     """A digest of the training parameters other than the MLP architecture: variants with the same one
-    differ only in L, depth, width, skip and the environment proxy, and form a Table 3 ablation."""
+    differ only in L, depth, width, skip, the environment proxy and the self hits, and form a Table 3
+    ablation."""
     rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + _NOT_TRAINING}
     return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import json
 import sys
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ from tqdm import tqdm
 
 from facade_pipeline.config import to_dict
 from facade_pipeline.errors import InputError
+from facade_pipeline.evaluation.render_views import reflection_record
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.exr import read_exr
 from facade_pipeline.io.images import read_image, read_mask
@@ -28,7 +28,6 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.shading.reflection import model_name
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.ply import write_ply
@@ -132,12 +131,7 @@ def fingerprint(layout: BuildingLayout, params: Params) -> str:
 
 def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Path]:
     write_ply(layout.path("train_ply"), tr.model)
-    refl = {
-        "model": model_name(tr.params.reflection()),
-        "config": asdict(tr.params.reflection()),
-        "bounds": [b.tolist() for b in tr.data.bounds],
-        "state_dict": {} if tr.reflection is None else tr.reflection.state_dict(),
-    }
+    refl = reflection_record(tr.params.reflection(), tr.data.bounds, tr.reflection)
     save_torch(layout.path("train_reflection"), refl)
     lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": metrics})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")

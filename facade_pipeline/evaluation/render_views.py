@@ -128,12 +128,16 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
     try:
         refl = torch.load(variant.reflection, map_location="cpu", weights_only=True)
         name, config, bounds = refl["model"], refl["config"], refl["bounds"]
+        mesh = tuple(refl["mesh"][n] for n in ("vertices", "triangles", "glass")) if "mesh" in refl else None
     except Exception as e:  # torch raises several types for truncated or foreign files
         found = f"an unreadable file ({type(e).__name__}: {e})"
         raise InputError(variant.reflection, "train_gs reflection weights", found) from None
     strategy = reflection_from_config(name, config, variant.reflection)
     lo, hi = (torch.as_tensor(np.asarray(b), dtype=torch.float32, device=device) for b in bounds)
-    module = build_reflection_module(strategy, device, (lo, hi))
+    try:
+        module = build_reflection_module(strategy, device, (lo, hi), mesh)
+    except ValueError as e:
+        raise InputError(variant.reflection, f"what a {strategy} is built from", str(e)) from None
     if module is not None:
         try:
             module.load_state_dict(refl["state_dict"])
@@ -258,6 +262,23 @@ def variant_from_dir(folder: Path, name: str | None = None) -> TrainedVariant:
     return TrainedVariant(name or folder.name, files[0], files[1], files[2], params)
 
 
+def reflection_record(
+    strategy: ReflectionModel, bounds: tuple[np.ndarray, np.ndarray], reflection: nn.Module | None
+) -> dict[str, Any]:
+    """What a ``reflection.pt`` holds (``load_trained`` reads it): the strategy's name and fields, the
+    facade bounds, the weights and, for an MLP with self hits, the mesh it casts against."""
+    record: dict[str, Any] = {
+        "model": model_name(strategy),
+        "config": asdict(strategy),
+        "bounds": [np.asarray(b).tolist() for b in bounds],
+        "state_dict": {} if reflection is None else reflection.state_dict(),
+    }
+    hits = getattr(reflection, "self_hits", None)
+    if hits is not None:
+        record["mesh"] = {n: getattr(hits, n).cpu() for n in ("vertices", "triangles", "glass")}
+    return record
+
+
 def save_variant(
     folder: Path,
     model: GaussianModel,
@@ -271,14 +292,8 @@ def save_variant(
     parameters, atomically, so that ``variant_from_dir`` and the evaluate stage find it."""
     folder.mkdir(parents=True, exist_ok=True)
     write_ply(folder / VARIANT_FILES[0], model)
-    refl = {
-        "model": model_name(strategy),
-        "config": asdict(strategy),
-        "bounds": [np.asarray(b).tolist() for b in bounds],
-        "state_dict": {} if reflection is None else reflection.state_dict(),
-    }
     buf = io.BytesIO()
-    torch.save(refl, buf)
+    torch.save(reflection_record(strategy, bounds, reflection), buf)
     write_bytes(folder / VARIANT_FILES[1], buf.getvalue())
     write_json(folder / VARIANT_FILES[2], split)
     write_json(folder / VARIANT_FILES[3], params)

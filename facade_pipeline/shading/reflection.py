@@ -4,7 +4,8 @@
 - ``EnvMap``: R looked up in a learnable environment map by the reflection direction alone, the infinitely
   distant light of GaussianShader and Ref-Gaussian (cannot represent near-field parallax).
 - ``ReflectionMLP``: the paper's network (section 3.2.2, Fig. 7): R = MLP(gamma(X_r), gamma(w_r)), optionally
-  also fed features read where the reflected ray meets a proxy of the surroundings (``shading.proxy``).
+  also fed features read where the reflected ray meets a proxy of the surroundings (``shading.proxy``)
+  and where it meets the facade itself (``shading.self_hits``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from torch import Tensor, nn
 
 from facade_pipeline.shading.fourier import fourier_dim, fourier_features
 from facade_pipeline.shading.proxy import ProxyFeatures, ProxyGeometry
+from facade_pipeline.shading.self_hits import SELF_HIT_DIM, FacadeHits
 
 #: Standard deviation of the proxy feature maps' initial values.
 PROXY_INIT_STD = 0.1
@@ -60,6 +62,13 @@ class ReflectionMLP:
     """proxy feature maps per part, each a quarter of the resolution of the one before"""
     proxy_radius_m: float = 0.0
     """radius of the proxy around the facade (m); 0: twice the facade bounds' horizontal half-diagonal"""
+    self_hits: bool = False
+    """cast each reflected ray against the corrected mesh and give the middle layer where it meets the
+    facade itself (``shading.self_hits``); the proxy's features are zeroed on such rays"""
+    self_hit_offset_m: float = 0.02
+    """reflected rays start this far along w_r from X_r (m), off the surface they leave"""
+    self_hit_max_m: float = 0.0
+    """hits farther than this are misses (m); 0: every hit counts"""
 
 
 ReflectionModel = SHOnly | EnvMap | ReflectionMLP
@@ -89,22 +98,38 @@ class EnvMapModule(nn.Module):
 
 class ReflectionMLPModule(nn.Module):
     """The reflection MLP of Fig. 7: gamma(X_r) through the first half; at the middle layer concatenate the
-    features with gamma(w_r), (skip) gamma(X_r) again and (proxy) the environment proxy's features at the
-    reflected ray's hit; ReLU hidden layers; sigmoid RGB out."""
+    features with gamma(w_r), (skip) gamma(X_r) again, (self hits) where the reflected ray meets the facade
+    and (proxy) the environment proxy's features at the reflected ray's hit; ReLU hidden layers; sigmoid
+    RGB out."""
 
-    def __init__(self, cfg: ReflectionMLP, bounds: tuple[Tensor, Tensor] | None = None):
-        """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features."""
+    def __init__(
+        self,
+        cfg: ReflectionMLP,
+        bounds: tuple[Tensor, Tensor] | None = None,
+        mesh: tuple[Tensor, Tensor, Tensor | None] | None = None,
+    ):
+        """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features or
+        self hits. ``mesh``: the corrected mesh's vertices [V, 3] (m), triangles [T, 3] and glass labels
+        [T] bool (None: unknown); needed with self hits."""
         super().__init__()
         if cfg.depth < 2 or cfg.width < 1:
             raise ValueError(f"reflection MLP needs depth >= 2 and width >= 1, got {cfg.depth}x{cfg.width}")
         self.cfg = cfg
         self.proxy: ProxyFeatures | None = None
-        if cfg.proxy_channels > 0:
+        self.self_hits: FacadeHits | None = None
+        if cfg.proxy_channels > 0 or cfg.self_hits:
             if bounds is None:
-                raise ValueError("a reflection MLP with proxy features needs the facade bounds")
+                raise ValueError("a reflection MLP with proxy features or self hits needs the facade bounds")
             lo, hi = (b.detach().float() for b in bounds)
             self.register_buffer("bounds_lo", lo.clone(), persistent=False)
             self.register_buffer("bounds_hi", hi.clone(), persistent=False)
+        if cfg.self_hits:
+            if mesh is None:
+                raise ValueError("a reflection MLP with self hits needs the corrected mesh")
+            self.self_hits = FacadeHits(
+                *mesh, offset_m=cfg.self_hit_offset_m, max_distance_m=cfg.self_hit_max_m
+            )
+        if cfg.proxy_channels > 0:
             geometry = ProxyGeometry.around(lo, hi, cfg.proxy_radius_m)
             self.proxy = ProxyFeatures(
                 geometry, cfg.proxy_channels, cfg.proxy_resolution_px, cfg.proxy_levels, PROXY_INIT_STD
@@ -115,7 +140,11 @@ class ReflectionMLPModule(nn.Module):
             nn.Linear(cfg.width, cfg.width) for _ in range(self.n_first - 1)
         ]
         mid_in = (
-            cfg.width + enc + (enc if cfg.skip else 0) + (0 if self.proxy is None else self.proxy.out_dim)
+            cfg.width
+            + enc
+            + (enc if cfg.skip else 0)
+            + (0 if self.proxy is None else self.proxy.out_dim)
+            + (0 if self.self_hits is None else SELF_HIT_DIM)
         )
         second = [nn.Linear(mid_in, cfg.width)]
         second += [nn.Linear(cfg.width, cfg.width) for _ in range(cfg.depth - self.n_first - 1)]
@@ -137,9 +166,14 @@ class ReflectionMLPModule(nn.Module):
         for layer in self.first:
             h = F.relu(layer(h))
         mid = [h, gw, gx] if self.cfg.skip else [h, gw]
-        if self.proxy is not None:
+        if self.proxy is not None or self.self_hits is not None:
             x = self.bounds_lo + 0.5 * (x_norm + 1.0) * (self.bounds_hi - self.bounds_lo)
-            mid.append(self.proxy(x, w_r))
+            hits = None if self.self_hits is None else self.self_hits(x, w_r)
+            if self.proxy is not None:
+                env = self.proxy(x, w_r)
+                mid.append(env if hits is None else env * (1.0 - hits[:, :1]))
+            if hits is not None:
+                mid.append(hits)
         h = torch.cat(mid, dim=-1)
         for layer in self.second:
             h = F.relu(layer(h))
@@ -147,17 +181,22 @@ class ReflectionMLPModule(nn.Module):
 
 
 def build_reflection_module(
-    model: ReflectionModel, device: torch.device | str, bounds: tuple[Tensor, Tensor] | None = None
+    model: ReflectionModel,
+    device: torch.device | str,
+    bounds: tuple[Tensor, Tensor] | None = None,
+    mesh: tuple[Tensor, Tensor, Tensor | None] | None = None,
 ) -> nn.Module | None:
     """The trainable module of a reflection model (None for ``SHOnly``), on ``device``, in float32.
-    ``bounds``: the facade's [lo, hi] (m), which an MLP with proxy features is built around."""
+    ``bounds``: the facade's [lo, hi] (m), which an MLP with proxy features or self hits is built around;
+    ``mesh``: the corrected mesh (vertices [V, 3] m, triangles [T, 3], glass labels [T] or None) that an
+    MLP with self hits casts its reflected rays against."""
     match model:
         case SHOnly():
             return None
         case EnvMap():
             return EnvMapModule(model).to(device)
         case ReflectionMLP():
-            return ReflectionMLPModule(model, bounds).to(device)
+            return ReflectionMLPModule(model, bounds, mesh).to(device)
         case _:
             assert_never(model)
 

@@ -82,6 +82,10 @@ class TrainParams:
     mlp_proxy_resolution_px: int
     mlp_proxy_levels: int
     mlp_proxy_radius_m: float
+    mlp_self_hits: bool
+    """give the MLP where each reflected ray meets the facade itself (``shading.self_hits``)"""
+    mlp_self_hit_offset_m: float
+    mlp_self_hit_max_m: float
     envmap_height_px: int
     envmap_width_px: int
     sh_degree: int
@@ -148,6 +152,9 @@ class TrainParams:
                     self.mlp_proxy_resolution_px,
                     self.mlp_proxy_levels,
                     self.mlp_proxy_radius_m,
+                    self.mlp_self_hits,
+                    self.mlp_self_hit_offset_m,
+                    self.mlp_self_hit_max_m,
                 )
             case _:
                 assert_never(self.reflection_model)

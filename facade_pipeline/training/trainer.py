@@ -135,7 +135,9 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     )
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
-        reflection = build_reflection_module(p.reflection(), device, (shading.bounds_lo, shading.bounds_hi))
+        reflection = build_reflection_module(
+            p.reflection(), device, (shading.bounds_lo, shading.bounds_hi), reflection_mesh(data)
+        )
     opt = _gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else _reflection_optimizer(p, reflection)
     cameras = [
@@ -148,6 +150,17 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
         for v in data.views
     ]
     return reflection, opt, opt_refl, shading, cameras
+
+
+def reflection_mesh(data: TrainData) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The corrected mesh an MLP with self hits casts against: vertices [V, 3] (m), triangles [T, 3] and
+    glass labels [T] bool (None: unknown)."""
+    m = data.init
+    return (
+        torch.as_tensor(m.mesh_vertices, dtype=torch.float32),
+        torch.as_tensor(m.mesh_triangles, dtype=torch.int64),
+        None if m.mesh_glass is None else torch.as_tensor(m.mesh_glass, dtype=torch.bool),
+    )
 
 
 def _build_corrections(

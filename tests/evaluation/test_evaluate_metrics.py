@@ -18,7 +18,13 @@ from facade_pipeline.evaluation.image_eval import (
     view_metrics,
 )
 from facade_pipeline.evaluation.metrics import psnr
-from facade_pipeline.evaluation.report import build_html, build_markdown, pareto_front, table3_rows
+from facade_pipeline.evaluation.report import (
+    architecture_label,
+    build_html,
+    build_markdown,
+    pareto_front,
+    table3_rows,
+)
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.panels import Panel, PanelSet
@@ -215,6 +221,10 @@ def test_table3_only_for_an_mlp_ablation():
 
     base = {"iterations": 10, "seed": 0, "device": "cpu", **arch}
     assert ablation_group(base) == ablation_group({**base, "mlp_width": 64, "device": "cuda"})
+    assert ablation_group(base) == ablation_group({**base, "mlp_self_hits": True})
+    full = {**arch, "mlp_proxy_channels": 8, "mlp_self_hits": True}
+    label = architecture_label(full)
+    assert label.endswith("w/ skip connection, environment proxy (8 channels), facade self hits")
     assert ablation_group(base) != ablation_group({**base, "iterations": 20})
 
 
