@@ -103,13 +103,14 @@ def gt_data(layout: BuildingLayout, test_every: int) -> TrainData:
 
 def paper_mlp(base: TrainParams) -> TrainParams:
     """``base`` with the paper's reflection model and training as published: its 8 x 512 network without
-    the environment proxy, reflection gradients into the normals, one initial reflectivity for every splat,
-    the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos; the MLP pixel cap of
-    the old CPU budget."""
+    the environment proxy or self hits, reflection gradients into the normals, one initial reflectivity for
+    every splat, the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos; the
+    MLP pixel cap of the old CPU budget."""
     return dataclasses.replace(
         base,
         reflection_model="mlp",
         mlp_proxy_channels=0,
+        mlp_self_hits=False,
         mlp_depth=8,
         mlp_width=512,
         mlp_max_pixels=2048 if base.patch_px else base.mlp_max_pixels,
@@ -228,7 +229,8 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"{p.mlp_max_pixels or 'all'} MLP pixels per step, {p.init_max_points} + {p.init_mesh_samples} "
         f"initial splats (cap {p.densify.max_gaussians}), reflection MLP {p.mlp_depth} x {p.mlp_width}, "
         f"L = {p.fourier_levels}, skip {p.mlp_skip}, environment proxy {p.mlp_proxy_channels} channels at "
-        f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}), initial reflectivity {p.init_reflectivity} "
+        f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}), facade self hits {p.mlp_self_hits}, "
+        f"initial reflectivity {p.init_reflectivity} "
         f"({p.init_reflectivity_glass} on glass), reflection gradient into normals "
         f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, exposure gains estimated "
         f"{p.exposure_estimate} / learnt {p.exposure_refinement}, high-frequency weight "

@@ -25,8 +25,8 @@ The mesh must be wound outward (as ``correct_mesh`` writes it), and which triang
 With no labels every triangle is taken for glass (only front hits count).
 
 No gradient flows through the cast: the hit is a step function of the ray, and X_r and w_r learn from
-every other term. The mesh is kept as buffers of the module (saved with its weights by the stage) and the
-ray-casting scene is built on first use, on the host.
+every other term. The mesh is kept as buffers of the module, out of its state dict (``train_gs`` saves it
+beside the weights in ``reflection.pt``), and the ray-casting scene is built on first use, on the host.
 """
 
 from __future__ import annotations
@@ -80,8 +80,13 @@ class FacadeHits(nn.Module):
 
     def _cast(self, origins: np.ndarray, dirs: np.ndarray):
         if self._caster is None:
-            from facade_pipeline.geometry.raycast import MeshRaycaster
-
+            try:
+                from facade_pipeline.geometry.raycast import MeshRaycaster
+            except ImportError as e:
+                raise ImportError(
+                    f"the reflection MLP's self hits cast rays with open3d, which is not importable ({e}); "
+                    "install it or train with mlp_self_hits = false"
+                ) from e
             self._caster = MeshRaycaster(self.vertices.cpu().numpy(), self.triangles.cpu().numpy())
         return self._caster.cast(origins, dirs)
 

@@ -378,6 +378,7 @@ def test_full_size_mlp_on_tiny_inputs():
         fourier_levels=12,
         mlp_skip=True,
         mlp_proxy_channels=0,
+        mlp_self_hits=False,
         mask_by_facade=False,
     )
     tr = build_trainer(p, hard_scene(), RASTER)
