@@ -408,7 +408,7 @@ def _states_equal(a, b) -> None:
             assert ka == kb and torch.equal(va, vb), ka
 
 
-@pytest.mark.parametrize("refine", ["none", "pose", "exposure", "estimate"])
+@pytest.mark.parametrize("refine", ["none", "pose", "exposure", "estimate", "self_hits"])
 def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     p = small_params(  # densification every 5 falls between checkpoints
         iterations=14,
@@ -416,6 +416,7 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
         pose_refinement=refine == "pose",
         exposure_refinement=refine == "exposure",
         exposure_estimate=refine == "estimate",
+        mlp_self_hits=refine == "self_hits",
     )
     ref = train(build_trainer(p, data64, RASTER))
     ckpt = tmp_path / "ckpt.pt"
