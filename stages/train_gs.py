@@ -19,7 +19,6 @@ from tqdm import tqdm
 
 from facade_pipeline.config import to_dict
 from facade_pipeline.errors import InputError
-from facade_pipeline.evaluation.render_views import reflection_record
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.exr import read_exr
 from facade_pipeline.io.images import read_image, read_mask
@@ -28,6 +27,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.shading.reflection import reflection_record
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.ply import write_ply

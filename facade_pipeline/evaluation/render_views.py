@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import io
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +30,9 @@ from facade_pipeline.shading.reflection import (
     ReflectionModel,
     SHOnly,
     build_reflection_module,
-    model_name,
+    reflection_record,
 )
+from facade_pipeline.shading.self_hits import MESH_FIELDS
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
@@ -128,7 +129,7 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
     try:
         refl = torch.load(variant.reflection, map_location="cpu", weights_only=True)
         name, config, bounds = refl["model"], refl["config"], refl["bounds"]
-        mesh = tuple(refl["mesh"][n] for n in ("vertices", "triangles", "glass")) if "mesh" in refl else None
+        mesh = tuple(refl["mesh"][n] for n in MESH_FIELDS) if "mesh" in refl else None
     except Exception as e:  # torch raises several types for truncated or foreign files
         found = f"an unreadable file ({type(e).__name__}: {e})"
         raise InputError(variant.reflection, "train_gs reflection weights", found) from None
@@ -260,23 +261,6 @@ def variant_from_dir(folder: Path, name: str | None = None) -> TrainedVariant:
     except ValueError as e:
         raise InputError(files[3], "train_gs parameters as JSON", str(e)) from None
     return TrainedVariant(name or folder.name, files[0], files[1], files[2], params)
-
-
-def reflection_record(
-    strategy: ReflectionModel, bounds: tuple[np.ndarray, np.ndarray], reflection: nn.Module | None
-) -> dict[str, Any]:
-    """What a ``reflection.pt`` holds (``load_trained`` reads it): the strategy's name and fields, the
-    facade bounds, the weights and, for an MLP with self hits, the mesh it casts against."""
-    record: dict[str, Any] = {
-        "model": model_name(strategy),
-        "config": asdict(strategy),
-        "bounds": [np.asarray(b).tolist() for b in bounds],
-        "state_dict": {} if reflection is None else reflection.state_dict(),
-    }
-    hits = getattr(reflection, "self_hits", None)
-    if hits is not None:
-        record["mesh"] = {n: getattr(hits, n).cpu() for n in ("vertices", "triangles", "glass")}
-    return record
 
 
 def save_variant(

@@ -11,8 +11,8 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import assert_never
+from dataclasses import asdict, dataclass
+from typing import Any, assert_never
 
 import torch
 import torch.nn.functional as F
@@ -20,7 +20,7 @@ from torch import Tensor, nn
 
 from facade_pipeline.shading.fourier import fourier_dim, fourier_features
 from facade_pipeline.shading.proxy import ProxyFeatures, ProxyGeometry
-from facade_pipeline.shading.self_hits import SELF_HIT_DIM, FacadeHits
+from facade_pipeline.shading.self_hits import MESH_FIELDS, SELF_HIT_DIM, FacadeHits
 
 #: Standard deviation of the proxy feature maps' initial values.
 PROXY_INIT_STD = 0.1
@@ -212,3 +212,21 @@ def model_name(model: ReflectionModel) -> str:
             return "mlp"
         case _:
             assert_never(model)
+
+
+def reflection_record(
+    strategy: ReflectionModel, bounds: tuple[Any, Any], reflection: nn.Module | None
+) -> dict[str, Any]:
+    """What a ``reflection.pt`` holds (``evaluation.render_views.load_trained`` reads it): the strategy's
+    name and fields, the facade bounds [lo, hi] (m), the weights and, for an MLP with self hits, the mesh
+    it casts against."""
+    record: dict[str, Any] = {
+        "model": model_name(strategy),
+        "config": asdict(strategy),
+        "bounds": [[float(c) for c in b] for b in bounds],
+        "state_dict": {} if reflection is None else reflection.state_dict(),
+    }
+    hits = getattr(reflection, "self_hits", None)
+    if hits is not None:
+        record["mesh"] = {n: getattr(hits, n).cpu() for n in MESH_FIELDS}
+    return record

@@ -37,6 +37,8 @@ from torch import Tensor, nn
 
 #: values per ray: hit flag, hit normal (3), hit distance over the facade diagonal
 SELF_HIT_DIM = 5
+#: the mesh's buffers, as ``reflection.pt`` stores them (``shading.reflection.reflection_record``)
+MESH_FIELDS = ("vertices", "triangles", "glass")
 #: a ray that meets a triangle's back goes on from this far past it (m)
 _PASS_M = 1e-3
 
@@ -77,6 +79,7 @@ class FacadeHits(nn.Module):
         self.max_distance_m = float(max_distance_m)
         self.scale_m = float((v.max(0).values - v.min(0).values).norm().clamp_min(1e-6))
         self._caster = None
+        self._glass_host: np.ndarray | None = None  # the labels on the host, with the scene
 
     def _cast(self, origins: np.ndarray, dirs: np.ndarray):
         if self._caster is None:
@@ -88,6 +91,7 @@ class FacadeHits(nn.Module):
                     "install it or train with mlp_self_hits = false"
                 ) from e
             self._caster = MeshRaycaster(self.vertices.cpu().numpy(), self.triangles.cpu().numpy())
+            self._glass_host = self.glass.cpu().numpy()
         return self._caster.cast(origins, dirs)
 
     @torch.no_grad()
@@ -104,7 +108,7 @@ class FacadeHits(nn.Module):
         t, normal = hits.t.copy(), hits.normal.copy()
         # A first hit on a glass triangle's back (the mesh is wound outward): the ray started behind the
         # glass it leaves. Cast once more from just past that hit (see the module docstring).
-        glass = self.glass.cpu().numpy()
+        glass = self._glass_host
         back = np.isfinite(t) & ((normal * d).sum(1) > 0) & glass[np.maximum(hits.prim, 0)]
         if back.any():
             step = t[back] + _PASS_M

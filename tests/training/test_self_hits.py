@@ -200,7 +200,8 @@ def test_mlp_gets_the_hits_and_ignores_the_proxy_where_a_ray_hits():
 
 
 def test_saved_model_with_self_hits_renders_the_same(tmp_path):
-    from facade_pipeline.evaluation.render_views import load_trained, reflection_record, variant_from_dir
+    from facade_pipeline.evaluation.render_views import load_trained, variant_from_dir
+    from facade_pipeline.shading.reflection import reflection_record
 
     cfg = _mlp_cfg()
     torch.manual_seed(1)
