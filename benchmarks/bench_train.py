@@ -219,6 +219,11 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         import torch
 
         where += f" GPU: {torch.cuda.get_device_name(device)} (torch {torch.__version__}), training on it."
+    proxy_shape = (
+        f"the surroundings' surface model in {p.mlp_proxy_cell_m} m cells"
+        if p.mlp_proxy_surroundings
+        else "the cylinder room"
+    )
     lines = [
         f"\n## train_gs accuracy, {datetime.now():%Y-%m-%d %H:%M}\n",
         f"{where}\n",
@@ -229,7 +234,8 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"{p.mlp_max_pixels or 'all'} MLP pixels per step, {p.init_max_points} + {p.init_mesh_samples} "
         f"initial splats (cap {p.densify.max_gaussians}), reflection MLP {p.mlp_depth} x {p.mlp_width}, "
         f"L = {p.fourier_levels}, skip {p.mlp_skip}, environment proxy {p.mlp_proxy_channels} channels at "
-        f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}), facade self hits {p.mlp_self_hits}, "
+        f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}; {proxy_shape}), "
+        f"facade self hits {p.mlp_self_hits}, "
         f"initial reflectivity {p.init_reflectivity} "
         f"({p.init_reflectivity_glass} on glass), reflection gradient into normals "
         f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, exposure gains estimated "

@@ -168,6 +168,9 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     metrics = evaluate(tr, data.test_idx)
     outputs = _save_outputs(layout, tr, metrics)
     last = tr.log[-1] if tr.log else {}
+    surroundings = getattr(getattr(tr.reflection, "proxy", None), "surroundings", None)
+    # cells of the proxy's surface model above the ground (0: the coarse points hold no surroundings)
+    cells = None if surroundings is None else int((surroundings.heights[1] > 0).sum())
     return StageReport(
         outputs,
         {
@@ -185,6 +188,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "test_psnr_glass": metrics["psnr_glass"],
             "test_normal_error_glass_deg": metrics["normal_error_glass_deg"],
             "test_views": metrics["views"],
+            "proxy_surroundings_cells": cells,
         },
     )
 

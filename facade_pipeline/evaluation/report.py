@@ -25,6 +25,7 @@ ARCHITECTURE_KEYS = (
     "mlp_width",
     "mlp_skip",
     "mlp_proxy_channels",
+    "mlp_proxy_surroundings",
     "mlp_self_hits",
 )
 _COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
@@ -49,13 +50,15 @@ def primary_convention(metrics: dict[str, Any]) -> str:
 
 def architecture_label(arch: dict[str, Any]) -> str:
     """Table 3's wording: "L = 12, 8 layers, 512 hidden dim, w/ skip connection", and the environment
-    proxy and the self hits when there are (a model saved before they existed has neither)."""
+    proxy (the room or the surroundings) and the self hits when there are (a model saved before they
+    existed has neither)."""
     skip = "w/" if arch["mlp_skip"] else "w/o"
     proxy = int(arch.get("mlp_proxy_channels") or 0)
+    surroundings = ", surroundings" if arch.get("mlp_proxy_surroundings") else ""
     return (
         f"L = {arch['fourier_levels']}, {arch['mlp_depth']} layers, {arch['mlp_width']} hidden dim, "
         f"{skip} skip connection"
-        + (f", environment proxy ({proxy} channels)" if proxy else "")
+        + (f", environment proxy ({proxy} channels{surroundings})" if proxy else "")
         + (", facade self hits" if arch.get("mlp_self_hits") else "")
     )
 

@@ -14,6 +14,9 @@ the wall (azimuth, elevation angle) are read at the hit, and the MLP gets them b
 gamma(w_r). Rays from many views that meet on the same spot of ground read the same texels, whatever their
 direction: parallax is right by construction for everything that lies on the proxy and approximately right
 near it, and each texel learns at the rate of a splat colour rather than through the MLP's weights.
+
+With ``surroundings`` the rays meet the trees and buildings reconstructed in the coarse point cloud instead of
+the wall (``shading.surroundings``: a surface model), so that parallax is right for them too.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from facade_pipeline.shading.surroundings import Surroundings
 
 #: Below this, a ray's horizontal (vertical) component counts as zero: it never meets the wall (floor).
 _EPS = 1e-6
@@ -97,9 +102,18 @@ class ProxyFeatures(nn.Module):
     ``levels`` maps per part, each a quarter of the resolution of the one before and summed; the floor's
     finest is ``resolution`` x ``resolution`` texels over its diameter, the wall's ``resolution`` around by
     ``resolution / 4`` up. Output per ray: floor features where it hits the floor (else 0), wall features
-    where it hits the wall (else 0) and a 0/1 floor flag: ``2 channels + 1`` values."""
+    where it hits the wall (else 0) and a 0/1 floor flag: ``2 channels + 1`` values. With ``surroundings``
+    the rays are cast against it (and its ground) instead of the room; its radii are saved with the maps."""
 
-    def __init__(self, geometry: ProxyGeometry, channels: int, resolution: int, levels: int, init_std: float):
+    def __init__(
+        self,
+        geometry: ProxyGeometry,
+        channels: int,
+        resolution: int,
+        levels: int,
+        init_std: float,
+        surroundings: Surroundings | None = None,
+    ):
         super().__init__()
         if channels < 1 or levels < 1 or resolution >> (2 * (levels - 1)) < 4:
             raise ValueError(
@@ -107,6 +121,7 @@ class ProxyFeatures(nn.Module):
                 f"got channels={channels}, resolution={resolution}, levels={levels}"
             )
         self.geometry = geometry
+        self.surroundings = surroundings
         self.channels = channels
         sizes = [resolution >> (2 * i) for i in range(levels)]
         self.floor = nn.ParameterList(nn.Parameter(torch.randn(1, channels, s, s) * init_std) for s in sizes)
@@ -127,7 +142,8 @@ class ProxyFeatures(nn.Module):
         return out.view(out.shape[1], -1).T
 
     def forward(self, x: Tensor, w: Tensor) -> Tensor:  # x [P, 3] metres, w [P, 3] unit -> [P, 2C + 1]
-        on_floor, floor_uv, wall_uv = self.geometry.hit(x, w)
+        shape = self.geometry if self.surroundings is None else self.surroundings
+        on_floor, floor_uv, wall_uv = shape.hit(x, w)
         f = on_floor.unsqueeze(-1).to(x.dtype)
         return torch.cat(
             [f * self._sample(self.floor, floor_uv), (1.0 - f) * self._sample(self.wall, wall_uv), f], dim=-1

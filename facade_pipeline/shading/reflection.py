@@ -14,6 +14,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any, assert_never
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -21,6 +22,7 @@ from torch import Tensor, nn
 from facade_pipeline.shading.fourier import fourier_dim, fourier_features
 from facade_pipeline.shading.proxy import ProxyFeatures, ProxyGeometry
 from facade_pipeline.shading.self_hits import MESH_FIELDS, SELF_HIT_DIM, FacadeHits
+from facade_pipeline.shading.surroundings import Surroundings
 
 #: Standard deviation of the proxy feature maps' initial values.
 PROXY_INIT_STD = 0.1
@@ -62,6 +64,16 @@ class ReflectionMLP:
     """proxy feature maps per part, each a quarter of the resolution of the one before"""
     proxy_radius_m: float = 0.0
     """radius of the proxy around the facade (m); 0: twice the facade bounds' horizontal half-diagonal"""
+    proxy_surroundings: bool = False
+    """reflected rays meet the surroundings of the coarse point cloud (``shading.surroundings``: a surface
+    model of its trees and buildings) and the ground instead of the room's wall and floor"""
+    proxy_cell_m: float = 1.0
+    """cell size of that surface model (m)"""
+    proxy_reach_m: float = 0.0
+    """how far from the facade's centre the surface model and the floor reach (m); 0: 1.5 x the room's
+    radius"""
+    proxy_margin_m: float = 1.0
+    """coarse points farther than this outside the facade bounds (horizontally) make the panorama (m)"""
     self_hits: bool = False
     """cast each reflected ray against the corrected mesh and give the middle layer where it meets the
     facade itself (``shading.self_hits``); the proxy's features are zeroed on such rays"""
@@ -107,10 +119,12 @@ class ReflectionMLPModule(nn.Module):
         cfg: ReflectionMLP,
         bounds: tuple[Tensor, Tensor] | None = None,
         mesh: tuple[Tensor, Tensor, Tensor | None] | None = None,
+        points: np.ndarray | None = None,
     ):
         """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features or
         self hits. ``mesh``: the corrected mesh's vertices [V, 3] (m), triangles [T, 3] and glass labels
-        [T] bool (None: unknown); needed with self hits."""
+        [T] bool (None: unknown); needed with self hits. ``points``: the coarse point cloud [N, 3] (m) the
+        proxy's surroundings are binned from (None: left empty for a saved state to fill)."""
         super().__init__()
         if cfg.depth < 2 or cfg.width < 1:
             raise ValueError(f"reflection MLP needs depth >= 2 and width >= 1, got {cfg.depth}x{cfg.width}")
@@ -131,8 +145,17 @@ class ReflectionMLPModule(nn.Module):
             )
         if cfg.proxy_channels > 0:
             geometry = ProxyGeometry.around(lo, hi, cfg.proxy_radius_m)
+            surroundings = None
+            if cfg.proxy_surroundings:
+                reach = cfg.proxy_reach_m if cfg.proxy_reach_m > 0 else 1.5 * geometry.radius
+                surroundings = Surroundings(lo, hi, reach, cfg.proxy_cell_m, points, cfg.proxy_margin_m)
             self.proxy = ProxyFeatures(
-                geometry, cfg.proxy_channels, cfg.proxy_resolution_px, cfg.proxy_levels, PROXY_INIT_STD
+                geometry,
+                cfg.proxy_channels,
+                cfg.proxy_resolution_px,
+                cfg.proxy_levels,
+                PROXY_INIT_STD,
+                surroundings,
             )
         enc = fourier_dim(cfg.fourier_levels)
         self.n_first = cfg.depth // 2
@@ -185,18 +208,20 @@ def build_reflection_module(
     device: torch.device | str,
     bounds: tuple[Tensor, Tensor] | None = None,
     mesh: tuple[Tensor, Tensor, Tensor | None] | None = None,
+    points: np.ndarray | None = None,
 ) -> nn.Module | None:
     """The trainable module of a reflection model (None for ``SHOnly``), on ``device``, in float32.
     ``bounds``: the facade's [lo, hi] (m), which an MLP with proxy features or self hits is built around;
     ``mesh``: the corrected mesh (vertices [V, 3] m, triangles [T, 3], glass labels [T] or None) that an
-    MLP with self hits casts its reflected rays against."""
+    MLP with self hits casts its reflected rays against; ``points``: the coarse point cloud [N, 3] (m) an
+    MLP's proxy surroundings are binned from (None: empty until a saved state is loaded)."""
     match model:
         case SHOnly():
             return None
         case EnvMap():
             return EnvMapModule(model).to(device)
         case ReflectionMLP():
-            return ReflectionMLPModule(model, bounds, mesh).to(device)
+            return ReflectionMLPModule(model, bounds, mesh, points).to(device)
         case _:
             assert_never(model)
 

@@ -82,6 +82,10 @@ class TrainParams:
     mlp_proxy_resolution_px: int
     mlp_proxy_levels: int
     mlp_proxy_radius_m: float
+    mlp_proxy_surroundings: bool
+    """reflected rays meet the surroundings of the coarse point cloud (``shading.surroundings``)"""
+    mlp_proxy_cell_m: float
+    mlp_proxy_reach_m: float
     mlp_self_hits: bool
     """give the MLP where each reflected ray meets the facade itself (``shading.self_hits``)"""
     mlp_self_hit_offset_m: float
@@ -152,6 +156,10 @@ class TrainParams:
                     self.mlp_proxy_resolution_px,
                     self.mlp_proxy_levels,
                     self.mlp_proxy_radius_m,
+                    self.mlp_proxy_surroundings,
+                    self.mlp_proxy_cell_m,
+                    self.mlp_proxy_reach_m,
+                    self.init_bounds_margin_m,
                     self.mlp_self_hits,
                     self.mlp_self_hit_offset_m,
                     self.mlp_self_hit_max_m,

@@ -136,7 +136,11 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
         reflection = build_reflection_module(
-            p.reflection(), device, (shading.bounds_lo, shading.bounds_hi), reflection_mesh(data)
+            p.reflection(),
+            device,
+            (shading.bounds_lo, shading.bounds_hi),
+            reflection_mesh(data),
+            data.init.points,
         )
     opt = _gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else _reflection_optimizer(p, reflection)

@@ -225,6 +225,9 @@ def test_table3_only_for_an_mlp_ablation():
     full = {**arch, "mlp_proxy_channels": 8, "mlp_self_hits": True}
     label = architecture_label(full)
     assert label.endswith("w/ skip connection, environment proxy (8 channels), facade self hits")
+    label = architecture_label({**full, "mlp_proxy_surroundings": True})
+    assert label.endswith("environment proxy (8 channels, surroundings), facade self hits")
+    assert ablation_group(base) == ablation_group({**base, "mlp_proxy_surroundings": True})
     assert ablation_group(base) != ablation_group({**base, "iterations": 20})
 
 
