@@ -103,7 +103,7 @@ class ProxyFeatures(nn.Module):
     finest is ``resolution`` x ``resolution`` texels over its diameter, the wall's ``resolution`` around by
     ``resolution / 4`` up. Output per ray: floor features where it hits the floor (else 0), wall features
     where it hits the wall (else 0) and a 0/1 floor flag: ``2 channels + 1`` values. With ``surroundings``
-    the rays are cast against it (and its ground) instead of the room; its radii are saved with the maps."""
+    the rays are cast against it (and its ground) instead of the room; its heights are saved with the maps."""
 
     def __init__(
         self,

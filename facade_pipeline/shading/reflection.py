@@ -73,7 +73,7 @@ class ReflectionMLP:
     """how far from the facade's centre the surface model and the floor reach (m); 0: 1.5 x the room's
     radius"""
     proxy_margin_m: float = 1.0
-    """coarse points farther than this outside the facade bounds (horizontally) make the panorama (m)"""
+    """coarse points farther than this outside the facade bounds (horizontally) make the surface model (m)"""
     self_hits: bool = False
     """cast each reflected ray against the corrected mesh and give the middle layer where it meets the
     facade itself (``shading.self_hits``); the proxy's features are zeroed on such rays"""

@@ -46,6 +46,8 @@ GROUND_SNAP_M = 1.5
 RAY_OFFSET_M = 0.05
 #: The elevation of the highest point is at most this (rad).
 MAX_ELEVATION = math.radians(60.0)
+#: At most this many cells across the surface model (a 4096 x 4096 grid of two heights is 128 MiB).
+MAX_CELLS = 4096
 #: Below this, a ray's vertical component counts as zero: it never meets the ground.
 _EPS = 1e-6
 
@@ -149,11 +151,18 @@ class Surroundings(nn.Module):
         ``cell_m``. With ``points`` [N, 3] (the coarse point cloud, m) the heights come from them; without,
         they are 0 (ground only) until a saved state is loaded."""
         super().__init__()
-        if not reach_m > 0:
-            raise ValueError(f"the surroundings need a positive reach, got {reach_m} m")
+        if not (reach_m > 0 and cell_m > 0):
+            raise ValueError(
+                f"the surroundings need a positive reach and cell size, got {reach_m} m, {cell_m} m"
+            )
+        cells = max(2, int(math.ceil(2.0 * reach_m / cell_m)))
+        if cells > MAX_CELLS:
+            raise ValueError(
+                f"the surroundings' surface model would have {cells} x {cells} cells ({reach_m} m out in "
+                f"{cell_m} m cells); at most {MAX_CELLS} across: use larger cells"
+            )
         lo_ = lo.detach().double().cpu().numpy()
         hi_ = hi.detach().double().cpu().numpy()
-        cells = max(2, int(math.ceil(2.0 * reach_m / cell_m)))
         if points is None:
             heights = np.zeros((2, cells, cells))
         else:

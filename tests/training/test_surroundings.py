@@ -147,6 +147,12 @@ def test_hard_rays_are_finite():
     assert not on_floor[0] and wall_uv[0, 1].item() == 0.0
 
 
+@pytest.mark.parametrize(("reach", "cell"), [(0.0, 1.0), (40.0, 0.0), (40.0, -1.0), (1e5, 1.0)])
+def test_bad_sizes_are_refused(reach, cell):
+    with pytest.raises(ValueError, match="surroundings"):
+        Surroundings(LO, HI, reach_m=reach, cell_m=cell)
+
+
 def test_saved_state_casts_against_the_same_surface():
     cfg = ReflectionMLP(2, 2, 8, True, proxy_channels=2, proxy_resolution_px=16, proxy_levels=1,
                         proxy_surroundings=True, proxy_reach_m=40.0)  # fmt: skip
