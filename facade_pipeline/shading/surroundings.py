@@ -104,11 +104,13 @@ def surface_mesh(heights: np.ndarray, cell_m: float, centre_xy: np.ndarray, grou
     xa, xb = x0 + i * cell_m, x0 + (i + 1) * cell_m
     ya, yb = y0 + j * cell_m, y0 + (j + 1) * cell_m
 
-    def flat(z, keep):
-        c = [(xa, ya), (xb, ya), (xb, yb), (xa, yb)]
-        return np.stack([np.stack([u[keep], v[keep], z[keep]], -1) for u, v in c], 1)
+    def quads_of(corners, keep):  # four (x, y, z) arrays over the cells -> [kept, 4, 3]
+        return np.stack([np.stack([u[keep], v[keep], z[keep]], -1) for u, v, z in corners], 1)
 
-    quads = [flat(zt, np.ones_like(zt, bool)), flat(zb, bottom[i, j] > 0)]
+    def flat(z):
+        return [(xa, ya, z), (xb, ya, z), (xb, yb, z), (xa, yb, z)]
+
+    quads = [quads_of(flat(zt), np.ones_like(zt, bool)), quads_of(flat(zb), bottom[i, j] > 0)]
     pb, pt = np.pad(bottom, 1), np.pad(top, 1)
     for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
         nb_b, nb_t = pb[1 + i + di, 1 + j + dj], pt[1 + i + di, 1 + j + dj]
@@ -124,11 +126,10 @@ def surface_mesh(heights: np.ndarray, cell_m: float, centre_xy: np.ndarray, grou
             (np.where(empty, zb, np.maximum(zb, ground_z + nb_t)), zt),
             (zb, np.where(empty, zb, np.minimum(zt, ground_z + nb_b))),
         )
+        (ua, va), (ub, vb) = ends
         for lo_z, hi_z in pieces:
-            keep = hi_z > lo_z + 1e-6
-            (ua, va), (ub, vb) = ends
             c = [(ua, va, lo_z), (ub, vb, lo_z), (ub, vb, hi_z), (ua, va, hi_z)]
-            quads.append(np.stack([np.stack([u[keep], v[keep], z[keep]], -1) for u, v, z in c], 1))
+            quads.append(quads_of(c, hi_z > lo_z + 1e-6))
     q = np.concatenate(quads)  # [Q, 4, 3]
     k = 4 * np.arange(len(q))[:, None]
     return q.reshape(-1, 3), np.concatenate([k + [0, 1, 2], k + [0, 2, 3]]).astype(np.int64)
