@@ -150,23 +150,42 @@ def facade_points(g: PartGeometry, scene: Scene, rng: np.random.Generator) -> tu
 
 def environment_samples(scene: Scene, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """``count`` points [N, 3] on the environment within ``environment_radius_m`` of the site origin
-    (area-weighted over triangles whose centroid is that close) and their lit albedo [N, 3]."""
+    (horizontally), uniform by area over the part of the surfaces inside that radius, and their lit albedo
+    [N, 3]. The radius cuts surfaces where it passes, not whole triangles: a building's face, two large
+    triangles, keeps its full height up to the cut (a test by triangle centroids kept one triangle of such a
+    face, and so a building half as tall, or none of it)."""
     p = scene.params
     env = scene.environment
-    cent = env.vertices[env.triangles].mean(axis=1)
-    near = (
-        np.linalg.norm((cent - scene.world_from_site[:3, 3])[:, :2], axis=1) < p.coarse.environment_radius_m
-    )
+    origin = scene.world_from_site[:3, 3][:2]
+    radius = p.coarse.environment_radius_m
+    # a triangle reaches inside the disc when an edge passes within the radius or the triangle covers the
+    # origin (seen from above)
+    a = env.vertices[env.triangles][:, :, :2] - origin  # [F, 3, 2]
+    ab = np.roll(a, -1, axis=1) - a
+    s = np.clip(-(a * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    edge_dist = np.linalg.norm(a + s[..., None] * ab, axis=2).min(axis=1)  # [F]
+    side = a[..., 0] * ab[..., 1] - a[..., 1] * ab[..., 0]  # [F, 3]: the origin's side of each edge
+    covers = (side >= 0).all(axis=1) | (side <= 0).all(axis=1)
+    near = (edge_dist < radius) | covers
     if count <= 0 or not near.any():
         return np.zeros((0, 3)), np.zeros((0, 3))
     ids = np.flatnonzero(near)
     w = env.areas[ids]
-    tri = ids[rng.choice(len(ids), size=count, p=w / w.sum())]
-    u, v = rng.uniform(size=(2, count))
-    flip = u + v > 1
-    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
-    V = env.vertices[env.triangles[tri]]
-    xyz = V[:, 0] + u[:, None] * (V[:, 1] - V[:, 0]) + v[:, None] * (V[:, 2] - V[:, 0])
+    xyz = np.zeros((0, 3))
+    tri = np.zeros(0, np.int64)
+    for _ in range(1000):  # draw by area over the triangles that reach in, keep the points inside
+        if len(xyz) >= count:
+            break
+        n = 2 * (count - len(xyz)) + 16
+        t = ids[rng.choice(len(ids), size=n, p=w / w.sum())]
+        u, v = rng.uniform(size=(2, n))
+        flip = u + v > 1
+        u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+        V = env.vertices[env.triangles[t]]
+        q = V[:, 0] + u[:, None] * (V[:, 1] - V[:, 0]) + v[:, None] * (V[:, 2] - V[:, 0])
+        inside = np.linalg.norm(q[:, :2] - origin, axis=1) < radius
+        xyz, tri = np.concatenate([xyz, q[inside]]), np.concatenate([tri, t[inside]])
+    xyz, tri = xyz[:count], tri[:count]
     normals = env.normals[tri]
     a = albedo(
         env.material[tri],

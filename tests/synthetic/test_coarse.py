@@ -68,3 +68,35 @@ def test_ghost_points_lie_behind_the_glass_as_mirror_images():
     d = np.linalg.norm(ghost[:, None, :] - mirror[None], axis=2).min(axis=1)
     assert d.max() < 1e-9  # every ghost is the mirror image of an environment point
     assert np.all((rgb >= 0) & (rgb <= 1))
+
+
+def test_environment_points_fill_the_disc_and_stop_at_its_edge():
+    """The radius cuts surfaces where it passes: a building it crosses keeps points up to its full height on
+    the inside part, and no point lies outside."""
+    base = tiny()
+    scene = build_scene(base)
+    env = scene.environment
+    origin = scene.world_from_site[:3, 3][:2]
+    # the building the default scene's radius would cut most evenly: a radius through its middle
+    spans = []
+    for k in range(len(scene.placement.buildings)):
+        v = env.vertices[env.triangles[env.object_id == k]].reshape(-1, 3)
+        d = np.linalg.norm(v[:, :2] - origin, axis=1)
+        spans.append((d.max() - d.min(), k, 0.5 * (d.min() + d.max()), v[:, 2].max() - v[:, 2].min()))
+    _, k, radius, height = max(spans)
+    p = replace_in(base, "coarse", environment_radius_m=float(radius), environment_points=20000)
+    cut = build_scene(p)
+    xyz, rgb = coarse_points(cut)
+    pts = xyz[-p.coarse.environment_points :]
+    assert len(pts) == 20000 and np.all((rgb >= 0) & (rgb <= 1))
+    assert np.linalg.norm(pts[:, :2] - origin, axis=1).max() < radius
+    # points on building k: inside its footprint (seen from above), above the ground
+    bx, by, bw, bd, _, byaw = cut.placement.buildings[k]
+    centre = (cut.world_from_site @ np.array([bx, by, 0.0, 1.0]))[:2]
+    rel = pts[:, :2] - centre
+    yaw = byaw + np.arctan2(cut.world_from_site[1, 0], cut.world_from_site[0, 0])
+    u = rel @ np.array([np.cos(yaw), np.sin(yaw)])
+    w = rel @ np.array([-np.sin(yaw), np.cos(yaw)])
+    on = (np.abs(u) <= bw / 2 + 1e-6) & (np.abs(w) <= bd / 2 + 1e-6) & (pts[:, 2] > 0.5)
+    assert on.sum() > 20
+    assert pts[on, 2].max() > 0.95 * height  # the full height, not one triangle of each face
