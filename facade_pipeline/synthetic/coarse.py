@@ -160,11 +160,11 @@ def environment_samples(scene: Scene, count: int, rng: np.random.Generator) -> t
     radius = p.coarse.environment_radius_m
     # a triangle reaches inside the disc when an edge passes within the radius or the triangle covers the
     # origin (seen from above)
-    a = env.vertices[env.triangles][:, :, :2] - origin  # [F, 3, 2]
-    ab = np.roll(a, -1, axis=1) - a
-    s = np.clip(-(a * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
-    edge_dist = np.linalg.norm(a + s[..., None] * ab, axis=2).min(axis=1)  # [F]
-    side = a[..., 0] * ab[..., 1] - a[..., 1] * ab[..., 0]  # [F, 3]: the origin's side of each edge
+    c = env.vertices[env.triangles][:, :, :2] - origin  # [F, 3, 2] corners, seen from above
+    e = np.roll(c, -1, axis=1) - c  # edges
+    s = np.clip(-(c * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-12), 0.0, 1.0)
+    edge_dist = np.linalg.norm(c + s[..., None] * e, axis=2).min(axis=1)  # [F]
+    side = c[..., 0] * e[..., 1] - c[..., 1] * e[..., 0]  # [F, 3]: the origin's side of each edge
     covers = (side >= 0).all(axis=1) | (side <= 0).all(axis=1)
     near = (edge_dist < radius) | covers
     if count <= 0 or not near.any():
@@ -185,6 +185,11 @@ def environment_samples(scene: Scene, count: int, rng: np.random.Generator) -> t
         q = V[:, 0] + u[:, None] * (V[:, 1] - V[:, 0]) + v[:, None] * (V[:, 2] - V[:, 0])
         inside = np.linalg.norm(q[:, :2] - origin, axis=1) < radius
         xyz, tri = np.concatenate([xyz, q[inside]]), np.concatenate([tri, t[inside]])
+    if len(xyz) < count:
+        raise RuntimeError(
+            f"could not draw {count} environment points within {radius} m of the site origin ({len(xyz)} "
+            "after 1000 rounds): the surfaces that reach inside cover almost none of it"
+        )
     xyz, tri = xyz[:count], tri[:count]
     normals = env.normals[tri]
     a = albedo(

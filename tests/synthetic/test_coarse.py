@@ -77,7 +77,7 @@ def test_environment_points_fill_the_disc_and_stop_at_its_edge():
     scene = build_scene(base)
     env = scene.environment
     origin = scene.world_from_site[:3, 3][:2]
-    # the building the default scene's radius would cut most evenly: a radius through its middle
+    # the building that spans the widest range of distances from the origin, and a radius through its middle
     spans = []
     for k in range(len(scene.placement.buildings)):
         v = env.vertices[env.triangles[env.object_id == k]].reshape(-1, 3)
