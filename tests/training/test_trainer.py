@@ -289,8 +289,10 @@ def test_exposure_refinement_finds_a_darker_training_view(data64):
     views = list(data64.views)
     views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
     data = dataclasses.replace(data64, views=tuple(views))
-    lr = dataclasses.replace(small_params().lr, exposure=0.05)
-    p = small_params(iterations=60, exposure_refinement=True, lr=lr)
+    # 150 steps at rate 0.02: over 60 steps at 0.05 the other views' gains wander by up to +-0.9 (they take
+    # up the young model's errors), and which view ends lowest depends on the scene's random draws
+    lr = dataclasses.replace(small_params().lr, exposure=0.02)
+    p = small_params(iterations=150, exposure_refinement=True, lr=lr)
     tr = train(build_trainer(p, data, RASTER))
     g = tr.corrections.log_gain.detach().mean(-1)
     others = [i for i in data.train_idx if i != dark]
