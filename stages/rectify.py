@@ -1,10 +1,11 @@
 """Stage ``rectify``: unfold the curved facade in each frontal view into a planar-facade image (paper, 3.1.1).
 
 For each frontal view of ``01_import``: crop the coarse point cloud to the points that project into the
-image (Eq. 6), fit a cylinder robustly (``geometry.cylinder``), and build degree-7 polynomial warps between
-the curved and the unfolded facade (``geometry.rectification``). A flat patch (or ``surface = "planar"``)
-passes through with identity warps; a view whose points cannot define a surface (too few, on one line)
-passes through too and is reported in the manifest, not an error. Writes into ``02_rectify/``: the
+image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a cylinder robustly
+(``geometry.cylinder``), and build degree-7 polynomial warps between the curved and the unfolded facade
+(``geometry.rectification``). A flat patch (or ``surface = "planar"``) passes through with identity warps;
+a view whose points cannot define a surface (too few, on one line) passes through too and is reported in
+the manifest, not an error. Writes into ``02_rectify/``: the
 rectified image, the warps (forward and inverse), the fitted surface and an overlay per view.
 """
 
@@ -35,6 +36,7 @@ from facade_pipeline.geometry.cylinder import (  # noqa: E402
     SurfaceFitParams,
     fit_surface,
 )
+from facade_pipeline.geometry.raycast import MeshRaycaster  # noqa: E402
 from facade_pipeline.geometry.rectification import (  # noqa: E402
     RectifyParams,
     ViewRectification,
@@ -43,7 +45,7 @@ from facade_pipeline.geometry.rectification import (  # noqa: E402
 )
 from facade_pipeline.io.atomic import atomic_path, write_json  # noqa: E402
 from facade_pipeline.io.images import read_image, write_image  # noqa: E402
-from facade_pipeline.io.meshes import read_points  # noqa: E402
+from facade_pipeline.io.meshes import read_mesh, read_points  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.scene import ImportedScene, View  # noqa: E402
 from stages._runner import StageReport, main  # noqa: E402
@@ -63,12 +65,15 @@ class Params:
     """Patch sampling and polynomial warps (``[rectify.warp]``)."""
     overlay_scale: int
     """The overlay is drawn this many times the image size (-)."""
+    occlusion_margin_m: float
+    """A coarse point whose line of sight meets the coarse mesh more than this (m) before it is hidden and
+    left out of the fit (the ground and surroundings behind the facade); inf: every point is kept."""
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     """scene.json, the coarse points and the frontal images of a completed import."""
     scene = ImportedScene.load(layout)
-    files = [layout.import_scene, layout.import_coarse_points]
+    files = [layout.import_scene, layout.import_coarse_points, layout.import_coarse_mesh]
     files += [layout.import_frontal_image(v.stem) for v in scene.frontal_views]
     for f in files:
         if not f.is_file():
@@ -80,19 +85,33 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
     return []  # per-view outputs are only known once the import ran; the manifest lists them
 
 
-def view_points(points: np.ndarray, camera: PinholeCamera) -> np.ndarray:
-    """The points [N, 3] that project inside the image in front of the camera (Eq. 6)."""
+def view_points(points: np.ndarray, camera: PinholeCamera, hidden_by: MeshRaycaster | None = None,
+                margin_m: float = np.inf) -> np.ndarray:
+    """The points [N, 3] that project inside the image in front of the camera (Eq. 6). With ``hidden_by``,
+    less those it hides: the line of sight meets the mesh more than ``margin_m`` before the point. A dense
+    cloud holds the ground all around the facade; seen through the facade, it outnumbers the facade's own
+    points and takes the plane fit (benchmarks/RESULTS.md, session 21)."""
     uv, z = camera.project(points)
     x, y = uv[:, 0], uv[:, 1]
     inside = (z > 0) & (x >= 0) & (x <= camera.width) & (y >= 0) & (y <= camera.height)
-    return points[inside]
+    p = points[inside]
+    if hidden_by is None or hidden_by.empty or not np.isfinite(margin_m) or len(p) == 0:
+        return p
+    d = p - camera.center
+    dist = np.linalg.norm(d, axis=1)
+    ok = dist > 0
+    p, d, dist = p[ok], d[ok], dist[ok]
+    t = hidden_by.cast(np.broadcast_to(camera.center, p.shape), d / dist[:, None]).t
+    return p[~(t < dist - margin_m)]
 
 
-def _fit(points: np.ndarray, view: View, params: Params, source: Path) -> tuple[SurfaceFit | None, str]:
+def _fit(points: np.ndarray, view: View, params: Params, source: Path,
+         mesh: MeshRaycaster | None) -> tuple[SurfaceFit | None, str]:
     if params.surface == "planar":
         return None, "declared planar"
     try:
-        return fit_surface(view_points(points, view.camera), view.camera.center, params.fit, source), "fitted"
+        seen = view_points(points, view.camera, mesh, params.occlusion_margin_m)
+        return fit_surface(seen, view.camera.center, params.fit, source), "fitted"
     except SurfaceFitError as e:
         return None, f"no surface: {e}"
 
@@ -113,11 +132,12 @@ def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, 
     return out
 
 
-def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray,
-                params: Params) -> tuple[list[Path], dict]:
-    """Fit, warp and write one view; returns its outputs and its metrics."""
+def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: Params,
+                mesh: MeshRaycaster | None = None) -> tuple[list[Path], dict]:
+    """Fit, warp and write one view (``mesh``: the coarse mesh, which hides points); returns its outputs and
+    its metrics."""
     t0 = time.perf_counter()
-    fit, status = _fit(points, view, params, layout.import_coarse_points)
+    fit, status = _fit(points, view, params, layout.import_coarse_points, mesh)
     src = layout.import_frontal_image(view.stem)
     cam = view.camera
     if fit is None:
@@ -159,11 +179,15 @@ def _finite(x: float) -> float | None:
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     scene = ImportedScene.load(layout)
     points = np.asarray(read_points(layout.import_coarse_points).points)
+    mesh = None
+    if params.surface != "planar" and np.isfinite(params.occlusion_margin_m):
+        m = read_mesh(layout.import_coarse_mesh)
+        mesh = MeshRaycaster(np.asarray(m.vertices), np.asarray(m.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
     views = scene.frontal_views
     for view in tqdm(views, desc="rectify: frontal views", unit="img", file=sys.stderr):
-        outs, per_view[view.stem] = rectify_one(layout, view, points, params)
+        outs, per_view[view.stem] = rectify_one(layout, view, points, params, mesh)
         outputs += outs
     kinds = [m["kind"] for m in per_view.values()]
     curved = [m for m in per_view.values() if m["kind"] == "curved"]

@@ -1,0 +1,61 @@
+"""A dense coarse cloud holds the ground all around the facade; `rectify` leaves out the points the coarse
+mesh hides from the camera, so the ground behind the facade cannot take the plane fit (session 21: with
+150,000 environment points on demo, every frontal view was fitted to the wrong surface)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from facade_pipeline.config import default_params
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.geometry.cylinder import fit_surface
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from stages import rectify
+
+PARAMS = default_params("rectify", rectify.Params)
+
+
+def looking_at_facade(centre) -> PinholeCamera:
+    """A camera at ``centre`` looking along -y (at a facade in the plane y = 0), z up, 160 x 120 px."""
+    R = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]])  # rows: right, down, forward
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, -R @ np.asarray(centre, float)
+    K = np.array([[80.0, 0.0, 80.0], [0.0, 80.0, 60.0], [0.0, 0.0, 1.0]])
+    return PinholeCamera(K, M, 160, 120)
+
+
+def scene(seed=0):
+    """A 30 m x 18 m facade at y = 0 as a two-triangle mesh, 1,500 points on it, and the ground behind it
+    (z = 0, y from -100 to -2 m) with 20,000 points, as a dense cloud holds it."""
+    rng = np.random.default_rng(seed)
+    v = np.array([[-15.0, 0, 0], [15, 0, 0], [15, 0, 18], [-15, 0, 18]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    facade = np.stack([rng.uniform(-15, 15, 1500), rng.normal(0, 0.02, 1500), rng.uniform(0, 18, 1500)], 1)
+    ground = np.stack([rng.uniform(-60, 60, 20000), rng.uniform(-100, -2, 20000), np.zeros(20000)], 1)
+    return v, f, facade, ground
+
+
+def test_points_hidden_by_the_coarse_mesh_are_left_out():
+    v, f, facade, ground = scene()
+    cam = looking_at_facade([0.0, 12.0, 9.0])
+    mesh = MeshRaycaster(v, f)
+    pts = np.vstack([facade, ground])
+    everything = rectify.view_points(pts, cam)
+    seen = rectify.view_points(pts, cam, mesh, PARAMS.occlusion_margin_m)
+    assert (everything[:, 1] < -1).sum() > 5000  # the ground behind the facade projects into the view
+    assert len(seen) > 1000 and np.all(seen[:, 1] > -1.0)  # none of it is kept, the facade's points are
+    assert len(seen) == int((np.abs(everything[:, 1]) < 1).sum())
+    # without a mesh, or with an infinite margin, nothing is left out
+    assert len(rectify.view_points(pts, cam, mesh, np.inf)) == len(everything)
+
+
+@pytest.mark.parametrize("height", [4.6, 13.4])
+def test_the_facade_is_fitted_with_the_hidden_ground_left_out(height):
+    v, f, facade, ground = scene()
+    cam = looking_at_facade([-7.0, 12.0, height])
+    mesh = MeshRaycaster(v, f)
+    pts = rectify.view_points(np.vstack([facade, ground]), cam, mesh, PARAMS.occlusion_margin_m)
+    fit = fit_surface(pts, cam.center, PARAMS.fit)
+    assert abs(fit.surface.normal @ [0.0, 1.0, 0.0]) > np.cos(np.radians(1.0))  # the facade's plane
+    assert abs(fit.surface.radius_m) > 500 and fit.rms_m < 0.05
