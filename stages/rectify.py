@@ -5,8 +5,8 @@ image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a cyli
 (``geometry.cylinder``), and build degree-7 polynomial warps between the curved and the unfolded facade
 (``geometry.rectification``). A flat patch (or ``surface = "planar"``) passes through with identity warps;
 a view whose points cannot define a surface (too few, on one line) passes through too and is reported in
-the manifest, not an error. Writes into ``02_rectify/``: the
-rectified image, the warps (forward and inverse), the fitted surface and an overlay per view.
+the manifest, not an error. Writes into ``02_rectify/``: the rectified image, the warps (forward and
+inverse), the fitted surface and an overlay per view.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ class Params:
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
-    """scene.json, the coarse points and the frontal images of a completed import."""
+    """scene.json, the coarse points and mesh and the frontal images of a completed import."""
     scene = ImportedScene.load(layout)
     files = [layout.import_scene, layout.import_coarse_points, layout.import_coarse_mesh]
     files += [layout.import_frontal_image(v.stem) for v in scene.frontal_views]
@@ -181,8 +181,8 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     points = np.asarray(read_points(layout.import_coarse_points).points)
     mesh = None
     if params.surface != "planar" and np.isfinite(params.occlusion_margin_m):
-        m = read_mesh(layout.import_coarse_mesh)
-        mesh = MeshRaycaster(np.asarray(m.vertices), np.asarray(m.triangles))
+        coarse = read_mesh(layout.import_coarse_mesh)
+        mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
     views = scene.frontal_views
