@@ -133,9 +133,9 @@ def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, 
 
 
 def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: Params,
-                mesh: MeshRaycaster | None = None) -> tuple[list[Path], dict]:
-    """Fit, warp and write one view (``mesh``: the coarse mesh, which hides points); returns its outputs and
-    its metrics."""
+                mesh: MeshRaycaster | None) -> tuple[list[Path], dict]:
+    """Fit, warp and write one view (``mesh``: the coarse mesh, which hides points; None: no occlusion
+    test); returns its outputs and its metrics."""
     t0 = time.perf_counter()
     fit, status = _fit(points, view, params, layout.import_coarse_points, mesh)
     src = layout.import_frontal_image(view.stem)
