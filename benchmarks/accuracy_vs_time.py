@@ -154,7 +154,7 @@ def child(
     data = TrainData(tuple(downscale(v, scale) for v in full.views), full.train_idx, full.test_idx, full.init)
     device = resolve_device(p.device)
     t0 = time.perf_counter()
-    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend), device)
+    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend, p.lowpass_sigma_px), device)
     train(tr)
     t_train = time.perf_counter() - t0
     tm = from_trainer(tr, label)

@@ -34,6 +34,7 @@ from _common import append_results, machine  # noqa: E402
 
 from facade_pipeline.config import load_building_config  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX  # noqa: E402
 from facade_pipeline.training.corrections import AlignParams  # noqa: E402
 from facade_pipeline.training.data import (  # noqa: E402
     InitGeometry,
@@ -104,8 +105,8 @@ def gt_data(layout: BuildingLayout, test_every: int) -> TrainData:
 def paper_mlp(base: TrainParams) -> TrainParams:
     """``base`` with the paper's reflection model and training as published: its 8 x 512 network without
     the environment proxy or self hits, reflection gradients into the normals, one initial reflectivity for
-    every splat, the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos; the
-    MLP pixel cap of the old CPU budget."""
+    every splat, the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos, the
+    imported poses kept, 2DGS's low-pass filter; the MLP pixel cap of the old CPU budget."""
     return dataclasses.replace(
         base,
         reflection_model="mlp",
@@ -121,6 +122,8 @@ def paper_mlp(base: TrainParams) -> TrainParams:
         hf_start_fraction=0.0,
         exposure_estimate=False,
         exposure_refinement=False,
+        pose_refinement=False,
+        lowpass_sigma_px=LOWPASS_SIGMA_PX,
     )
 
 
@@ -177,7 +180,7 @@ def main() -> None:
         print(f"wrote {a.save_bundle} ({len(data.views)} views; prior: {prior})")
         return
     device = resolve_device(a.device)
-    raster = splatting_rasterizer(base.raster_backend)
+    raster = splatting_rasterizer(base.raster_backend, base.lowpass_sigma_px)
     rows = []
     for name, p in variants(base):
         if a.only and name not in a.only.split(","):
@@ -240,7 +243,8 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"({p.init_reflectivity_glass} on glass), reflection gradient into normals "
         f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, exposure gains estimated "
         f"{p.exposure_estimate} / learnt {p.exposure_refinement}, high-frequency weight "
-        f"{p.lambda_hf_start} -> {p.lambda_hf_end}, {p.supersample} x {p.supersample} samples per pixel. "
+        f"{p.lambda_hf_start} -> {p.lambda_hf_end}, {p.supersample} x {p.supersample} samples per pixel, "
+        f"low-pass sigma {p.lowpass_sigma_px} px. "
         "`mlp, as the paper` changes these to the paper's (`paper_mlp` in this file). The paper trains "
         "2 x 10^5 iterations on an A40: these are short runs. Wall time: training alone.\n",
     ]

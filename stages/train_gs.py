@@ -150,7 +150,7 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Pa
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     data = load_train_data(layout, params)
     device = resolve_device(params.device)
-    rasterize = splatting_rasterizer(params.raster_backend)
+    rasterize = splatting_rasterizer(params.raster_backend, params.lowpass_sigma_px)
     fp = fingerprint(layout, params)
     ckpt = layout.path("train_checkpoint")
     tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)

@@ -33,6 +33,7 @@ from facade_pipeline.shading.reflection import (
     reflection_record,
 )
 from facade_pipeline.shading.self_hits import MESH_FIELDS
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
@@ -87,6 +88,8 @@ class TrainedModel:
     sh_degree: int
     near_m: float
     backend: str
+    lowpass_sigma_px: float
+    """the renderer's low-pass sigma the model was trained with (px)"""
     device: torch.device
     mask_by_facade: bool
     """the specular term only on the facade mask, as training did"""
@@ -148,6 +151,7 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
     p = variant.params
     shading = ShadingOptions(float(p["refl_threshold"]), lo, hi, supersample=int(p.get("supersample", 1)))
     backend = str(p.get("raster_backend", "auto"))
+    lowpass = float(p.get("lowpass_sigma_px", LOWPASS_SIGMA_PX))  # models saved before the key: 2DGS's
     return TrainedModel(
         variant.name,
         model,
@@ -157,6 +161,7 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
         active_sh_degree(p),
         float(p["near_m"]),
         backend,
+        lowpass,
         device,
         bool(p.get("mask_by_facade", True)),
     )
@@ -174,6 +179,7 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
         active_sh_degree(to_dict(p) | {"iterations": tr.iteration}),
         p.near_m,
         p.raster_backend,
+        p.lowpass_sigma_px,
         tr.device,
         p.mask_by_facade,
     )
@@ -201,7 +207,7 @@ def _render(tm: TrainedModel, cam: Camera, spec: torch.Tensor | None) -> Render:
         tm.reflection,
         cam,
         (0, 0, cam.width, cam.height),
-        splatting_rasterizer(tm.backend),
+        splatting_rasterizer(tm.backend, tm.lowpass_sigma_px),
         tm.near_m,
         tm.sh_degree,
         tm.shading,

@@ -2,9 +2,10 @@
 depth).
 
 A splat can only be blended where alpha = opacity * G >= 1/255, i.e. where rho <= R^2 = 2 ln(255 opacity),
-with rho = min(u^2 + v^2, 2 |x - c|^2). The support is therefore the union of
+with rho = min(u^2 + v^2, |x - c|^2 / s^2) (s the low-pass sigma, sqrt(2)/2 px in 2DGS). The support is
+therefore the union of
 - the screen image of the disk u^2 + v^2 <= R^2 restricted to depth z >= near (ray-splat branch), and
-- the disk |x - c| <= R / sqrt(2) around the projected centre c, when the centre is beyond the near plane
+- the disk |x - c| <= R s around the projected centre c, when the centre is beyond the near plane
   (low-pass branch, whose depth is the centre's).
 The bounds are computed in float64 without gradients and widened by a margin, so that binning never drops a
 splat-pixel pair that the blending formula would keep: the rasterizers stay exact.
@@ -16,7 +17,14 @@ import math
 
 import torch
 
-from facade_pipeline.splatting.types import ALPHA_MIN, LOWPASS_INV_VAR, TILE_SIZE, PixelWindow, TileBins
+from facade_pipeline.splatting.types import (
+    ALPHA_MIN,
+    LOWPASS_SIGMA_PX,
+    TILE_SIZE,
+    PixelWindow,
+    TileBins,
+    lowpass_inv_var,
+)
 
 RHO_MARGIN = 1e-3
 """Relative and absolute slack on R^2 (float32 rounding of rho in the rasterizers)."""
@@ -72,9 +80,11 @@ def pixel_support_bounds(
     ray_transform: torch.Tensor,  # [N, 3, 3]
     opacities: torch.Tensor,  # [N]
     near: float,
+    lowpass_sigma_px: float = LOWPASS_SIGMA_PX,
 ) -> torch.Tensor:  # [N, 4] float64 (x_min, y_min, x_max, y_max) in full-image pixels; empty: min > max
-    """Conservative pixel box of every splat's support (module docstring). Splats that can never reach
-    alpha 1/255 or whose transform is not finite get an empty box."""
+    """Conservative pixel box of every splat's support (module docstring) for a low-pass filter of
+    ``lowpass_sigma_px``. Splats that can never reach alpha 1/255 or whose transform is not finite get an
+    empty box."""
     T = ray_transform.detach().to(torch.float64)
     o = opacities.detach().to(torch.float64)
     alive = (o >= ALPHA_MIN * (1 - 1e-6)) & torch.isfinite(T).flatten(1).all(-1) & torch.isfinite(o)
@@ -87,7 +97,7 @@ def pixel_support_bounds(
     centre_ok = z_c >= near
     z_safe = torch.where(centre_ok, z_c, torch.ones_like(z_c))
     cx, cy = T[:, 0, 2] / z_safe, T[:, 1, 2] / z_safe
-    r = (R2 / LOWPASS_INV_VAR).sqrt()
+    r = (R2 / lowpass_inv_var(lowpass_sigma_px)).sqrt()
     inf = torch.full_like(cx, math.inf)
 
     def union(lo3: torch.Tensor, lo2: torch.Tensor, pick: str) -> torch.Tensor:

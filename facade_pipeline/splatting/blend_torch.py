@@ -5,7 +5,8 @@ Per pixel x = (x, y) (pixel centres at +0.5) and splat with ray transform rows T
 
     h_x = T0 - x T2,  h_y = T1 - y T2,  c = h_x x h_y            (skip where c2 = 0: seen edge-on)
     (u, v) = (c0 / c2, c1 / c2)                                  (ray-splat intersection, paper Eq. 4)
-    rho = min(u^2 + v^2, 2 |x - c_proj|^2)       (low-pass fallback, c_proj the projected centre)
+    rho = min(u^2 + v^2, |x - c_proj|^2 / s^2)   (low-pass fallback, c_proj the projected centre, s its
+                                                 sigma: sqrt(2)/2 px in 2DGS)
     z = T2 . (u, v, 1) on the ray-splat branch, T2z (the centre's depth) on the low-pass branch
     alpha = min(0.99, opacity exp(-rho / 2));  skip alpha < 1/255 and z < near
     front to back by centre depth; stop before a splat that would bring the transmittance below 1e-4.
@@ -26,10 +27,11 @@ import torch
 from facade_pipeline.splatting.types import (
     ALPHA_MAX,
     ALPHA_MIN,
-    LOWPASS_INV_VAR,
+    LOWPASS_SIGMA_PX,
     TILE_SIZE,
     TRANSMITTANCE_MIN,
     TileBins,
+    lowpass_inv_var,
 )
 
 PIX = TILE_SIZE * TILE_SIZE
@@ -45,6 +47,8 @@ class BlendSettings:
     """Elements of one [tiles, pixels, chunk] tensor: bounds the working memory."""
     chunk: int = 32
     """Splats per depth chunk."""
+    lowpass_sigma_px: float = LOWPASS_SIGMA_PX
+    """sigma of the screen-space low-pass Gaussian (px): rho_2d = |x - c|^2 / sigma^2."""
 
 
 @dataclass
@@ -56,8 +60,9 @@ class _State:
     done: torch.Tensor  # [G, P] bool, the pixel has stopped
 
 
-def _intersect(Tc, px, py, near: float, differentiable: bool):
-    """rho, z and the validity mask of every (pixel, splat) pair: Tc [G, S, 9], px, py [G, P] -> [G, P, S].
+def _intersect(Tc, px, py, near: float, k_lp: float, differentiable: bool):
+    """rho, z and the validity mask of every (pixel, splat) pair: Tc [G, S, 9], px, py [G, P] -> [G, P, S];
+    ``k_lp`` the low-pass factor of rho_2d (types.lowpass_inv_var).
 
     Masked pairs get finite placeholder values; when ``differentiable`` the divisions are recomputed with
     denominators replaced where masked, so that no NaN or Inf reaches autograd."""
@@ -74,7 +79,7 @@ def _intersect(Tc, px, py, near: float, differentiable: bool):
         c2s = torch.where(nz, c2, torch.ones_like(c2))
         rho3 = torch.where(nz, (c0 / c2s) ** 2 + (c1 / c2s) ** 2, torch.full_like(c2, torch.inf))
         ez = torch.where(front, e2, torch.ones_like(e2))
-        rho2 = LOWPASS_INV_VAR * ((X - a2 / ez) ** 2 + (Y - b2 / ez) ** 2)
+        rho2 = k_lp * ((X - a2 / ez) ** 2 + (Y - b2 / ez) ** 2)
         rho2 = torch.where(front, rho2, torch.full_like(rho2, torch.inf))
         use3 = (rho3 <= rho2) & nz
         z3 = e0 * (c0 / c2s) + e1 * (c1 / c2s) + e2
@@ -85,7 +90,7 @@ def _intersect(Tc, px, py, near: float, differentiable: bool):
     c2s = torch.where(use3, c2, torch.ones_like(c2))
     u, v = c0 / c2s, c1 / c2s
     ez = torch.where(front, e2, torch.ones_like(e2))
-    rho2 = LOWPASS_INV_VAR * ((X - a2 / ez) ** 2 + (Y - b2 / ez) ** 2)
+    rho2 = k_lp * ((X - a2 / ez) ** 2 + (Y - b2 / ez) ** 2)
     rho = torch.where(use3, u * u + v * v, torch.where(use2, rho2, torch.zeros_like(rho2)))
     z = torch.where(use3, e0 * u + e1 * v + e2, torch.where(use2, e2, torch.full_like(e2, near)))
     del differentiable  # the same expressions serve both passes; masks were computed without grad
@@ -95,7 +100,7 @@ def _intersect(Tc, px, py, near: float, differentiable: bool):
 def _blend_chunk(Tc, oc, fc, nc, valid, px, py, st: _State, s: BlendSettings, differentiable: bool = False):
     """Blend one depth chunk into the carried state. Returns the new state and this chunk's contributions
     to the accumulated features [G, P, F], depth [G, P], normal [G, P, 3] and distortion [G, P]."""
-    rho, z, ok = _intersect(Tc, px, py, s.near, differentiable)
+    rho, z, ok = _intersect(Tc, px, py, s.near, lowpass_inv_var(s.lowpass_sigma_px), differentiable)
     alpha = torch.clamp(oc[:, None, :] * torch.exp(-0.5 * rho), max=ALPHA_MAX)  # [G, P, S]
     ok = ok & valid[:, None, :] & (alpha >= ALPHA_MIN)
     alpha = torch.where(ok, alpha, torch.zeros_like(alpha))

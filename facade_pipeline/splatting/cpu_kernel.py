@@ -24,7 +24,13 @@ from pathlib import Path
 
 import torch
 
-from facade_pipeline.splatting.types import TILE_SIZE, PixelWindow, TileBins
+from facade_pipeline.splatting.types import (
+    LOWPASS_SIGMA_PX,
+    TILE_SIZE,
+    PixelWindow,
+    TileBins,
+    lowpass_inv_var,
+)
 
 log = logging.getLogger(__name__)
 
@@ -77,13 +83,13 @@ def _declare(lib: ctypes.CDLL) -> None:
     p, i64, f64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double, ctypes.c_int
     for suffix in ("f32", "f64"):
         fwd = getattr(lib, f"surfel_forward_{suffix}")
-        fwd.argtypes = [p] * 5 + [i64] * 2 + [p] * 2 + [i64] * 6 + [f64] * 2 + [i32] + [p] * 10
+        fwd.argtypes = [p] * 5 + [i64] * 2 + [p] * 2 + [i64] * 6 + [f64] * 3 + [i32] + [p] * 10
         fwd.restype = None
         bwd = getattr(lib, f"surfel_backward_{suffix}")
-        bwd.argtypes = [p] * 5 + [i64] * 2 + [p] * 2 + [i64] * 6 + [f64] * 2 + [i32] + [p] * 15
+        bwd.argtypes = [p] * 5 + [i64] * 2 + [p] * 2 + [i64] * 6 + [f64] * 3 + [i32] + [p] * 15
         bwd.restype = None
         count = getattr(lib, f"surfel_bin_count_{suffix}")
-        count.argtypes = [p, p, i64, f64] + [i64] * 6 + [i32] + [p] * 3
+        count.argtypes = [p, p, i64, f64, f64] + [i64] * 6 + [i32] + [p] * 3
         count.restype = None
     lib.surfel_bin_fill.argtypes = [p, i64, p, i64, p, p]
     lib.surfel_bin_fill.restype = None
@@ -132,7 +138,7 @@ def _geometry(bins: TileBins) -> list[int]:
 
 class _CppBlend(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, Tm, opac, feat, nrm, bins: TileBins, near: float, far: float, threads: int):
+    def forward(ctx, Tm, opac, feat, nrm, bins: TileBins, near: float, far: float, k_lp: float, threads: int):
         lib = load()
         assert lib is not None
         Tm, opac, feat, nrm = (x.detach().contiguous() for x in (Tm, opac, feat, nrm))
@@ -145,11 +151,11 @@ class _CppBlend(torch.autograd.Function):
         out_median_id = torch.empty(H, W, dtype=torch.int64)
         getattr(lib, f"surfel_forward_{_suffix(Tm.dtype)}")(
             _ptr(Tm), _ptr(opac), _ptr(feat), _ptr(nrm), _ptr(bounds), F, Tm.shape[0],
-            _ptr(bins.offsets), _ptr(bins.splat_ids), *_geometry(bins), near, far, threads,
+            _ptr(bins.offsets), _ptr(bins.splat_ids), *_geometry(bins), near, far, k_lp, threads,
             _ptr(out_feat), _ptr(out_T), _ptr(out_depth), _ptr(out_normal), _ptr(out_median), _ptr(out_dist),
             _ptr(out_M1), _ptr(out_M2), _ptr(out_last), _ptr(out_median_id),
         )  # fmt: skip
-        ctx.bins, ctx.near, ctx.far, ctx.threads = bins, near, far, threads
+        ctx.bins, ctx.near, ctx.far, ctx.k_lp, ctx.threads = bins, near, far, k_lp, threads
         ctx.save_for_backward(Tm, opac, feat, nrm, out_T, out_M1, out_M2, out_last, out_median_id)
         return out_feat, out_T, out_depth, out_normal, out_median, out_dist
 
@@ -167,10 +173,11 @@ class _CppBlend(torch.autograd.Function):
         getattr(load(), f"surfel_backward_{_suffix(Tm.dtype)}")(
             _ptr(Tm), _ptr(opac), _ptr(feat), _ptr(nrm), _ptr(bins.bounds.contiguous()), feat.shape[1],
             Tm.shape[0], _ptr(bins.offsets), _ptr(bins.splat_ids), *_geometry(bins), ctx.near, ctx.far,
-            ctx.threads, _ptr(out_T), _ptr(out_M1), _ptr(out_M2), _ptr(out_last), _ptr(out_median_id),
+            ctx.k_lp, ctx.threads, _ptr(out_T), _ptr(out_M1), _ptr(out_M2), _ptr(out_last),
+            _ptr(out_median_id),
             *(_ptr(g) for g in grads), _ptr(dTm), _ptr(dop), _ptr(dfeat), _ptr(dnrm),
         )  # fmt: skip
-        return dTm, dop, dfeat, dnrm, None, None, None, None
+        return dTm, dop, dfeat, dnrm, None, None, None, None, None
 
 
 def bin_splats_cpp(
@@ -180,6 +187,7 @@ def bin_splats_cpp(
     window: PixelWindow,
     near: float,
     threads: int | None = None,
+    lowpass_sigma_px: float = LOWPASS_SIGMA_PX,
 ) -> TileBins:
     """binning.pixel_support_bounds + binning.bin_splats in the compiled kernel (a counting sort over tiles of
     the splats taken front to back): the same bins, without a sort of the pairs."""
@@ -194,8 +202,9 @@ def bin_splats_cpp(
     rect = torch.empty(n, 4, dtype=torch.int64)
     counts = torch.zeros(tiles_x * tiles_y, dtype=torch.int64)
     getattr(lib, f"surfel_bin_count_{_suffix(T.dtype)}")(
-        _ptr(T), _ptr(opac), n, near, window.x0, window.y0, window.width, window.height, tiles_x, tiles_y,
-        threads or torch.get_num_threads(), _ptr(bounds), _ptr(rect), _ptr(counts))
+        _ptr(T), _ptr(opac), n, near, lowpass_inv_var(lowpass_sigma_px), window.x0, window.y0, window.width,
+        window.height, tiles_x, tiles_y, threads or torch.get_num_threads(), _ptr(bounds), _ptr(rect),
+        _ptr(counts))
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int64)
     torch.cumsum(counts, 0, out=offsets[1:])
     order = torch.sort(depth.detach().to(torch.float64), stable=True).indices.contiguous()
@@ -215,6 +224,7 @@ def blend_cpp(
     near: float,
     far: float,
     threads: int | None = None,
+    lowpass_sigma_px: float = LOWPASS_SIGMA_PX,
 ) -> tuple[torch.Tensor, ...]:
     """Same contract as blend_torch.blend_torch, computed by the compiled kernel on ``threads`` OpenMP
     threads (default: torch.get_num_threads())."""
@@ -222,5 +232,6 @@ def blend_cpp(
         raise RuntimeError(f"the C++ kernel is unavailable: {load_error()}")
     n_threads = threads or torch.get_num_threads()
     return _CppBlend.apply(
-        ray_transform.reshape(-1, 9), opacities, features, normals, bins, near, far, n_threads
+        ray_transform.reshape(-1, 9), opacities, features, normals, bins, near, far,
+        lowpass_inv_var(lowpass_sigma_px), n_threads,
     )

@@ -14,6 +14,8 @@ Documented differences from the torch/cpp backends (the reference 2DGS semantics
 - distortion: gsplat's is an L1 form on its own depth mapping, not the 2DGS L2 form on NDC depth; only the
   fact that it is zero for a single surface carries over;
 - ``far`` is not a culling plane in our API, so gsplat gets far_plane = 1e10 (it culls beyond its far plane);
+- the low-pass filter: gsplat's kernel has 2DGS's sigma (sqrt(2)/2 px) built in, so ``render_2dgs`` never
+  sends it another ``lowpass_sigma_px`` (refused for ``backend="gsplat"``, the torch backend for "auto");
 - support: gsplat bounds each splat by a fixed-sigma screen radius, ours by the exact alpha >= 1/255 support,
   so faint splat rims (alpha close to 1/255) can differ, most on splats seen nearly edge-on. Measured on an
   H100 with gsplat 1.5.3 (tests/splatting/test_gsplat.py, benchmarks/RESULTS.md): fronto-parallel splats

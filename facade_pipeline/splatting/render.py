@@ -12,7 +12,14 @@ from facade_pipeline.splatting import cpu_kernel
 from facade_pipeline.splatting.binning import bin_splats, pixel_support_bounds
 from facade_pipeline.splatting.blend_torch import BlendSettings, blend_torch
 from facade_pipeline.splatting.surfels import project_surfels
-from facade_pipeline.splatting.types import Backend, PixelWindow, SurfelRender
+from facade_pipeline.splatting.types import (
+    LOWPASS_SIGMA_PX,
+    Backend,
+    PixelWindow,
+    SurfelRender,
+    is_reference_lowpass,
+    lowpass_inv_var,
+)
 
 log = logging.getLogger(__name__)
 
@@ -20,6 +27,8 @@ DEFAULT_NEAR = 0.2
 """Near plane (m) of the reference rasterizer."""
 DEFAULT_FAR = 100.0
 """Far plane (m) of the NDC depth in the reference's distortion term."""
+_WARNED_LOWPASS: set[float] = set()
+"""Low-pass sigmas already warned about (gsplat cannot render them): one warning per sigma, not per call."""
 
 
 def _check_inputs(means, quats, scales, opacities, features, cam_from_world, K, width, height) -> None:
@@ -84,6 +93,7 @@ def render_2dgs(
     far: float = DEFAULT_FAR,
     backend: Backend = "auto",
     crop: PixelWindow | None = None,
+    lowpass_sigma_px: float = LOWPASS_SIGMA_PX,
 ) -> SurfelRender:
     """Render 2D Gaussian surfels into one pinhole view (paper Eq. 1-5), differentiably.
 
@@ -92,14 +102,29 @@ def render_2dgs(
     front to back by centre depth (Eq. 5) with the reference 2DGS rules (low-pass fallback, alpha clamp and
     skip, early stop, near plane). Pixel centres are at (i + 0.5, j + 0.5). ``crop`` renders only that window
     of the ``width`` x ``height`` image (maps equal the same window of the full render). ``far`` only sets
-    the NDC depth of the distortion term. Returns maps of the window's size (types.SurfelRender).
+    the NDC depth of the distortion term. ``lowpass_sigma_px`` is the sigma of the screen-space low-pass
+    Gaussian every splat renders at least as wide as (2DGS: sqrt(2)/2 px); gsplat has only that one, so
+    another sigma with ``backend="auto"`` renders CUDA tensors with the torch backend (logged), and with
+    ``backend="gsplat"`` is refused. Returns maps of the window's size (types.SurfelRender).
     """
     _check_inputs(means, quats, scales, opacities, features, cam_from_world, K, width, height)
     if not 0 < near < far:
         raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
     window = crop or PixelWindow(0, 0, width, height)
     window.check_inside(width, height)
+    lowpass_inv_var(lowpass_sigma_px)  # ValueError on a bad sigma
     chosen = resolve_backend(backend, means.device)
+    if chosen == "gsplat" and not is_reference_lowpass(lowpass_sigma_px):
+        if backend == "gsplat":
+            raise ValueError(
+                f"the gsplat backend's low-pass filter is fixed at sigma {LOWPASS_SIGMA_PX:.4f} px (2DGS's), "
+                f"got lowpass_sigma_px = {lowpass_sigma_px}: use that sigma or another backend"
+            )
+        if lowpass_sigma_px not in _WARNED_LOWPASS:
+            _WARNED_LOWPASS.add(lowpass_sigma_px)
+            log.warning("gsplat has only the low-pass sigma %.4f px, %s px asked: rendering with torch",
+                        LOWPASS_SIGMA_PX, lowpass_sigma_px)
+        chosen = "torch"
     if chosen == "gsplat":
         from facade_pipeline.splatting import gsplat_backend
 
@@ -107,14 +132,16 @@ def render_2dgs(
                                      near, far)
     proj = project_surfels(means, quats, scales, cam_from_world, K)
     if chosen == "cpp":
-        bins = cpu_kernel.bin_splats_cpp(proj.ray_transform, opacities, proj.depth, window, near)
+        bins = cpu_kernel.bin_splats_cpp(proj.ray_transform, opacities, proj.depth, window, near,
+                                         lowpass_sigma_px=lowpass_sigma_px)
     else:
-        bins = bin_splats(pixel_support_bounds(proj.ray_transform, opacities, near), proj.depth, window)
+        bounds = pixel_support_bounds(proj.ray_transform, opacities, near, lowpass_sigma_px)
+        bins = bin_splats(bounds, proj.depth, window)
     args = (proj.ray_transform, opacities, features, proj.normal_world, bins)
     if chosen == "cpp":
-        maps = cpu_kernel.blend_cpp(*args, near=near, far=far)
+        maps = cpu_kernel.blend_cpp(*args, near=near, far=far, lowpass_sigma_px=lowpass_sigma_px)
     elif chosen == "torch":
-        maps = blend_torch(*args, BlendSettings(near=near, far=far))
+        maps = blend_torch(*args, BlendSettings(near=near, far=far, lowpass_sigma_px=lowpass_sigma_px))
     else:
         raise AssertionError(chosen)
     feats, transmittance, depth_sum, normal, median, distortion = maps

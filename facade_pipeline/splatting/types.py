@@ -3,6 +3,7 @@ and the rendered maps."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -28,8 +29,25 @@ ALPHA_MAX = 0.99
 """alpha = min(ALPHA_MAX, opacity * G)."""
 TRANSMITTANCE_MIN = 1e-4
 """A pixel stops at the splat that would bring its transmittance below this (that splat is not blended)."""
-LOWPASS_INV_VAR = 2.0
-"""Screen-space low-pass filter: rho_2d = 2 |x - c|^2, a Gaussian of sigma sqrt(2)/2 px."""
+LOWPASS_SIGMA_PX = math.sqrt(0.5)
+"""The reference 2DGS screen-space low-pass filter, rho_2d = 2 |x - c|^2: a Gaussian of sigma sqrt(2)/2 px
+around the projected centre c, which every splat renders at least as wide as. ``render_2dgs`` takes another
+sigma (``lowpass_sigma_px``); gsplat's CUDA kernel has this one built in."""
+LOWPASS_SIGMA_TOL_PX = 1e-4
+"""A sigma this close to LOWPASS_SIGMA_PX is the reference one (a config file's 0.7071)."""
+
+
+def is_reference_lowpass(sigma_px: float) -> bool:
+    """Whether ``sigma_px`` is 2DGS's low-pass sigma (within LOWPASS_SIGMA_TOL_PX)."""
+    return abs(sigma_px - LOWPASS_SIGMA_PX) <= LOWPASS_SIGMA_TOL_PX
+
+
+def lowpass_inv_var(sigma_px: float) -> float:
+    """The factor k of rho_2d = k |x - c|^2 for a low-pass Gaussian of ``sigma_px`` pixels: 1 / sigma^2, and
+    exactly 2 for the reference sigma. ValueError unless sigma is finite and positive."""
+    if not (math.isfinite(sigma_px) and sigma_px > 0):
+        raise ValueError(f"the low-pass sigma must be a finite positive number of pixels, got {sigma_px}")
+    return 2.0 if is_reference_lowpass(sigma_px) else 1.0 / (sigma_px * sigma_px)
 
 
 @dataclass(frozen=True)

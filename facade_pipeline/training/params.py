@@ -73,6 +73,9 @@ class TrainParams:
     device: Literal["cpu", "cuda", "auto"]
     raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
     near_m: float
+    lowpass_sigma_px: float
+    """sigma of the renderer's screen-space low-pass filter (``splatting.render_2dgs``), in training and in
+    every later render of the model"""
     reflection_model: Literal["sh", "envmap", "mlp"]
     fourier_levels: int
     mlp_depth: int

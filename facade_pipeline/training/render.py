@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from facade_pipeline.shading import deferred
 from facade_pipeline.shading.sh import eval_sh
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.model import GaussianModel
 
 Window = tuple[int, int, int, int]  # (x0, y0, width, height) in pixels of the full image
@@ -97,9 +98,10 @@ class Render:
     n_features: int = 7
 
 
-def splatting_rasterizer(backend: str) -> Rasterizer:
-    """The pipeline's rasterizer (``facade_pipeline.splatting.render_2dgs``) with the given backend, as a
-    ``Rasterizer``. Its expected depth (alpha-normalised, camera z) is the depth used for X_r."""
+def splatting_rasterizer(backend: str, lowpass_sigma_px: float = LOWPASS_SIGMA_PX) -> Rasterizer:
+    """The pipeline's rasterizer (``facade_pipeline.splatting.render_2dgs``) with the given backend and
+    low-pass sigma (px), as a ``Rasterizer``. Its expected depth (alpha-normalised, camera z) is the depth
+    used for X_r."""
     from facade_pipeline.splatting import PixelWindow, render_2dgs
 
     def rasterize(
@@ -128,6 +130,7 @@ def splatting_rasterizer(backend: str) -> Rasterizer:
             near=near,
             backend=backend,
             crop=PixelWindow(*window),
+            lowpass_sigma_px=lowpass_sigma_px,
         )
         return RasterOutput(out.features, out.alpha, out.depth_expected, out.normal, out.distortion)
 

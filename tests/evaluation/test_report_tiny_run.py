@@ -31,6 +31,7 @@ from facade_pipeline.evaluation.render_views import (
 from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.render import splatting_rasterizer
 from facade_pipeline.training.trainer import build_trainer, train
 from stages import evaluate as stage
@@ -86,6 +87,18 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     c = render_trained(ss, v.camera, v.facade_mask)
     np.testing.assert_allclose(c.rgb, render_trained(live2, v.camera, v.facade_mask).rgb, atol=1e-5)
     assert float(np.abs(c.rgb - a.rgb).max()) > 1e-3  # and that is not the one-sample render
+    # ... and one trained with another low-pass sigma with that sigma; one saved before the key, with 2DGS's
+    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split,
+                 to_dict(tr.params) | {"lowpass_sigma_px": 0.4})
+    lp = load_trained(variant_from_dir(folder))
+    assert lp.lowpass_sigma_px == 0.4
+    d = render_trained(lp, v.camera, v.facade_mask)
+    live3 = dataclasses.replace(live, lowpass_sigma_px=0.4)
+    np.testing.assert_allclose(d.rgb, render_trained(live3, v.camera, v.facade_mask).rgb, atol=1e-5)
+    assert float(np.abs(d.rgb - a.rgb).max()) > 1e-3
+    old = {k: v for k, v in to_dict(tr.params).items() if k != "lowpass_sigma_px"}
+    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, old)
+    assert load_trained(variant_from_dir(folder)).lowpass_sigma_px == LOWPASS_SIGMA_PX
     (folder / "params.json").write_text("{not json")
     with pytest.raises(InputError, match="params.json"):
         variant_from_dir(folder)

@@ -6,7 +6,8 @@ semantics"): splats sorted by centre depth (stable); for each pixel and splat
 
     X = o + t d with t = n.(p - o) / n.d    (skip when n.d = 0 or a scale is 0: the splat is seen edge-on)
     u = t_u.(X - p) / s_u,  v = t_v.(X - p) / s_v,  rho_3d = u^2 + v^2
-    rho_2d = 2 |x - proj(p)|^2 when p is beyond the near plane, else infinite
+    rho_2d = |x - proj(p)|^2 / s^2 when p is beyond the near plane, else infinite (s the low-pass sigma,
+             sqrt(1/2) px by default: 2 |x - proj(p)|^2 as in 2DGS)
     rho = min(rho_3d, rho_2d); depth z = camera z of X, or of p when the low-pass term wins
     alpha = min(0.99, o exp(-rho / 2)); skip when alpha < 1/255 or z < near
     stop before a splat that would bring the transmittance below 1e-4.
@@ -34,7 +35,8 @@ def _safe(x: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
 
 
 def render_dense(means, quats, scales, opacities, features, cam_from_world, K, width, height,
-                 near=0.2, far=100.0, x0=0, y0=0, crop_w=None, crop_h=None) -> dict[str, torch.Tensor]:
+                 near=0.2, far=100.0, x0=0, y0=0, crop_w=None, crop_h=None,
+                 lowpass_sigma_px=None) -> dict[str, torch.Tensor]:
     """Maps of the window [x0, x0 + crop_w) x [y0, y0 + crop_h) (default: the whole image)."""
     crop_w = width if crop_w is None else crop_w
     crop_h = height if crop_h is None else crop_h
@@ -70,7 +72,8 @@ def render_dense(means, quats, scales, opacities, features, cam_from_world, K, w
         z3 = (X @ R_cw.T + t_cw)[:, 2]
         front = centre_cam[i, 2] >= near
         c = centre_px[i, :2] / _safe(centre_px[i, 2], front)
-        rho2 = torch.where(front, 2 * ((pix[:, :2] - c) ** 2).sum(-1), torch.full_like(u, torch.inf))
+        k = 2.0 if lowpass_sigma_px is None else 1.0 / lowpass_sigma_px**2
+        rho2 = torch.where(front, k * ((pix[:, :2] - c) ** 2).sum(-1), torch.full_like(u, torch.inf))
         use3 = hit & (rho3 <= rho2)
         rho = torch.where(use3, rho3, rho2)
         z = torch.where(use3, z3, centre_cam[i, 2])

@@ -14,8 +14,9 @@ from facade_pipeline.splatting import PixelWindow, cpu_kernel, render_2dgs, reso
 from facade_pipeline.splatting.binning import bin_splats, pixel_support_bounds
 from facade_pipeline.splatting.blend_torch import BlendSettings, blend_torch
 from facade_pipeline.splatting.surfels import project_surfels
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from tests.splatting.dense_reference import render_dense
-from tests.splatting.scenes import HARD_CASES, MAP_NAMES, TOL, Scene, hard_case, random_scene
+from tests.splatting.scenes import HARD_CASES, MAP_NAMES, TOL, Scene, camera, hard_case, random_scene
 
 needs_cpp = pytest.mark.skipif(cpu_kernel.load() is None, reason="C++ kernel could not be built")
 CPU_BACKENDS = ["torch", pytest.param("cpp", marks=needs_cpp)]
@@ -40,8 +41,8 @@ def maps_and_grads(scene: Scene, fn, seed: int = 0):
     return {k: v.detach() for k, v in maps.items()}, grads
 
 
-def dense(scene: Scene):
-    return lambda p: render_dense(*p, scene.cam_from_world, scene.K, scene.width, scene.height)
+def dense(scene: Scene, **kw):
+    return lambda p: render_dense(*p, scene.cam_from_world, scene.K, scene.width, scene.height, **kw)
 
 
 def assert_close(maps_a, grads_a, maps_b, grads_b, dtype):
@@ -124,6 +125,66 @@ def test_gradcheck_float64(backend):
     assert render(scene, backend)["alpha"].max() > 0.3  # the splats are in view
     # fast mode (random projections of the Jacobian) keeps the slow pure-torch backend under a few seconds
     assert torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=backend == "torch")
+
+
+# --- the low-pass filter's sigma --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("sigma", [0.3, 0.5, 1.2])
+def test_lowpass_sigma_matches_dense_reference(backend, sigma):
+    """Another low-pass sigma, maps and gradients, against the dense reference; small splats, so that many
+    pixels take the low-pass branch. 1.2 px widens the support beyond 2DGS's: bounds computed for the
+    default sigma would drop pixels and fail this."""
+    scene = random_scene(4, n=60)
+    scene = replace(scene, scales=scene.scales * 0.2)
+    ref = maps_and_grads(scene, dense(scene, lowpass_sigma_px=sigma))
+    got = maps_and_grads(scene, lambda p: render(scene, backend, p, lowpass_sigma_px=sigma))
+    assert_close(*got, *ref, torch.float64)
+    default = render(scene, backend)["alpha"]
+    assert (got[0]["alpha"] - default).abs().max() > 0.05  # the sigma changes the image
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+@pytest.mark.parametrize("sigma", [0.35, 0.5, LOWPASS_SIGMA_PX, 0.7071, 1.5])
+def test_point_like_splat_renders_as_the_lowpass_gaussian(backend, sigma):
+    """A splat far smaller than a pixel is all low-pass: at a pixel centre d px from its projected centre,
+    alpha = opacity exp(-d^2 / (2 sigma^2)), and nothing where that is below 1/255."""
+    cw, K = camera(32, 24, 100.0)
+    centre = torch.tensor([[0.013, -0.008, 5.0]], dtype=torch.float64)  # projects to (16.26, 11.84)
+    f64 = {"dtype": torch.float64}
+    r = render_2dgs(centre, torch.tensor([[1.0, 0, 0, 0]], **f64), torch.full((1, 2), 1e-6, **f64),
+                    torch.tensor([0.9], **f64), torch.ones(1, 1, **f64), cw, K, 32, 24, backend=backend,
+                    lowpass_sigma_px=sigma)
+    ys, xs = torch.meshgrid(torch.arange(24.0, dtype=torch.float64) + 0.5,
+                            torch.arange(32.0, dtype=torch.float64) + 0.5, indexing="ij")
+    d2 = (xs - 16.26) ** 2 + (ys - 11.84) ** 2
+    exact = LOWPASS_SIGMA_PX if sigma == 0.7071 else sigma  # within 1e-4 px of 2DGS's sigma: 2DGS's
+    expected = 0.9 * torch.exp(-0.5 * d2 / exact**2)
+    expected = torch.where(expected >= 1 / 255, expected, 0.0)
+    torch.testing.assert_close(r.alpha, expected, atol=1e-9, rtol=1e-9)
+
+
+def test_gsplat_is_refused_or_replaced_for_another_lowpass_sigma(monkeypatch, caplog):
+    """gsplat has 2DGS's sigma built in: another sigma asked of it explicitly is an error; with "auto" the
+    torch backend renders instead, with one warning. 0.7071 (a config file's) counts as 2DGS's sigma."""
+    import facade_pipeline.splatting.render as render_module
+
+    s = random_scene(0, n=6)
+    args = s.params() + [s.cam_from_world, s.K, s.width, s.height]
+    ref = render_2dgs(*args, backend="torch", lowpass_sigma_px=0.5)
+    monkeypatch.setattr(render_module, "resolve_backend", lambda backend, device: "gsplat")
+    monkeypatch.setattr(render_module, "_WARNED_LOWPASS", set())
+    with pytest.raises(ValueError, match="gsplat backend's low-pass filter is fixed"):
+        render_2dgs(*args, backend="gsplat", lowpass_sigma_px=0.5)
+    with caplog.at_level(logging.WARNING):
+        got = render_2dgs(*args, backend="auto", lowpass_sigma_px=0.5)
+        render_2dgs(*args, backend="auto", lowpass_sigma_px=0.5)
+    assert caplog.text.count("rendering with torch") == 1
+    for k in MAP_NAMES:
+        torch.testing.assert_close(getattr(got, k), getattr(ref, k), atol=0, rtol=0)
+    with pytest.raises(ValueError, match="CUDA"):  # 2DGS's sigma goes to gsplat, which needs CUDA tensors
+        render_2dgs(*args, backend="auto", lowpass_sigma_px=0.7071)
 
 
 def test_torch_backend_is_independent_of_chunking():
@@ -238,6 +299,9 @@ def test_bad_inputs_raise():
         render_2dgs(*args, near=0.0)
     with pytest.raises(ValueError, match="gsplat"):
         render_2dgs(*args, backend="gsplat")
+    for bad in (0.0, -0.5, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="low-pass sigma"):
+            render_2dgs(*args, lowpass_sigma_px=bad)
 
 
 def test_auto_backend_on_cpu_falls_back_to_torch_with_warning(monkeypatch, caplog):
@@ -250,14 +314,17 @@ def test_auto_backend_on_cpu_falls_back_to_torch_with_warning(monkeypatch, caplo
 
 
 @needs_cpp
+@pytest.mark.parametrize("sigma", [LOWPASS_SIGMA_PX, 0.4, 1.3])
 @pytest.mark.parametrize("case", ["random", "crossing_near_plane", "huge_scale", "covers_image",
                                   "behind_camera"])
-def test_cpp_binning_equals_torch_binning(case):
+def test_cpp_binning_equals_torch_binning(case, sigma):
     scene = random_scene(9, n=200, width=70, height=50) if case == "random" else hard_case(case)
     window = PixelWindow(3, 2, scene.width - 5, scene.height - 4)
     proj = project_surfels(*scene.params()[:3], scene.cam_from_world, scene.K)
-    a = bin_splats(pixel_support_bounds(proj.ray_transform, scene.opacities, 0.2), proj.depth, window)
-    b = cpu_kernel.bin_splats_cpp(proj.ray_transform, scene.opacities, proj.depth, window, 0.2)
+    bounds = pixel_support_bounds(proj.ray_transform, scene.opacities, 0.2, lowpass_sigma_px=sigma)
+    a = bin_splats(bounds, proj.depth, window)
+    b = cpu_kernel.bin_splats_cpp(proj.ray_transform, scene.opacities, proj.depth, window, 0.2,
+                                  lowpass_sigma_px=sigma)
     assert torch.equal(a.offsets, b.offsets) and torch.equal(a.splat_ids, b.splat_ids)
     finite = torch.isfinite(a.bounds)
     assert torch.equal(finite, torch.isfinite(b.bounds))

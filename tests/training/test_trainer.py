@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from facade_pipeline.errors import InputError, PipelineError
+from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.render import Camera, random_subset, render_view, splatting_rasterizer
 from facade_pipeline.training.trainer import (
     TrainingDivergedError,
@@ -38,9 +39,11 @@ def _finite_state(tr) -> bool:
     return bool(ok)
 
 
-def test_adapter_matches_the_dense_reference(data64):
+@pytest.mark.parametrize("sigma", [None, 0.45])
+def test_adapter_matches_the_dense_reference(data64, sigma):
     """Our reading of facade_pipeline.splatting through the Rasterizer adapter (window, expected depth,
-    camera-facing normals, premultiplied features) against the splatting tests' dense float64 reference."""
+    camera-facing normals, premultiplied features, the low-pass sigma) against the splatting tests' dense
+    float64 reference."""
     p = small_params()
     tr = build_trainer(p, data64, RASTER)
     cam, m = tr.cameras[1], tr.model
@@ -49,8 +52,10 @@ def test_adapter_matches_the_dense_reference(data64):
         t.detach().double()
         for t in (m.means, m.unit_quats(), m.scales(), m.opacities(), feats, cam.cam_from_world, cam.K)
     ]
-    a = splatting_rasterizer("torch")(*tensors, cam.width, cam.height, p.near_m, (8, 16, 40, 32))
-    b = render_dense(*tensors, cam.width, cam.height, near=p.near_m, x0=8, y0=16, crop_w=40, crop_h=32)
+    raster = splatting_rasterizer("torch") if sigma is None else splatting_rasterizer("torch", sigma)
+    a = raster(*tensors, cam.width, cam.height, p.near_m, (8, 16, 40, 32))
+    b = render_dense(*tensors, cam.width, cam.height, near=p.near_m, x0=8, y0=16, crop_w=40, crop_h=32,
+                     lowpass_sigma_px=sigma)
     for ours, theirs in (
         ("features", "features"),
         ("alpha", "alpha"),
@@ -255,6 +260,17 @@ def test_pose_corrections_move_training_views_only(data64):
     assert c.log_gain is None
     plain = build_trainer(small_params(), data64, RASTER)
     assert plain.corrections is None and camera(plain, 1) is plain.cameras[1]
+
+
+def test_held_out_views_align_after_pose_refinement(data64):
+    """Measuring aligned held-out views of a model trained with pose corrections: the alignment starts from
+    the pose as training sees it and fits it, with no gradient reaching the (frozen) corrections."""
+    tr = train(build_trainer(small_params(iterations=4, pose_refinement=True), data64, RASTER))
+    before = tr.corrections.rotation.detach().clone()
+    align = AlignParams(steps=3, lr_rotation=2e-4, lr_translation=5e-3, lr_exposure=0.01, exposure=True)
+    out = evaluate(tr, data64.test_idx, align)
+    assert math.isfinite(out["psnr"]) and all(v["align_translation_m"] is not None for v in out["views"])
+    assert torch.equal(tr.corrections.rotation.detach(), before)
 
 
 def test_exposure_gains_scale_training_views_only_relative_to_their_mean(data64):

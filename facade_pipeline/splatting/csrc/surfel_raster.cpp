@@ -17,7 +17,6 @@ struct Consts {
   static constexpr S alpha_min = S(1.0 / 255.0);
   static constexpr S alpha_max = S(0.99);
   static constexpr S t_min = S(1e-4);
-  static constexpr S lowpass = S(2.0);
 };
 
 // One ray-splat evaluation: alpha and depth z at pixel (px, py), or false where the pair is skipped.
@@ -29,7 +28,8 @@ struct Hit {
 };
 
 template <typename S>
-inline bool evaluate(const S* T, S opac, S rho_cut, S px, S py, S near_z, Hit<S>& h) {
+// lowpass: the factor k of the low-pass term rho_2d = k |x - c|^2 (1 / sigma^2; 2 in 2DGS).
+inline bool evaluate(const S* T, S opac, S rho_cut, S px, S py, S near_z, S lowpass, Hit<S>& h) {
   const S* a = T;
   const S* b = T + 3;
   const S* e = T + 6;
@@ -51,7 +51,7 @@ inline bool evaluate(const S* T, S opac, S rho_cut, S px, S py, S near_z, Hit<S>
     h.cx = a[2] / e[2];
     h.cy = b[2] / e[2];
     const S dx = px - h.cx, dy = py - h.cy;
-    rho2 = Consts<S>::lowpass * (dx * dx + dy * dy);
+    rho2 = lowpass * (dx * dx + dy * dy);
   }
   h.d3 = (c2 != 0) && (rho3 <= rho2);
   if (!h.d3 && !front) return false;
@@ -71,8 +71,8 @@ inline bool evaluate(const S* T, S opac, S rho_cut, S px, S py, S near_z, Hit<S>
 
 // Chain dL/dalpha and dL/dz of one evaluated pair into dL/dT (9) and dL/dopacity.
 template <typename S>
-inline void evaluate_backward(const S* T, S opac, S px, S py, const Hit<S>& h, S g_alpha, S g_z, S* dT,
-                              S* d_opac) {
+inline void evaluate_backward(const S* T, S opac, S px, S py, S lowpass, const Hit<S>& h, S g_alpha, S g_z,
+                              S* dT, S* d_opac) {
   const S* e = T + 6;
   S gG = 0;
   if (!h.clamped) {
@@ -98,8 +98,8 @@ inline void evaluate_backward(const S* T, S opac, S px, S py, const Hit<S>& h, S
       dT[6 + k] -= px * dhx[k] + py * dhy[k];
     }
   } else {
-    const S dcx = -2 * Consts<S>::lowpass * (px - h.cx) * g_rho;
-    const S dcy = -2 * Consts<S>::lowpass * (py - h.cy) * g_rho;
+    const S dcx = -2 * lowpass * (px - h.cx) * g_rho;
+    const S dcy = -2 * lowpass * (py - h.cy) * g_rho;
     dT[2] += dcx / e[2];
     dT[5] += dcy / e[2];
     dT[8] += g_z - (dcx * h.cx + dcy * h.cy) / e[2];
@@ -118,6 +118,7 @@ struct Splats {
   const S* normal;   // [N, 3]
   const double* bounds;  // [N, 4] conservative pixel support
   int64_t F;
+  S lowpass;  // low-pass factor k of rho_2d = k |x - c|^2
   std::vector<S> rho_cut;  // [N] rho beyond which alpha < 1/255 (with a margin)
 
   void prepare(int64_t N) {
@@ -173,7 +174,7 @@ void forward(const Splats<S>& sp, const int64_t* offsets, const int64_t* ids, Ge
           const int64_t id = ids[k];
           if (outside_x(sp.bounds + 4 * id, double(px))) continue;
           Hit<S> h;
-          if (!evaluate(sp.T + 9 * id, sp.opac[id], sp.rho_cut[size_t(id)], px, py, near_z, h)) continue;
+          if (!evaluate(sp.T + 9 * id, sp.opac[id], sp.rho_cut[size_t(id)], px, py, near_z, sp.lowpass, h)) continue;
           const S T_next = T * (1 - h.alpha);
           if (T_next < Consts<S>::t_min) break;
           const S w = h.alpha * T;
@@ -257,7 +258,7 @@ void backward(const Splats<S>& sp, const int64_t* offsets, const int64_t* ids, G
             if (outside_x(sp.bounds + 4 * id, double(px))) continue;
             Hit<S> h;
             const S* Ti = sp.T + 9 * id;
-            if (!evaluate(Ti, sp.opac[id], sp.rho_cut[size_t(id)], px, py, near_z, h)) continue;
+            if (!evaluate(Ti, sp.opac[id], sp.rho_cut[size_t(id)], px, py, near_z, sp.lowpass, h)) continue;
             const S one_minus = 1 - h.alpha;
             T = T / one_minus;  // transmittance before this splat
             const S w = h.alpha * T;
@@ -273,7 +274,7 @@ void backward(const Splats<S>& sp, const int64_t* offsets, const int64_t* ids, G
             S g_z = w * (gD + (gM1 + 2 * gM2 * m) * dm_dz);
             if (id == out_median_id[p]) g_z += g_median[p];
             S* b = buf.data() + id * stride;
-            evaluate_backward(Ti, sp.opac[id], px, py, h, g_alpha, g_z, b, b + 9);
+            evaluate_backward(Ti, sp.opac[id], px, py, sp.lowpass, h, g_alpha, g_z, b, b + 9);
             for (int64_t c = 0; c < F; ++c) b[10 + c] += w * gf[c];
             for (int c = 0; c < 3; ++c) b[10 + F + c] += w * gn[c];
           }
@@ -309,7 +310,7 @@ inline void ratio_bounds(double n0, double n1, double d0, double d1, double& lo,
 
 // Pixel box (x_min, y_min, x_max, y_max) of one splat's support; false when it has none.
 template <typename S>
-bool support_bounds(const S* Tf, S opac_s, double near_z, double* box) {
+bool support_bounds(const S* Tf, S opac_s, double near_z, double lowpass, double* box) {
   double T[9];
   for (int k = 0; k < 9; ++k) {
     T[k] = double(Tf[k]);
@@ -346,7 +347,7 @@ bool support_bounds(const S* Tf, S opac_s, double near_z, double* box) {
   const bool centre_ok = e[2] >= near_z;
   double lo2[2] = {INFINITY, INFINITY}, hi2[2] = {-INFINITY, -INFINITY};
   if (centre_ok) {
-    const double rad = std::sqrt(R2 / 2.0);
+    const double rad = std::sqrt(R2 / lowpass);
     const double c[2] = {T[2] / e[2], T[5] / e[2]};
     for (int r = 0; r < 2; ++r) {
       lo2[r] = c[r] - rad;
@@ -376,14 +377,14 @@ inline bool tile_range(double lo, double hi, int64_t origin, int64_t size, int64
 }
 
 template <typename S>
-void bin_count(const S* T, const S* opac, int64_t N, double near_z, Geometry g, int threads, double* bounds,
-               int64_t* rect, int64_t* tile_counts) {
+void bin_count(const S* T, const S* opac, int64_t N, double near_z, double lowpass, Geometry g, int threads,
+               double* bounds, int64_t* rect, int64_t* tile_counts) {
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int64_t i = 0; i < N; ++i) {
     double* box = bounds + 4 * i;
     int64_t* rc = rect + 4 * i;
     rc[0] = 0, rc[1] = -1, rc[2] = 0, rc[3] = -1;
-    if (!support_bounds(T + 9 * i, opac[i], near_z, box)) {
+    if (!support_bounds(T + 9 * i, opac[i], near_z, lowpass, box)) {
       box[0] = box[1] = INFINITY;
       box[2] = box[3] = -INFINITY;
       continue;
@@ -420,10 +421,10 @@ void bin_fill(const int64_t* order, int64_t N, const int64_t* rect, int64_t tile
   SURFEL_EXPORT void surfel_forward_##SUFFIX(                                                                \
       const S* T, const S* opac, const S* feat, const S* normal, const double* bounds, int64_t F, int64_t N, \
       const int64_t* offsets, const int64_t* ids, int64_t x0, int64_t y0, int64_t width, int64_t height,     \
-      int64_t tiles_x, int64_t tiles_y, double near_z, double far_z, int threads, S* out_feat, S* out_T,     \
-      S* out_depth, S* out_normal, S* out_median, S* out_dist, S* out_M1, S* out_M2, int32_t* out_last,       \
-      int64_t* out_median_id) {                                                                              \
-    Splats<S> sp{T, opac, feat, normal, bounds, F, {}};                                                      \
+      int64_t tiles_x, int64_t tiles_y, double near_z, double far_z, double lowpass, int threads,            \
+      S* out_feat, S* out_T, S* out_depth, S* out_normal, S* out_median, S* out_dist, S* out_M1, S* out_M2,  \
+      int32_t* out_last, int64_t* out_median_id) {                                                           \
+    Splats<S> sp{T, opac, feat, normal, bounds, F, S(lowpass), {}};                                          \
     sp.prepare(N);                                                                                           \
     forward<S>(sp, offsets, ids, Geometry{x0, y0, width, height, tiles_x, tiles_y}, S(near_z), S(far_z),    \
                threads, out_feat, out_T, out_depth, out_normal, out_median, out_dist, out_M1, out_M2,        \
@@ -432,11 +433,11 @@ void bin_fill(const int64_t* order, int64_t N, const int64_t* rect, int64_t tile
   SURFEL_EXPORT void surfel_backward_##SUFFIX(                                                               \
       const S* T, const S* opac, const S* feat, const S* normal, const double* bounds, int64_t F, int64_t N, \
       const int64_t* offsets, const int64_t* ids, int64_t x0, int64_t y0, int64_t width, int64_t height,     \
-      int64_t tiles_x, int64_t tiles_y, double near_z, double far_z, int threads, const S* out_T,            \
-      const S* out_M1, const S* out_M2, const int32_t* out_last, const int64_t* out_median_id,               \
+      int64_t tiles_x, int64_t tiles_y, double near_z, double far_z, double lowpass, int threads,            \
+      const S* out_T, const S* out_M1, const S* out_M2, const int32_t* out_last, const int64_t* out_median_id, \
       const S* g_feat, const S* g_T, const S* g_depth, const S* g_normal, const S* g_median,                 \
       const S* g_dist, S* dT, S* d_opac, S* d_feat, S* d_normal) {                                           \
-    Splats<S> sp{T, opac, feat, normal, bounds, F, {}};                                                      \
+    Splats<S> sp{T, opac, feat, normal, bounds, F, S(lowpass), {}};                                          \
     sp.prepare(N);                                                                                           \
     backward<S>(sp, offsets, ids, Geometry{x0, y0, width, height, tiles_x, tiles_y}, S(near_z), S(far_z),   \
                 threads, out_T, out_M1, out_M2, out_last, out_median_id, g_feat, g_T, g_depth, g_normal,      \
@@ -444,12 +445,12 @@ void bin_fill(const int64_t* order, int64_t N, const int64_t* rect, int64_t tile
   }
 
 #define DEFINE_BIN_ENTRY_POINT(S, SUFFIX)                                                                     \
-  SURFEL_EXPORT void surfel_bin_count_##SUFFIX(const S* T, const S* opac, int64_t N, double near_z, int64_t x0,   \
-                                               int64_t y0, int64_t width, int64_t height, int64_t tiles_x,         \
-                                               int64_t tiles_y, int threads, double* bounds, int64_t* rect,       \
-                                               int64_t* tile_counts) {                                            \
-    bin_count<S>(T, opac, N, near_z, Geometry{x0, y0, width, height, tiles_x, tiles_y}, threads, bounds, rect,  \
-                 tile_counts);                                                                                    \
+  SURFEL_EXPORT void surfel_bin_count_##SUFFIX(const S* T, const S* opac, int64_t N, double near_z,              \
+                                               double lowpass, int64_t x0, int64_t y0, int64_t width,             \
+                                               int64_t height, int64_t tiles_x, int64_t tiles_y, int threads,     \
+                                               double* bounds, int64_t* rect, int64_t* tile_counts) {             \
+    bin_count<S>(T, opac, N, near_z, lowpass, Geometry{x0, y0, width, height, tiles_x, tiles_y}, threads,       \
+                 bounds, rect, tile_counts);                                                                      \
   }
 
 SURFEL_EXPORT void surfel_bin_fill(const int64_t* order, int64_t N, const int64_t* rect, int64_t tiles_x,
