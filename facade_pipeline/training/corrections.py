@@ -130,6 +130,7 @@ def align_view(
     ``frozen`` (the model's tensors) get no gradient meanwhile. The correction with the lowest loss seen is
     returned, so the fitted view never explains its photo worse than the given pose does; a view with an
     empty mask, or no steps, keeps its pose and a gain of 1."""
+    cam_from_world = cam_from_world.detach()  # a start: the fit never reaches into how it was computed
     dev = cam_from_world.device
     corr = ViewCorrections(1, dev, pose=True, exposure=params.exposure)
     best = (math.inf, {k: v.detach().clone() for k, v in corr.state_dict().items()})

@@ -105,3 +105,23 @@ def test_alignment_never_worse_than_the_given_pose_and_leaves_the_model_alone():
     assert torch.equal(empty.cam_from_world, M) and empty.rotation_deg == 0.0
     none = align_view(render, M, image, mask, dataclasses.replace(params, steps=0, exposure=False))
     assert torch.equal(none.cam_from_world, M) and torch.equal(none.gain, torch.ones(3))
+
+
+def test_alignment_takes_a_pose_that_carries_autograd_history():
+    """A pose computed from a trainable correction (a trainer's refined camera, outside ``no_grad``) is a
+    starting point: the fit neither backpropagates into its history (which would fail at the second step)
+    nor hands gradients back to the correction that made it."""
+    points, colors = _scene()
+    render = _blob_renderer(points, colors, f=40.0, size=32)
+    refined = ViewCorrections(1, "cpu", pose=True, exposure=False)
+    with torch.no_grad():
+        refined.rotation[0] = torch.tensor([0.0, 0.003, -0.004])
+        image = render(torch.eye(4))
+    M = refined.cam_from_world(0, torch.eye(4))
+    assert M.requires_grad
+    mask = torch.ones(32, 32, dtype=torch.bool)
+    params = AlignParams(steps=20, lr_rotation=1e-3, lr_translation=5e-3, lr_exposure=0.01, exposure=False)
+    fit = align_view(render, M, image, mask, params)
+    assert fit.loss_after < fit.loss_before
+    assert not fit.cam_from_world.requires_grad
+    assert refined.rotation.grad is None
