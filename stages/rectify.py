@@ -111,7 +111,7 @@ def _fit(points: np.ndarray, view: View, params: Params, source: Path,
         return None, "declared planar"
     try:
         seen = view_points(points, view.camera, mesh, params.occlusion_margin_m)
-        return fit_surface(seen, view.camera.center, params.fit, source), "fitted"
+        return fit_surface(seen, view.camera.center, params.fit, source, -view.camera.forward), "fitted"
     except SurfaceFitError as e:
         return None, f"no surface: {e}"
 

@@ -38,6 +38,10 @@ class PinholeCamera:
     def center(self) -> np.ndarray:  # [3] camera centre in world coordinates
         return self.world_from_cam[:3, 3]
 
+    @property
+    def forward(self) -> np.ndarray:  # [3] unit optical axis (camera z) in world coordinates
+        return self.cam_from_world[2, :3] / np.linalg.norm(self.cam_from_world[2, :3])
+
     def world_to_cam(self, points: np.ndarray) -> np.ndarray:
         """[N, 3] world points -> [N, 3] camera-frame points."""
         R, t = self.cam_from_world[:3, :3], self.cam_from_world[:3, 3]

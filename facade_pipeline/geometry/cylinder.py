@@ -11,11 +11,13 @@ surface (positive on the ``n`` side) is
 which equals ``sqrt((w + 1/kappa)^2 + t^2) - 1/kappa`` for kappa != 0 and ``w`` for kappa = 0 (no division by
 kappa anywhere). All coordinates are world metres.
 
-Fit (``fit_surface``): (1) reject points on a line or too few points; (2) RANSAC plane with a generous
-threshold to drop far outliers (ghost points mirrored behind glass, ground, clutter); (3) a quadric height
-field ``w = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2`` over the plane, by iteratively reweighted least
-squares, whose Hessian gives the axis (the flat eigenvector) and kappa (minus the other eigenvalue);
-(4) least squares on ``d(x)`` over (frame rotation, offset along n, kappa) with a soft-L1 loss.
+Fit (``fit_surface``): (0) given a frontal view's viewing direction, keep the points whose local surface
+faces it (the level ground before the facade drops out); (1) reject points on a line or too few points;
+(2) RANSAC plane with a generous threshold to drop far outliers (ghost points mirrored behind glass,
+ground, clutter); (3) a quadric height field ``w = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2`` over the
+plane, by iteratively reweighted least squares, whose Hessian gives the axis (the flat eigenvector) and
+kappa (minus the other eigenvalue); (4) least squares on ``d(x)`` over (frame rotation, offset along n,
+kappa) with a soft-L1 loss.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -48,6 +51,10 @@ class SurfaceFitParams:
     """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera."""
     inlier_scale_m: float
     """Scale (m) of the soft-L1 loss; points within 3x this of the surface are inliers (m)."""
+    normal_knn: int
+    """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
+    viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out
+    before the fit (the ground before a facade seen from a low camera); 0: every point is kept."""
     seed: int
     """Seed of the RANSAC sampler (-)."""
 
@@ -172,6 +179,22 @@ def ransac_plane(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPa
     return best
 
 
+def facing_points(points: np.ndarray, toward_camera: np.ndarray, knn: int,
+                  max_angle_deg: float) -> np.ndarray:
+    """Mask [N] of the points whose local surface faces the camera: the normal of the plane through each
+    point's ``knn`` nearest points (open3d's PCA estimate, either sign) within ``max_angle_deg`` of the
+    unit ``toward_camera`` (minus the optical axis). The ground before a facade is level, the facade faces
+    a frontal view: seen from a low camera the ground's points outnumber the facade's, and a plane fit
+    takes the ground (benchmarks/RESULTS.md, 2026-11-24)."""
+    n = len(points)
+    if knn <= 0 or n < 3:
+        return np.ones(n, bool)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(min(knn, n)))
+    normals = np.asarray(cloud.normals)
+    return np.abs(normals @ np.asarray(toward_camera, float)) >= np.cos(np.radians(max_angle_deg))
+
+
 def _pca_frame(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted centroid [3] and eigenvectors [3, 3] (columns, ascending eigenvalues)."""
     c = (weights[:, None] * points).sum(0) / weights.sum()
@@ -221,11 +244,16 @@ def refine_surface(surface: Surface, points: np.ndarray, scale_m: float) -> Surf
 
 
 def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams,
-                source: str | Path | None = None) -> SurfaceFit:
+                source: str | Path | None = None, toward_camera: np.ndarray | None = None) -> SurfaceFit:
     """Fit a cylinder (or plane) to world points [N, 3] seen from ``viewpoint`` [3] (the normal faces it).
+    With ``toward_camera`` (unit [3], minus a frontal view's optical axis) only the points whose local
+    surface faces it are fitted (``facing_points``); ``n_points`` counts the points given.
 
     Raises ``SurfaceFitError`` naming ``source`` for too few points or points on one line."""
     points = np.asarray(points, dtype=np.float64)
+    n_given = len(points)
+    if toward_camera is not None:
+        points = points[facing_points(points, toward_camera, params.normal_knn, params.max_normal_angle_deg)]
     check_points(points, params, source)
     rng = np.random.default_rng(params.seed)
     keep = ransac_plane(points, np.asarray(viewpoint, float), params, rng)
@@ -236,4 +264,4 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
         keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
         check_points(points[keep], params, source)
     d = surface.signed_distance(points[keep])
-    return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), len(points), int(keep.sum()))
+    return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))

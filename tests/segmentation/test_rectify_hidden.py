@@ -4,12 +4,14 @@ mesh hides from the camera, so the ground behind the facade cannot take the plan
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.cylinder import fit_surface
+from facade_pipeline.geometry.cylinder import facing_points, fit_surface
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from stages import rectify
 
@@ -59,3 +61,39 @@ def test_the_facade_is_fitted_with_the_hidden_ground_left_out(height):
     fit = fit_surface(pts, cam.center, PARAMS.fit)
     assert abs(fit.surface.normal @ [0.0, 1.0, 0.0]) > np.cos(np.radians(1.0))  # the facade's plane
     assert abs(fit.surface.radius_m) > 500 and fit.rms_m < 0.05
+
+
+def curved_facade_with_ground_before(seed=0):
+    """800 points on a 15 m cylinder (axis vertical at y = -15 m, apex at y = 0, +-0.6 rad, 18 m tall) and
+    3,000 points of level ground before it (z = 0, y from 0.5 to 12 m): nothing hides the ground."""
+    rng = np.random.default_rng(seed)
+    th, z = rng.uniform(-0.6, 0.6, 800), rng.uniform(0, 18, 800)
+    facade = np.stack([15 * np.sin(th), 15 * np.cos(th) - 15 + rng.normal(0, 0.02, 800), z], 1)
+    ground = np.stack([rng.uniform(-20, 20, 3000), rng.uniform(0.5, 12, 3000), np.zeros(3000)], 1)
+    return facade, ground
+
+
+@pytest.mark.parametrize("height", [1.5, 3.0, 6.0])
+def test_the_ground_before_the_facade_is_left_out_of_the_fit_from_a_low_camera(height):
+    facade, ground = curved_facade_with_ground_before()
+    cam = looking_at_facade([0.0, 12.0, height])
+    pts = rectify.view_points(np.vstack([facade, ground]), cam)
+    assert (pts[:, 2] < 0.01).sum() > len(pts) / 3  # the ground takes a third of the view's points or more
+    fit = fit_surface(pts, cam.center, PARAMS.fit, toward_camera=-cam.forward)
+    assert fit.surface.radius_m == pytest.approx(15.0, rel=0.01) and fit.rms_m < 0.03
+    assert abs(fit.surface.axis[2]) > np.cos(np.radians(1.0))  # the cylinder's axis is vertical
+    assert fit.n_points == len(pts) and fit.n_inliers <= int((pts[:, 2] > 0.01).sum())
+    # without the normals' test, ground and facade mix or the ground wins
+    unfiltered = fit_surface(
+        pts, cam.center, dataclasses.replace(PARAMS.fit, normal_knn=0), toward_camera=-cam.forward
+    )
+    assert abs(unfiltered.surface.radius_m - 15.0) > 5.0
+
+
+def test_facing_points_keeps_the_facade_and_drops_level_ground():
+    facade, ground = curved_facade_with_ground_before()
+    toward = np.array([0.0, 1.0, 0.0])
+    keep = facing_points(np.vstack([facade, ground]), toward, 16, 60.0)
+    assert keep[:800].mean() > 0.97 and keep[800:].mean() < 0.03
+    assert facing_points(facade, toward, 0, 60.0).all()  # knn 0: every point is kept
+    assert facing_points(facade[:2], toward, 16, 60.0).all()  # too few points for a normal
