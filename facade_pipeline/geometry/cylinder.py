@@ -254,6 +254,11 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     n_given = len(points)
     if toward_camera is not None:
         points = points[facing_points(points, toward_camera, params.normal_knn, params.max_normal_angle_deg)]
+        if n_given >= params.min_points > len(points):
+            angle = params.max_normal_angle_deg
+            raise SurfaceFitError(source, f"at least {params.min_points} coarse points whose surface faces "
+                                  f"the camera (normal within {angle:g} deg of the optical axis)",
+                                  f"{len(points)} of {n_given}")
     check_points(points, params, source)
     rng = np.random.default_rng(params.seed)
     keep = ransac_plane(points, np.asarray(viewpoint, float), params, rng)

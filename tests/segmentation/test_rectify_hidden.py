@@ -11,7 +11,7 @@ import pytest
 
 from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.cylinder import facing_points, fit_surface
+from facade_pipeline.geometry.cylinder import SurfaceFitError, facing_points, fit_surface
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from stages import rectify
 
@@ -97,3 +97,11 @@ def test_facing_points_keeps_the_facade_and_drops_level_ground():
     assert keep[:800].mean() > 0.97 and keep[800:].mean() < 0.03
     assert facing_points(facade, toward, 0, 60.0).all()  # knn 0: every point is kept
     assert facing_points(facade[:2], toward, 16, 60.0).all()  # too few points for a normal
+
+
+def test_a_view_of_level_ground_alone_is_refused_with_what_was_found():
+    _, ground = curved_facade_with_ground_before()
+    cam = looking_at_facade([0.0, 12.0, 1.5])
+    pts = rectify.view_points(ground, cam)
+    with pytest.raises(SurfaceFitError, match=r"faces the camera.*found 0 of"):
+        fit_surface(pts, cam.center, PARAMS.fit, "coarse_points.ply", toward_camera=-cam.forward)
