@@ -48,7 +48,8 @@ class SurfaceFitParams:
     ransac_iterations: int
     """RANSAC plane hypotheses (-)."""
     max_normal_angle_deg: float
-    """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera."""
+    """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera
+    (and, with ``normal_knn``, each fitted point's normal within it of the optical axis)."""
     inlier_scale_m: float
     """Scale (m) of the soft-L1 loss; points within 3x this of the surface are inliers (m)."""
     normal_knn: int
