@@ -218,7 +218,7 @@ def truth_maps(
     """(normals, depth, valid, reflectivity, material) from the rays through the pixel centres."""
     H, W = camera.height, camera.width
     o, d = camera.all_pixel_rays(1)
-    z_axis = camera.cam_from_world[2, :3]
+    z_axis = camera.forward
     normals, depth = np.zeros((H * W, 3)), np.zeros(H * W)
     material = np.zeros(H * W, np.uint8)
     step = scene.params.render.chunk_rays
