@@ -103,10 +103,22 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(path, "valid TOML", f"a syntax error ({e})") from None
 
 
+# Keys that were replaced, with what replaces them: a config that still has one gets the replacement named.
+RENAMED = {
+    "rectify.warp.planar_shift_px": "none: every view is rectified (rectify.metres_per_px sets the scale)",
+    "segment_panels.min_partial_px": "segment_panels.min_partial_m (metres on the facade)",
+    "segment_panels.grid.min_pitch_px": "segment_panels.grid.min_pitch_m and max_pitch_m (metres)",
+    "segment_panels.grid.min_bar_px": "segment_panels.grid.min_bar_m (metres on the facade)",
+    "segment_panels.grid.max_bar_px": "segment_panels.grid.max_bar_m (metres on the facade)",
+}
+
+
 def _check_known_keys(override: dict, default: dict, file: Path, prefix: str) -> None:
     """Every key of a building file must exist in default.toml (catches typos before anything runs)."""
     for key, value in override.items():
         where = f"{prefix}{key}"
+        if where in RENAMED:
+            raise ConfigError(file, f"'{where}' replaced by {RENAMED[where]}", f"the old key '{where}'")
         if key not in default:
             raise ConfigError(file, "only keys that configs/default.toml defines", f"unknown key '{where}'")
         if isinstance(value, dict) and isinstance(default[key], dict):

@@ -1,73 +1,69 @@
-"""Stage ``rectify``: unfold the curved facade in each frontal view into a planar-facade image (paper, 3.1.1).
+"""Stage ``rectify``: every frontal view becomes a metric, fronto-parallel image of its fitted facade
+surface (paper, 3.1.1, extended from curved facades to all), so that segmentation works in metres.
 
 For each frontal view of ``01_import``: crop the coarse point cloud to the points that project into the
-image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a cylinder robustly
-(``geometry.cylinder``), and build degree-7 polynomial warps between the curved and the unfolded facade
-(``geometry.rectification``). A flat patch (or ``surface = "planar"``) passes through with identity warps;
-a view whose points cannot define a surface (too few, on one line) passes through too and is reported in
-the manifest, not an error. Writes into ``02_rectify/``: the rectified image, the warps (forward and
-inverse), the fitted surface and an overlay per view.
+image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a plane or cylinder robustly
+(``geometry.cylinder``), and sample the surface on a regular (arc length, height) grid of ``metres_per_px``
+(``geometry.rectification``: a homography for a plane, the unrolled cylinder otherwise). A view whose
+points cannot define a surface is left unrectified, with the coarse mesh's scale at its centre; a view
+whose surface is nearly edge-on or whose rectified image would be too large is skipped with a warning.
+Both are listed in the manifest with the reason. Writes into ``02_rectify/``: the rectified image (none
+for a skipped view), the mapping (both directions and the scale), the fitted surface and an overlay.
 """
 
 from __future__ import annotations
 
-import os
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
 
-# The stage solves many small dense problems (625 x 36 SVDs); OpenBLAS threads only contend for the cores
-# there (measured on 2 busy cores: 0.3 s per SVD with threads, 1 ms without). Set before numpy loads.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import cv2
+import numpy as np
+from tqdm import tqdm
 
-import shutil  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Literal  # noqa: E402
-
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from facade_pipeline.errors import UpstreamMissingError  # noqa: E402
-from facade_pipeline.geometry.camera import PinholeCamera  # noqa: E402
-from facade_pipeline.geometry.cylinder import (  # noqa: E402
+from facade_pipeline.errors import UpstreamMissingError
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.geometry.cylinder import (
     SurfaceFit,
     SurfaceFitError,
     SurfaceFitParams,
     fit_surface,
 )
-from facade_pipeline.geometry.raycast import MeshRaycaster  # noqa: E402
-from facade_pipeline.geometry.rectification import (  # noqa: E402
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.geometry.rectification import (
     RectifyParams,
     ViewRectification,
     rectify_view,
     warp_image,
 )
-from facade_pipeline.io.atomic import atomic_path, write_json  # noqa: E402
-from facade_pipeline.io.images import read_image, write_image  # noqa: E402
-from facade_pipeline.io.meshes import read_mesh, read_points  # noqa: E402
-from facade_pipeline.layout import BuildingLayout  # noqa: E402
-from facade_pipeline.scene import ImportedScene, View  # noqa: E402
-from stages._runner import StageReport, main  # noqa: E402
+from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.images import read_image, write_image
+from facade_pipeline.io.meshes import read_mesh, read_points
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.scene import ImportedScene, View
+from stages._runner import StageReport, main
 
 NAME = "rectify"
-DOC = "fit a cylinder to each frontal view's points and warp curved facades into planar-facade images"
+DOC = "fit a plane or cylinder to each frontal view's points and resample the view as a metric facade image"
 UPSTREAM: tuple[str, ...] = ("import_photogrammetry",)
+log = logging.getLogger("facade_pipeline.stages")
 
 
 @dataclass(frozen=True)
-class Params:
+class Params(RectifyParams):
     surface: Literal["auto", "planar"]
-    """``auto`` fits a cylinder per view; ``planar`` declares the facade flat: identity warps, no fit."""
+    """``auto`` fits a plane or a cylinder per view; ``planar`` declares the facade flat: planes only."""
     fit: SurfaceFitParams
-    """The robust cylinder fit (``[rectify.fit]``)."""
-    warp: RectifyParams
-    """Patch sampling and polynomial warps (``[rectify.warp]``)."""
-    overlay_scale: int
-    """The overlay is drawn this many times the image size (-)."""
+    """The robust surface fit (``[rectify.fit]``)."""
+    overlay_scale: float
+    """The overlay is drawn at this many times the view's size (-)."""
     occlusion_margin_m: float
     """A coarse point whose line of sight meets the coarse mesh more than this (m) before it is hidden and
-    left out of the fit (the ground and surroundings behind the facade); inf: every point is kept."""
+    left out of the fit (the ground and surroundings behind the facade); inf: every point is kept. Scales
+    with the facade: about a third of a panel's width."""
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -106,69 +102,80 @@ def view_points(points: np.ndarray, camera: PinholeCamera, hidden_by: MeshRaycas
 
 
 def _fit(points: np.ndarray, view: View, params: Params, source: Path,
-         mesh: MeshRaycaster | None) -> tuple[SurfaceFit | None, str]:
-    if params.surface == "planar":
-        return None, "declared planar"
+         mesh: MeshRaycaster) -> tuple[SurfaceFit | None, str]:
     try:
         seen = view_points(points, view.camera, mesh, params.occlusion_margin_m)
-        return fit_surface(seen, view.camera.center, params.fit, source, -view.camera.forward), "fitted"
+        fit = fit_surface(seen, view.camera.center, params.fit, source, -view.camera.forward,
+                          curved=params.surface == "auto")
+        return fit, "fitted"
     except SurfaceFitError as e:
         return None, f"no surface: {e}"
 
 
-def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, scale: int) -> np.ndarray:
-    """Original (left) with the images of straight rectified grid lines, rectified image (right) with them."""
+def mesh_scale_m(camera: PinholeCamera, mesh: MeshRaycaster) -> float:
+    """Ground sample distance (m per px) at the principal point from the coarse mesh's depth there: the
+    scale of a view that is not rectified (NaN when the ray misses the mesh)."""
+    o, d = camera.pixel_rays(np.array([camera.K[0, 2]]), np.array([camera.K[1, 2]]))
+    t = float(mesh.cast(o, d).t[0])
+    if not np.isfinite(t):
+        return float("nan")
+    depth = t * float(d[0] @ camera.forward)
+    return depth / float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+
+
+def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, scale: float) -> np.ndarray:
+    """Original (left) with the images of straight rectified grid lines, rectified image (right, at the
+    original's height) with them."""
     H, W = image.shape[:2]
-    left = cv2.resize(image, (W * scale, H * scale), interpolation=cv2.INTER_NEAREST)
-    right = cv2.resize(rectified, (rect.width * scale, rect.height * scale), interpolation=cv2.INTER_NEAREST)
+    size = (max(1, round(W * scale)), max(1, round(H * scale)))
+    left = cv2.resize(image, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_NEAREST)
+    k = size[1] / rect.height  # the rectified image drawn at the original's height
+    right = cv2.resize(rectified, (max(1, round(rect.width * k)), size[1]), interpolation=cv2.INTER_AREA)
     for frac in np.linspace(0.1, 0.9, 5):
         for line in (np.stack([np.full(50, frac * rect.width), np.linspace(0, rect.height, 50)], 1),
                      np.stack([np.linspace(0, rect.width, 50), np.full(50, frac * rect.height)], 1)):
-            cv2.polylines(right, [np.int32(line * scale)], False, (255, 255, 0), 1)
-            cv2.polylines(left, [np.int32(rect.inverse(line) * scale)], False, (255, 255, 0), 1)
-    out = np.zeros((max(left.shape[0], right.shape[0]), left.shape[1] + right.shape[1] + 4, 3), np.uint8)
-    out[: left.shape[0], : left.shape[1]] = left
-    out[: right.shape[0], left.shape[1] + 4:] = right
+            cv2.polylines(right, [np.int32(line * k)], False, (255, 255, 0), 1)
+            back = rect.to_original(line)
+            back = back[np.isfinite(back).all(axis=1)]
+            cv2.polylines(left, [np.int32(back * scale)], False, (255, 255, 0), 1)
+    out = np.zeros((size[1], left.shape[1] + right.shape[1] + 4, 3), np.uint8)
+    out[:, : left.shape[1]] = left
+    out[:, left.shape[1] + 4:] = right
     return out
 
 
 def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: Params,
-                mesh: MeshRaycaster | None) -> tuple[list[Path], dict]:
-    """Fit, warp and write one view (``mesh``: the coarse mesh, which hides points; None: no occlusion
-    test); returns its outputs and its metrics."""
+                mesh: MeshRaycaster) -> tuple[list[Path], dict]:
+    """Fit, rectify and write one view (``mesh``: the coarse mesh, which hides points and gives the scale
+    of a view without a surface); returns its outputs and its metrics."""
     t0 = time.perf_counter()
     fit, status = _fit(points, view, params, layout.import_coarse_points, mesh)
-    src = layout.import_frontal_image(view.stem)
     cam = view.camera
     if fit is None:
-        kind = "planar" if params.surface == "planar" else "no_surface"
-        rect = ViewRectification.identity(cam.width, cam.height, kind)
+        scale = mesh_scale_m(cam, mesh)
+        rect = (ViewRectification.unrectified(cam, scale, status) if np.isfinite(scale) else
+                ViewRectification.unrectified(cam, scale, f"{status}; the coarse mesh is not in the view",
+                                              "skipped"))
     else:
-        rect = rectify_view(cam, fit.surface, params.warp)
-    image = read_image(src)
-    out_img = layout.path("rectify_image", stem=view.stem)
-    if rect.kind == "curved":
+        rect = rectify_view(cam, fit.surface, params)
+    if rect.kind == "skipped":
+        log.warning("rectify: view %s skipped: %s", view.stem, rect.reason)
+    outs = [layout.path("rectify_mapping", stem=view.stem), layout.path("rectify_surface", stem=view.stem)]
+    rect.save(outs[0])
+    write_json(outs[1], {"status": status, **({} if fit is None else fit.to_dict())})
+    if rect.kind != "skipped":
+        image = read_image(layout.import_frontal_image(view.stem))
         rectified = warp_image(image, rect)
-        write_image(out_img, rectified)
-    else:  # identity: the image passes through byte for byte
-        rectified = image
-        with atomic_path(out_img) as tmp:
-            shutil.copyfile(src, tmp)
-    rect.save(layout.path("rectify_mapping", stem=view.stem))
-    surface = {"status": status, **({} if fit is None else fit.to_dict())}
-    write_json(layout.path("rectify_surface", stem=view.stem), surface)
-    overlay = _overlay(image, rectified, rect, params.overlay_scale)
-    write_image(layout.path("rectify_overlay", stem=view.stem), overlay)
-    metrics = {"kind": rect.kind, "fit": status,
+        outs += [layout.path("rectify_image", stem=view.stem), layout.path("rectify_overlay", stem=view.stem)]
+        write_image(outs[2], rectified)
+        write_image(outs[3], _overlay(image, rectified, rect, params.overlay_scale))
+    poly = rect.polynomial
+    metrics = {"kind": rect.kind, "fit": status, "reason": rect.reason,
                "radius_m": None if fit is None else _finite(fit.surface.radius_m),
-               "fit_rms_m": None if fit is None else fit.rms_m, "max_shift_px": rect.max_shift_px,
-               "forward_rms_px": rect.forward.rms_px, "forward_max_px": rect.forward.max_px,
-               "inverse_rms_px": rect.inverse.rms_px, "inverse_max_px": rect.inverse.max_px,
-               "forward_condition": _finite(rect.forward.condition),
-               "inverse_condition": _finite(rect.inverse.condition),
+               "fit_rms_m": None if fit is None else fit.rms_m,
+               "metres_per_px": _finite(rect.metres_per_px), "size_px": [rect.width, rect.height],
+               "polynomial_max_px": None if poly is None else max(poly[0].max_px, poly[1].max_px),
                "seconds": round(time.perf_counter() - t0, 3)}
-    keys = ("rectify_mapping", "rectify_surface", "rectify_overlay")
-    outs = [out_img] + [layout.path(k, stem=view.stem) for k in keys]
     return outs, metrics
 
 
@@ -179,10 +186,8 @@ def _finite(x: float) -> float | None:
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     scene = ImportedScene.load(layout)
     points = np.asarray(read_points(layout.import_coarse_points).points)
-    mesh = None
-    if params.surface != "planar" and np.isfinite(params.occlusion_margin_m):
-        coarse = read_mesh(layout.import_coarse_mesh)
-        mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
+    coarse = read_mesh(layout.import_coarse_mesh)
+    mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
     views = scene.frontal_views
@@ -190,15 +195,13 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
         outs, per_view[view.stem] = rectify_one(layout, view, points, params, mesh)
         outputs += outs
     kinds = [m["kind"] for m in per_view.values()]
-    curved = [m for m in per_view.values() if m["kind"] == "curved"]
     return StageReport(outputs, {
         "n_views": len(views),
-        "n_curved": kinds.count("curved"),
-        "n_planar": kinds.count("planar"),
-        "n_no_surface": kinds.count("no_surface"),
-        "views_without_surface": [s for s, m in per_view.items() if m["kind"] == "no_surface"],
-        "max_forward_residual_px": max((m["forward_max_px"] for m in curved), default=0.0),
-        "max_inverse_residual_px": max((m["inverse_max_px"] for m in curved), default=0.0),
+        **{f"n_{k}": kinds.count(k) for k in ("plane", "cylinder", "unrectified", "skipped")},
+        "views_unrectified": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "unrectified"},
+        "views_skipped": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "skipped"},
+        "max_polynomial_residual_px": max((m["polynomial_max_px"] or 0.0 for m in per_view.values()),
+                                          default=0.0),
         "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
         "views": per_view,
     })

@@ -138,3 +138,16 @@ def test_a_nested_section_by_its_dotted_name(cfg_dir):
     assert align.steps == 7 and align == cfg.section("evaluate", load_stage("evaluate").Params).align
     with pytest.raises(ConfigError, match=r"\[evaluate.nosuch\]"):
         cfg.section("evaluate.nosuch", AlignParams)
+
+
+@pytest.mark.parametrize(("section", "key", "replacement"), [
+    ("segment_panels.grid", "max_bar_px", "segment_panels.grid.max_bar_m"),
+    ("segment_panels", "min_partial_px", "segment_panels.min_partial_m"),
+    ("rectify.warp", "planar_shift_px", "rectify.metres_per_px"),
+])
+def test_an_old_pixel_key_names_its_replacement(cfg_dir, section, key, replacement):
+    _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[{section}]\n{key} = 10\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("old", cfg_dir)
+    msg = str(e.value)
+    assert f"{section}.{key}" in msg and replacement in msg and "old.toml" in msg

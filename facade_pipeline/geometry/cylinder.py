@@ -56,6 +56,10 @@ class SurfaceFitParams:
     """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
     viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out
     before the fit (the ground before a facade seen from a low camera); 0: every point is kept."""
+    min_sagitta_rms: float
+    """A cylinder whose bulge over the view's points (its sagitta, |kappa| width^2 / 8) is less than this
+    many times the fit's RMS residual is not told from a plane by the points: a plane is fitted instead
+    (-)."""
     seed: int
     """Seed of the RANSAC sampler (-)."""
 
@@ -244,11 +248,32 @@ def refine_surface(surface: Surface, points: np.ndarray, scale_m: float) -> Surf
     return unpack(sol.x)
 
 
+def fit_plane(points: np.ndarray, viewpoint: np.ndarray, scale_m: float, iterations: int = 8) -> Surface:
+    """A plane through world points [N, 3] by robust (Huber IRLS) PCA, its normal toward ``viewpoint``."""
+    w8 = np.ones(len(points))
+    for _ in range(iterations):
+        c, vecs = _pca_frame(points, w8)
+        r = np.abs((points - c) @ vecs[:, 0])
+        w8 = np.minimum(1.0, scale_m / np.maximum(r, 1e-12))
+    n = vecs[:, 0] if (viewpoint - c) @ vecs[:, 0] >= 0 else -vecs[:, 0]
+    return Surface(c, vecs[:, 2], n, 0.0)
+
+
+def sagitta_m(surface: Surface, points: np.ndarray) -> float:
+    """Bulge (m) of ``surface`` over the extent of ``points`` [N, 3] across its axis: |kappa| w^2 / 8."""
+    t, _ = surface.local(points)
+    return abs(surface.curvature_per_m) * float(np.ptp(t)) ** 2 / 8.0 if len(t) else 0.0
+
+
 def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams,
-                source: str | Path | None = None, toward_camera: np.ndarray | None = None) -> SurfaceFit:
+                source: str | Path | None = None, toward_camera: np.ndarray | None = None,
+                curved: bool = True) -> SurfaceFit:
     """Fit a cylinder (or plane) to world points [N, 3] seen from ``viewpoint`` [3] (the normal faces it).
     With ``toward_camera`` (unit [3], minus a frontal view's optical axis) only the points whose local
     surface faces it are fitted (``facing_points``); ``n_points`` counts the points given.
+
+    ``curved = False`` fits a plane only; a cylinder whose sagitta over its inliers is under
+    ``min_sagitta_rms`` times its RMS residual is replaced by the plane as well.
 
     Raises ``SurfaceFitError`` naming ``source`` for too few points or points on one line."""
     points = np.asarray(points, dtype=np.float64)
@@ -264,9 +289,15 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     rng = np.random.default_rng(params.seed)
     keep = ransac_plane(points, np.asarray(viewpoint, float), params, rng)
     check_points(points[keep], params, source)
-    surface = quadric_init(points[keep], np.asarray(viewpoint, float), params.inlier_scale_m)
+    viewpoint = np.asarray(viewpoint, float)
+    surface = quadric_init(points[keep], viewpoint, params.inlier_scale_m)
     for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
         surface = refine_surface(surface, points[keep], params.inlier_scale_m)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
+        check_points(points[keep], params, source)
+    rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
+    if not curved or sagitta_m(surface, points[keep]) < params.min_sagitta_rms * rms:
+        surface = fit_plane(points[keep], viewpoint, params.inlier_scale_m)
         keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
         check_points(points[keep], params, source)
     d = surface.signed_distance(points[keep])

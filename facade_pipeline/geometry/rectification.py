@@ -1,18 +1,29 @@
-"""Rectification of a frontal view of a curved facade into a planar-facade image (paper, 3.1.1, Fig. 3).
+"""Rectification of a frontal view into a metric, fronto-parallel image of its fitted facade surface
+(paper, 3.1.1, Fig. 3; extended from curved facades to every frontal view).
 
-Given the view's pinhole camera and the fitted surface (``cylinder.Surface``):
+The surface (``cylinder.Surface``: a plane or a cylinder with a vertical-ish axis) gets a chart: surface
+coordinates (s, h) in metres, s the arc length along the facade from left to right as seen from outside
+(a plane's s is plain distance), h the height along the up axis. The rectified image samples the chart on a
+regular grid of ``metres_per_px``: rectified pixel (x, y) (centres at i + 0.5) is the surface point
 
-1. the patch: rays through an ``n x n`` grid of image positions spanning the whole image, borders included,
-   hit the surface at the "green" points X_g (world, m); the image borders bound the patch;
-2. the tangent plane at the patch's angular centre phi_c = (phi_min + phi_max) / 2 (phi about the axis);
-3. the "blue" points X_b = X_g - ((X_g - P_c) . n_c) n_c, the orthogonal projection onto that plane;
-4. both sets projected into the image (Eq. 6) give pixel pairs (g, b); the rectified image's pixel of g is
-   r = b - o, with o the corner of the blue points' bounding box (the rectified canvas holds all of them);
-5. degree-7 polynomial warps (``polywarp``) r = F(g) (forward: original -> rectified) and g = G(r)
-   (inverse: rectified -> original), fitted in both directions; ``cv2.remap`` with G builds the image.
+    s = s0 + x m,   h = h0 - y m
 
-When every blue point lies within ``planar_shift_px`` of its green point the surface is flat over the patch:
-the view passes through with identity warps and the image unchanged.
+so facade up is image up, and a length on the facade is the same number of pixels wherever it is in the
+image and however oblique the photo. Both directions are exact, for a plane and a cylinder alike:
+
+- rectified -> original: the chart's point, projected through the view's camera (Eq. 6);
+- original -> rectified: the pixel's ray meets the surface (``Surface.intersect``), read in the chart.
+
+For a plane the two are one homography and its inverse (recorded in the mapping file). The paper fits a
+7th-order polynomial between the curved facade's pixels and those of its tangent-plane unfolding; here the
+unrolled cylinder is exact, and the polynomial (fitted to exact samples, both directions) is kept in the
+mapping file as a compact closed form for other tools, with its residual at the samples: it is exact only to
+that residual, and the pipeline itself uses the exact maps.
+
+A view is left unrectified ("unrectified") when no surface was fitted: its pixels pass through, with a scale
+taken from the coarse mesh's depth at the principal point. It is skipped ("skipped") when its surface is seen
+nearly edge-on (the normal further than ``max_view_angle_deg`` from the optical axis) or when its rectified
+image would pass ``max_size_factor`` times the view's pixel count.
 """
 
 from __future__ import annotations
@@ -31,35 +42,156 @@ from facade_pipeline.geometry.cylinder import Surface
 from facade_pipeline.geometry.polywarp import PolyWarp, fit_polywarp
 from facade_pipeline.io.atomic import write_json
 
-Kind = Literal["curved", "planar", "no_surface"]
+Kind = Literal["plane", "cylinder", "unrectified", "skipped"]
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class WarpParams:
+    samples_per_side: int
+    """Samples along each side of the view for the canvas extent, the scale and the polynomial fit (-)."""
+    degree: int
+    """Total degree of the polynomial recorded for a cylinder, both directions (-); the paper uses 7."""
 
 
 @dataclass(frozen=True)
 class RectifyParams:
-    samples_per_side: int
-    """Patch samples along each image side (-); the grid includes the image borders."""
-    degree: int
-    """Total degree of the polynomial warps (-); the paper uses 7."""
-    planar_shift_px: float
-    """Largest green-to-blue shift (px) under which the patch counts as flat: identity warps."""
+    metres_per_px: float | Literal["auto"]
+    """Scale of the rectified image (m per px on the facade); "auto": the view's own ground sample distance
+    on the surface (the median over the image of the square root of a pixel's footprint area)."""
+    max_view_angle_deg: float
+    """A view whose surface normal (at the principal point's ray) is further than this (deg) from the
+    optical axis sees the facade nearly edge-on: skipped."""
+    max_size_factor: float
+    """A rectified image of more than this many times the view's pixel count is refused: skipped (-)."""
+    warp: WarpParams
+    """Sampling of the view and the polynomial recorded for cylinders (``[rectify.warp]``)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Chart:
+    """Metric surface coordinates (s, h) on a plane or cylinder (module docstring): origin [3] on the
+    surface, unit ``right`` (left to right seen from outside), ``up`` and outward ``normal`` at the origin,
+    signed curvature (1/m, > 0: convex toward the normal)."""
+
+    origin: np.ndarray
+    right: np.ndarray
+    up: np.ndarray
+    normal: np.ndarray
+    curvature_per_m: float
+
+    @classmethod
+    def of(cls, surface: Surface) -> Chart:
+        """The chart of ``surface``: up along the cylinder axis (a plane: the world up in the plane), the
+        sign toward the world up; right = up x normal, which points right for a viewer outside."""
+        n = surface.normal / np.linalg.norm(surface.normal)
+        if surface.curvature_per_m == 0.0:
+            up = WORLD_UP - (WORLD_UP @ n) * n
+            if np.linalg.norm(up) < 1e-6:  # a horizontal plane has no up: take the surface's axis
+                up = surface.axis
+        else:
+            up = surface.axis - (surface.axis @ n) * n
+        up = up / np.linalg.norm(up)
+        if up @ WORLD_UP < 0:
+            up = -up
+        return cls(np.asarray(surface.origin, float), np.cross(up, n), up, n, float(surface.curvature_per_m))
+
+    def point(self, s: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """World points [N, 3] at chart coordinates s, h [N] (m); finite for every curvature."""
+        k = self.curvature_per_m
+        s, h = np.asarray(s, float), np.asarray(h, float)
+        along = s * np.sinc(k * s / np.pi)  # sin(k s) / k
+        depth = -0.5 * k * s * s * np.sinc(k * s / (2.0 * np.pi)) ** 2  # (cos(k s) - 1) / k
+        return self.origin + h[:, None] * self.up + along[:, None] * self.right + depth[:, None] * self.normal
+
+    def coords(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Chart coordinates (s, h) [N] (m) of world points [N, 3] on (or near) the surface."""
+        q = np.asarray(points, float) - self.origin
+        t, w, h = q @ self.right, q @ self.normal, q @ self.up
+        k = self.curvature_per_m
+        s = t if k == 0.0 else np.arctan2(k * t, 1.0 + k * w) / k
+        return s, h
+
+    def to_dict(self) -> dict:
+        return {"origin_m": self.origin.tolist(), "right": self.right.tolist(), "up": self.up.tolist(),
+                "normal": self.normal.tolist(), "curvature_per_m": self.curvature_per_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Chart:
+        return cls(*(np.array(d[k], float) for k in ("origin_m", "right", "up", "normal")),
+                   float(d["curvature_per_m"]))
+
+    def surface(self) -> Surface:
+        return Surface(self.origin, self.up, self.normal, self.curvature_per_m)
 
 
 @dataclass(frozen=True, eq=False)
 class ViewRectification:
-    """The hand-off of ``rectify`` for one frontal view: warps between the original image (W x H) and the
-    rectified canvas (width x height), both in pixels with centres at (i + 0.5, j + 0.5)."""
+    """The hand-off of ``rectify`` for one frontal view: the exact maps between the original image (the
+    camera's W x H) and the rectified canvas (width x height), both in pixels with centres at
+    (i + 0.5, j + 0.5), and the canvas's scale (m per px). ``chart`` is None for "unrectified" and "skipped"
+    views (identity maps); ``reason`` says why a view was not rectified."""
 
     kind: Kind
-    width: int  # rectified canvas (px)
+    width: int
     height: int
-    forward: PolyWarp  # original -> rectified
-    inverse: PolyWarp  # rectified -> original
-    max_shift_px: float  # largest green-to-blue shift on the samples
+    metres_per_px: float
+    camera: PinholeCamera
+    chart: Chart | None = None
+    s0_m: float = 0.0
+    h0_m: float = 0.0
+    reason: str = ""
+    polynomial: tuple[PolyWarp, PolyWarp] | None = None  # (forward, inverse), cylinders only
+
+    @property
+    def rectified(self) -> bool:
+        return self.chart is not None
+
+    def to_original(self, xy: np.ndarray) -> np.ndarray:
+        """Original-view pixels [N, 2] of rectified pixels ``xy`` [N, 2] (NaN behind the camera)."""
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        if self.chart is None:
+            return xy.copy()
+        m = self.metres_per_px
+        uv, _ = self.camera.project(self.chart.point(self.s0_m + xy[:, 0] * m, self.h0_m - xy[:, 1] * m))
+        return uv
+
+    def to_rectified(self, uv: np.ndarray) -> np.ndarray:
+        """Rectified pixels [N, 2] of original-view pixels ``uv`` [N, 2] (NaN where the ray misses)."""
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        if self.chart is None:
+            return uv.copy()
+        o, d = self.camera.pixel_rays(uv[:, 0], uv[:, 1])
+        lam = self.chart.surface().intersect(o, d)
+        s, h = self.chart.coords(o + lam[:, None] * d)
+        m = self.metres_per_px
+        return np.stack([(s - self.s0_m) / m, (self.h0_m - h) / m], axis=1)
+
+    def homography(self) -> np.ndarray | None:
+        """[3, 3] rectified -> original pixels of a plane (exact), None for other kinds."""
+        if self.kind != "plane":
+            return None
+        c, m = self.chart, self.metres_per_px
+        R, t = self.camera.cam_from_world[:3, :3], self.camera.cam_from_world[:3, 3]
+        # rectified (x, y, 1) -> (s, h, 1) -> world point -> camera -> pixels
+        A = np.array([[m, 0.0, self.s0_m], [0.0, -m, self.h0_m], [0.0, 0.0, 1.0]])
+        P = np.stack([R @ c.right, R @ c.up, R @ c.origin + t], axis=1)
+        H = self.camera.K @ P @ A
+        return H / H[2, 2]
 
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "rectified_width": self.width, "rectified_height": self.height,
-                "max_shift_px": self.max_shift_px, "forward": self.forward.to_dict(),
-                "inverse": self.inverse.to_dict()}
+        d = {"kind": self.kind, "rectified_width": self.width, "rectified_height": self.height,
+             "metres_per_px": self.metres_per_px, "reason": self.reason, "camera": self.camera.to_dict(),
+             "chart": None if self.chart is None else self.chart.to_dict(),
+             "s0_m": self.s0_m, "h0_m": self.h0_m}
+        H = self.homography()
+        if H is not None:
+            F = np.linalg.inv(H)
+            d["homography"] = {"forward": (F / F[2, 2]).tolist(), "inverse": H.tolist()}
+        if self.polynomial is not None:
+            fwd, inv = self.polynomial
+            d["polynomial"] = {"forward": fwd.to_dict(), "inverse": inv.to_dict()}
+        return d
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
@@ -68,17 +200,21 @@ class ViewRectification:
     def load(cls, path: str | Path) -> ViewRectification:
         try:
             d = json.loads(Path(path).read_text())
+            poly = d.get("polynomial")
             return cls(d["kind"], int(d["rectified_width"]), int(d["rectified_height"]),
-                       PolyWarp.from_dict(d["forward"]), PolyWarp.from_dict(d["inverse"]),
-                       float(d["max_shift_px"]))
+                       float(d["metres_per_px"]), PinholeCamera.from_dict(d["camera"]),
+                       None if d["chart"] is None else Chart.from_dict(d["chart"]),
+                       float(d["s0_m"]), float(d["h0_m"]), str(d["reason"]),
+                       None if poly is None else (PolyWarp.from_dict(poly["forward"]),
+                                                  PolyWarp.from_dict(poly["inverse"])))
         except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise InputError(path, "a rectification (JSON with kind, sizes, forward and inverse warps)",
+            raise InputError(path, "a rectification (JSON with kind, sizes, scale, camera and chart)",
                              f"{type(e).__name__}: {e}") from None
 
     @classmethod
-    def identity(cls, width: int, height: int, kind: Kind, max_shift_px: float = 0.0) -> ViewRectification:
-        warp = PolyWarp.identity((0.0, 0.0, float(width), float(height)))
-        return cls(kind, width, height, warp, warp, max_shift_px)
+    def unrectified(cls, camera: PinholeCamera, metres_per_px: float, reason: str,
+                    kind: Kind = "unrectified") -> ViewRectification:
+        return cls(kind, camera.width, camera.height, float(metres_per_px), camera, reason=reason)
 
 
 def image_grid(width: int, height: int, n: int) -> np.ndarray:
@@ -87,72 +223,100 @@ def image_grid(width: int, height: int, n: int) -> np.ndarray:
     return np.stack([xs.ravel(), ys.ravel()], axis=1)
 
 
-def patch_points(surface: Surface, camera: PinholeCamera,
-                 pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Green points: the surface hit by the rays through ``pixels`` [N, 2]. Returns (pixels, points) [M, ...]
-    of the rays that hit."""
-    o, d = camera.pixel_rays(pixels[:, 0], pixels[:, 1])
+def view_angle_deg(camera: PinholeCamera, surface: Surface) -> float:
+    """Angle (deg) between the optical axis and the surface normal where the principal point's ray meets
+    the surface (90 where it misses)."""
+    cx, cy = camera.K[0, 2], camera.K[1, 2]
+    o, d = camera.pixel_rays(np.array([cx]), np.array([cy]))
     lam = surface.intersect(o, d)
-    hit = np.isfinite(lam)
-    return pixels[hit], o[hit] + lam[hit, None] * d[hit]
-
-
-def tangent_plane(surface: Surface, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Point [3] and unit normal [3] of the plane tangent to ``surface`` at the angular centre of
-    ``points`` [N, 3]."""
-    k = surface.curvature_per_m
-    if k == 0.0:
-        return surface.origin, surface.normal
-    t, w = surface.local(points)
-    # angle about the axis, measured from p0; the sign of kappa keeps it near 0 for concave surfaces too
-    phi = np.arctan2(k * t, 1.0 + k * w)
-    phi_c = 0.5 * (phi.min() + phi.max())
-    radial = np.cos(phi_c) * surface.normal + np.sin(phi_c) * surface.binormal
-    centre = surface.origin - surface.normal / k
-    return centre + radial / k, radial
+    if not np.isfinite(lam[0]):
+        return 90.0
+    chart = Chart.of(surface)
+    s, h = chart.coords(o + lam[:, None] * d)
+    # the normal at the hit: the chart's normal turned by the arc angle about the up axis
+    phi = chart.curvature_per_m * s[0]
+    n = np.cos(phi) * chart.normal + np.sin(phi) * chart.right
+    return float(np.degrees(np.arccos(np.clip(abs(n @ camera.forward), 0.0, 1.0))))
 
 
 def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams) -> ViewRectification:
-    """The warps of one view (steps 1-5 of the module docstring); identity when the patch is flat."""
+    """The rectification of one view onto ``surface`` (module docstring); "skipped" with the reason when
+    the surface is seen nearly edge-on, the view's rays miss it, or the canvas would be too large."""
     W, H = camera.width, camera.height
-    green_px, green = patch_points(surface, camera, image_grid(W, H, params.samples_per_side))
-    n_terms = (params.degree + 1) * (params.degree + 2) // 2
-    if len(green) < n_terms:
-        return ViewRectification.identity(W, H, "no_surface")
-    p_c, n_c = tangent_plane(surface, green)
-    blue = green - ((green - p_c) @ n_c)[:, None] * n_c
-    blue_px, z = camera.project(blue)
-    shift = float(np.nanmax(np.linalg.norm(blue_px - green_px, axis=1))) if np.all(z > 0) else np.inf
-    if shift <= params.planar_shift_px:
-        return ViewRectification.identity(W, H, "planar", shift)
-    lo = np.floor(blue_px.min(axis=0))
-    size = np.ceil(blue_px.max(axis=0) - lo).astype(int)
-    rect_px = blue_px - lo
-    forward = fit_polywarp(green_px, rect_px, params.degree, (0.0, 0.0, float(W), float(H)))
-    inverse = fit_polywarp(rect_px, green_px, params.degree, (0.0, 0.0, float(size[0]), float(size[1])))
-    return ViewRectification("curved", int(size[0]), int(size[1]), forward, inverse, shift)
+    angle = view_angle_deg(camera, surface)
+    if angle > params.max_view_angle_deg:
+        return ViewRectification.unrectified(
+            camera, np.nan, f"surface seen {angle:.0f} deg from the optical axis (more than "
+            f"max_view_angle_deg = {params.max_view_angle_deg:g}): nearly edge-on", "skipped")
+    chart = Chart.of(surface)
+    kind: Kind = "plane" if surface.curvature_per_m == 0.0 else "cylinder"
+    probe = ViewRectification(kind, 1, 1, 1.0, camera, chart)  # metres: s, h = x, -y
+    px = image_grid(W, H, params.warp.samples_per_side)
+    sh = probe.to_rectified(px) * [1.0, -1.0]
+    hit = np.isfinite(sh).all(axis=1)
+    if hit.mean() < 0.5:
+        return ViewRectification.unrectified(
+            camera, np.nan, f"only {hit.mean():.0%} of the view's rays meet the fitted surface", "skipped")
+    m = params.metres_per_px if params.metres_per_px != "auto" else ground_sample_m(probe, px[hit])
+    lo, hi = sh[hit].min(axis=0), sh[hit].max(axis=0)
+    width, height = (int(np.ceil(v)) for v in (hi - lo) / m)
+    if width * height > params.max_size_factor * W * H:
+        return ViewRectification.unrectified(
+            camera, np.nan, f"rectified image of {width} x {height} px is more than max_size_factor = "
+            f"{params.max_size_factor:g} times the view's {W} x {H}", "skipped")
+    rect = ViewRectification(kind, width, height, float(m), camera, chart, float(lo[0]), float(hi[1]))
+    if kind == "cylinder":
+        rect = _with_polynomial(rect, px[hit], params.warp.degree)
+    return rect
 
 
-def remap_maps(warp: PolyWarp, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """``cv2.remap`` maps [H, W] float32 (OpenCV's integer pixel centres) of ``warp`` over a W x H canvas."""
-    ys, xs = np.mgrid[0:height, 0:width]
-    src = warp(np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)) - 0.5
-    return (src[:, 0].reshape(height, width).astype(np.float32),
-            src[:, 1].reshape(height, width).astype(np.float32))
+def ground_sample_m(probe: ViewRectification, px: np.ndarray) -> float:
+    """Median over ``px`` [N, 2] of the square root of one pixel's footprint area on the surface (m)."""
+    e = 0.5
+    a = probe.to_rectified(px + [-e, 0.0])
+    b = probe.to_rectified(px + [e, 0.0])
+    c = probe.to_rectified(px + [0.0, -e])
+    d = probe.to_rectified(px + [0.0, e])
+    u, v = b - a, d - c
+    area = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])  # m^2 of a 1 x 1 px square
+    area = area[np.isfinite(area) & (area > 0)]
+    return float(np.sqrt(np.median(area)))
+
+
+def _with_polynomial(rect: ViewRectification, px: np.ndarray, degree: int) -> ViewRectification:
+    """``rect`` with degree-``degree`` polynomials fitted to exact sample pairs, both directions."""
+    r = rect.to_rectified(px)
+    ok = np.isfinite(r).all(axis=1)
+    if ok.sum() < (degree + 1) * (degree + 2) // 2:
+        return rect
+    W, H = rect.camera.width, rect.camera.height
+    fwd = fit_polywarp(px[ok], r[ok], degree, (0.0, 0.0, float(W), float(H)))
+    inv = fit_polywarp(r[ok], px[ok], degree)
+    return ViewRectification(rect.kind, rect.width, rect.height, rect.metres_per_px, rect.camera, rect.chart,
+                             rect.s0_m, rect.h0_m, rect.reason, (fwd, inv))
+
+
+def remap_maps(rect: ViewRectification) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps [height, width] float32 (OpenCV's integer pixel centres) of the rectified canvas."""
+    ys, xs = np.mgrid[0 : rect.height, 0 : rect.width]
+    src = rect.to_original(np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)) - 0.5
+    src = np.where(np.isfinite(src), src, -1e6)
+    return (src[:, 0].reshape(rect.height, rect.width).astype(np.float32),
+            src[:, 1].reshape(rect.height, rect.width).astype(np.float32))
 
 
 def warp_image(image: np.ndarray, rect: ViewRectification) -> np.ndarray:
     """The rectified image [height, width, C] of ``image`` (bilinear; outside the original: black)."""
-    if rect.kind != "curved":
+    if not rect.rectified:
         return image.copy()
-    mx, my = remap_maps(rect.inverse, rect.width, rect.height)
+    mx, my = remap_maps(rect)
     return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def valid_region(rect: ViewRectification, width: int, height: int) -> np.ndarray:
-    """[height, width] bool of the rectified canvas: True where the inverse warp lands inside the
-    original W x H view (all True for identity warps)."""
-    if rect.kind != "curved":
+def valid_region(rect: ViewRectification) -> np.ndarray:
+    """[height, width] bool of the rectified canvas: True where the pixel shows the original view."""
+    if not rect.rectified:
         return np.ones((rect.height, rect.width), bool)
-    mx, my = remap_maps(rect.inverse, rect.width, rect.height)
-    return (mx >= 0) & (mx <= width - 1) & (my >= 0) & (my <= height - 1)
+    mx, my = remap_maps(rect)
+    W, H = rect.camera.width, rect.camera.height
+    return (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)

@@ -206,7 +206,7 @@ def evaluate_view(
         sel = {"panels": [p for p in panels_json["panels"] if p["part_index"] == part["index"]]}
         for uv in true_edges_px(sel, cam, local_from_world, surface_interpolator(part)):
             if uv.min() >= 0 and uv[:, 0].max() <= W and uv[:, 1].max() <= H:
-                straight.append(line_deviation_px(rect.forward(uv) if rect.kind == "curved" else uv))
+                straight.append(line_deviation_px(rect.to_rectified(uv)))
     return {
         "corner_errors_px": errors,
         "n_true": len(kept),
@@ -216,6 +216,6 @@ def evaluate_view(
         "iou_visible_glass_complete": ious[complete],
         "iou_visible_glass_cut": ious[~complete],
         "edge_straightness_px": np.array(straight),
-        "rectify_residual_px": max(rect.forward.max_px, rect.inverse.max_px),
+        "rectify_residual_px": 0.0 if rect.polynomial is None else max(w.max_px for w in rect.polynomial),
         "kind": rect.kind,
     }

@@ -7,7 +7,8 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
 - prior (structural regularities of curtain walls): repeated spacing, ``c_k = c_0 + k p + delta_k`` with
   one pitch ``p`` (panels of equal size) and small deviations ``delta_k ~ N(0, sigma^2)``,
   ``sigma = max(sigma_min_px, sigma_frac p)``; the lines of the family run across the whole grid (corners
-  aligned in rows and columns); ``p`` uniform in [min_pitch_px, image size]; the bars form one contiguous
+  aligned in rows and columns); ``p`` uniform in [min_pitch_m, max_pitch_m] (in pixels of the image at its
+  scale, at most the image size); the bars form one contiguous
   run of indices ``k`` (no holes in a facade); each line costs ``line_cost`` nats (prior odds against a
   line, which also picks the number of lines);
 - likelihood (line and edge evidence): a frame bar has two parallel edges ``w`` apart along its whole
@@ -19,7 +20,7 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
   A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
   is small (glass reflects a varying scene). The log-likelihood ratio of a bar at c is
   ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / lsd_scale) - v(c) / uniformity_scale``,
-  ``w`` the best width in [min_bar_px, max_bar_px].
+  ``w`` the best width in [min_bar_m, max_bar_m] (in pixels at the image's scale).
 
 MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) - line_cost]`` over ``p``,
 ``c_0`` and the contiguous run (exhaustive on a 0.5 px lattice; the run by Kadane's algorithm). Outer
@@ -47,18 +48,20 @@ STEP_PX = 0.5  # lattice of bar-centre hypotheses (px)
 
 @dataclass(frozen=True)
 class GridParams:
-    min_pitch_px: float
-    """Smallest panel pitch (px) considered."""
+    min_pitch_m: float
+    """Smallest panel pitch (m on the facade) considered."""
+    max_pitch_m: float
+    """Largest panel pitch (m on the facade) considered."""
     sigma_frac: float
     """Std of a bar's deviation from the regular grid, as a fraction of the pitch (-)."""
     sigma_min_px: float
     """... but at least this (px)."""
     line_cost: float
     """Prior cost of one grid line (nats): the evidence a bar must bring to be accepted."""
-    min_bar_px: int
-    """Narrowest frame bar (px)."""
-    max_bar_px: int
-    """Widest frame bar (px)."""
+    min_bar_m: float
+    """Narrowest frame bar (m on the facade; at least 2 px in the image segmented)."""
+    max_bar_m: float
+    """Widest frame bar (m on the facade)."""
     lsd_weight: float
     """Weight of the LSD line-support term against the gradient term (-)."""
     lsd_scale: float
@@ -71,6 +74,23 @@ class GridParams:
     """... and of an outer frame bar, one pitch beyond either end of the MAP run, at least this (-)."""
     uniformity_scale: float
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
+
+
+@dataclass(frozen=True)
+class PixelSizes:
+    """The metric sizes of the grid model in pixels of the image being segmented (``of``)."""
+
+    min_pitch: float
+    max_pitch: float
+    min_bar: int
+    max_bar: int
+
+    @classmethod
+    def of(cls, params: GridParams, metres_per_px: float) -> PixelSizes:
+        """Sizes at ``metres_per_px``; a bar spans at least 2 px (two distinct edges)."""
+        lo = max(2, int(round(params.min_bar_m / metres_per_px)))
+        hi = max(lo, int(round(params.max_bar_m / metres_per_px)))
+        return cls(params.min_pitch_m / metres_per_px, params.max_pitch_m / metres_per_px, lo, hi)
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,7 +145,7 @@ class Gradients:
 
 
 def bar_evidence(
-    grad: Gradients, rows: slice, params: GridParams, weak_edge_floor: float | None = None
+    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes, weak_edge_floor: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px).
 
@@ -137,7 +157,7 @@ def bar_evidence(
     mag = np.linalg.norm(g, axis=2)
     M = g.shape[1]
     best, width = np.zeros(M), np.zeros(M)
-    for w in range(params.min_bar_px, params.max_bar_px + 1):
+    for w in range(sizes.min_bar, sizes.max_bar + 1):
         h = w  # half width in lattice steps (w / 2 / STEP_PX)
         if 2 * h >= M:
             break
@@ -216,13 +236,14 @@ def map_family(
     widths: np.ndarray,
     size: int,
     params: GridParams,
+    sizes: PixelSizes,
     outer: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FamilyFit | None:
     """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines.
     ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames."""
     M = len(ll)
     best: tuple[float, np.ndarray, float] | None = None
-    for pitch in np.arange(params.min_pitch_px, size + STEP_PX, STEP_PX):
+    for pitch in np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX):
         sigma = max(params.sigma_min_px, params.sigma_frac * pitch)
         relaxed, delta = _relaxed(ll, sigma)
         k = np.arange(int(size / pitch) + 2)

@@ -6,7 +6,7 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 (as seen from outside, which is the image's left and right). Rows count from the lowest visible row.
 
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
-(``complete = False``) when it is at least ``min_partial_px`` wide and the bars of the other family continue
+(``complete = False``) when it is at least ``min_partial_m`` wide and the bars of the other family continue
 into it (their edge strength there is at least ``continuation_ratio`` of that inside the grid); otherwise
 the facade ends at that bar. Partly occluded panels: a panel whose frame bars are present (their centre
 line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its colour whatever the glass
@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from facade_pipeline.segmentation.edges import EdgeLine, bar_edges, frame_presence
@@ -43,6 +44,7 @@ from facade_pipeline.segmentation.grid import (
     FamilyFit,
     Gradients,
     GridParams,
+    PixelSizes,
     bar_evidence,
     log_likelihood,
     lsd_evidence,
@@ -65,8 +67,12 @@ class SegmentParams:
     """Smoothing of the LSD line-support profile (px)."""
     grid: GridParams
     """The MAP grid model (``[segment_panels.grid]``)."""
-    min_partial_px: float
-    """A border strip narrower than this (px) holds no partial panel."""
+    min_partial_m: float
+    """A border strip narrower than this (m on the facade) holds no partial panel."""
+    work_bar_px: float
+    """The image is segmented at a scale where the narrowest bar (``grid.min_bar_m``) spans at least this
+    many px, downsampled to it when finer (the grid search's cost grows with the pixel count, its precision
+    is a fraction of a pixel at any scale) (px)."""
     continuation_ratio: float
     """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
     frame_colour_tol: float
@@ -113,19 +119,20 @@ def _family(
     axis: int,
     span: slice,
     params: SegmentParams,
+    sizes: PixelSizes,
 ) -> tuple[FamilyFit | None, Gradients]:
     """MAP bars of one family (axis 0: mullions) with evidence taken over ``span`` along the bars."""
     grad = Gradients.of(image, axis, valid)
-    e_grad, widths = bar_evidence(grad, span, params.grid)
+    e_grad, widths = bar_evidence(grad, span, params.grid, sizes)
     lo, hi, _ = span.indices(grad.d.shape[0])
     t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
     inside = segments[(t >= lo) & (t <= hi)]
     support = support_profile(inside, axis, grad.size, STEP_PX, params.lsd_sigma_px)[: len(e_grad)]
     uniformity = grad.uniformity(span)
     ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid)
-    e_out, w_out = bar_evidence(grad, span, params.grid, params.grid.outer_edge_floor)
+    e_out, w_out = bar_evidence(grad, span, params.grid, sizes, params.grid.outer_edge_floor)
     ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
-    return map_family(ll, widths, grad.size, params.grid, (ll_out, w_out)), grad
+    return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out)), grad
 
 
 def _span(fit: FamilyFit | None, size: int) -> slice:
@@ -219,6 +226,7 @@ def correct_parallax(bars: _Bars, par: Parallax) -> _Bars:
 def find_bars(
     image: np.ndarray,
     params: SegmentParams,
+    sizes: PixelSizes,
     valid: np.ndarray | None = None,
     centre: tuple[float, float] | None = None,
 ) -> tuple[_Bars | None, _Bars | None, dict]:
@@ -232,10 +240,10 @@ def find_bars(
         params.orientation_search_deg,
     )
     vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
-    v, _ = _family(image, valid, vseg, 0, slice(0, H), params)
-    h, _ = _family(image, valid, hseg, 1, slice(0, W), params)
-    v, gv = _family(image, valid, vseg, 0, _span(h, H), params)
-    h, gh = _family(image, valid, hseg, 1, _span(v, W), params)
+    v, _ = _family(image, valid, vseg, 0, slice(0, H), params, sizes)
+    h, _ = _family(image, valid, hseg, 1, slice(0, W), params, sizes)
+    v, gv = _family(image, valid, vseg, 0, _span(h, H), params, sizes)
+    h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes)
     metrics = {
         "n_segments": len(fam.segments),
         "n_vertical_segments": len(vseg),
@@ -296,19 +304,19 @@ def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], 
 
 
 def openings(
-    bars: _Bars, other: _Bars, size: int, length: int, params: SegmentParams
+    bars: _Bars, other: _Bars, size: int, length: int, params: SegmentParams, min_partial_px: float
 ) -> list[tuple[EdgeLine, EdgeLine, bool]]:
     """Openings across one family's bars, low to high: (low line, high line, cut by the border)."""
     e = bars.edges
     inside = (bars.fit.centres[0], bars.fit.centres[-1])
     out = []
-    if e[0][0].a >= params.min_partial_px and _continues(
+    if e[0][0].a >= min_partial_px and _continues(
         other, 0, e[0][0].a, inside, params.continuation_ratio
     ):
         out.append((_border(0, length), e[0][0], True))
     out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
     top = e[-1][1].a
-    if size - top >= params.min_partial_px and _continues(
+    if size - top >= min_partial_px and _continues(
         other, top, size, inside, params.continuation_ratio
     ):
         out.append((e[-1][1], _border(size, length), True))
@@ -325,10 +333,11 @@ def _supported(line: EdgeLine, lo: float, hi: float) -> float:
     return float(s.mean()) if len(s) else 1.0
 
 
-def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: SegmentParams) -> list[Panel]:
+def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: SegmentParams,
+                 min_partial_px: float) -> list[Panel]:
     """Panels of every opening of the grid (module docstring), rows counted from the bottom."""
-    cols = openings(bars_v, bars_h, width, height, params)
-    rows = openings(bars_h, bars_v, height, width, params)  # top to bottom in the image
+    cols = openings(bars_v, bars_h, width, height, params, min_partial_px)
+    rows = openings(bars_h, bars_v, height, width, params, min_partial_px)  # top to bottom in the image
     panels = []
     for i, (top, bottom, cut_r) in enumerate(rows):
         for j, (left, right, cut_c) in enumerate(cols):
@@ -354,21 +363,45 @@ def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: 
     return panels
 
 
+def working_scale(params: SegmentParams, metres_per_px: float) -> float:
+    """Ratio (<= 1) of the working image's size to the given image's (``work_bar_px``)."""
+    return min(1.0, metres_per_px * params.work_bar_px / params.grid.min_bar_m)
+
+
 def segment_image(
     image: np.ndarray,
     params: SegmentParams,
+    metres_per_px: float,
     valid: np.ndarray | None = None,
     centre: tuple[float, float] | None = None,
 ) -> Segmentation:
-    """The panels of an RGB image [H, W, 3] (a planar or rectified frontal view); ``valid`` [H, W] marks
-    the pixels that show the view (a rectified image has none outside the original); ``centre`` is the
-    camera's principal point in this image, about which the frames' parallax is corrected (None: not)."""
+    """The panels of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view);
+    ``valid`` [H, W] marks the pixels that show the view (a rectified image has none outside the original);
+    ``centre`` is the camera's principal point in this image, about which the frames' parallax is corrected
+    (None: not). The image is segmented at the working scale (``work_bar_px``); corners are returned in the
+    given image's pixels."""
     H, W = image.shape[:2]
-    bars_v, bars_h, metrics = find_bars(image, params, valid, centre)
+    q = working_scale(params, metres_per_px)
+    Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
+    qx, qy = Ww / W, Hw / H
+    if (Ww, Hw) != (W, H):
+        image = cv2.resize(image, (Ww, Hw), interpolation=cv2.INTER_AREA)
+        if valid is not None:  # a working pixel shows the view only where all of its source pixels do
+            valid = cv2.resize(valid.astype(np.float32), (Ww, Hw), interpolation=cv2.INTER_AREA) > 0.999
+        if centre is not None:
+            centre = (centre[0] * qx, centre[1] * qy)
+    m = metres_per_px / np.sqrt(qx * qy)
+    sizes = PixelSizes.of(params.grid, m)
+    bars_v, bars_h, metrics = find_bars(image, params, sizes, valid, centre)
+    metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     if bars_v is None or bars_h is None:
         return Segmentation(False, [], metrics)
-    panels = build_panels(bars_v, bars_h, W, H, params)
+    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m)
+    panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
+    for k in ("pitch_x_px", "pitch_y_px"):
+        if k in metrics:
+            metrics[k.replace("_px", "_m")] = metrics[k] * m
     return Segmentation(bool(panels), panels, metrics)
 
 

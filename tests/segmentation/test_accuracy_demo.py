@@ -30,4 +30,4 @@ def test_demo_corners_counts_and_panel_iou(demo):
     assert np.median(err) <= 1.0 and np.percentile(err, 95) <= 2.0
     assert all(v["n_pred"] == v["n_true"] for v in demo)
     assert min(v["iou_complete"].min() for v in demo) >= 0.95
-    assert any(v["kind"] == "curved" for v in demo) and any(v["kind"] == "planar" for v in demo)
+    assert any(v["kind"] == "cylinder" for v in demo) and any(v["kind"] == "plane" for v in demo)

@@ -1,5 +1,6 @@
-"""A frontal view with too few coarse points in it, the stages run directly (no doit): rectify passes it
-through with identity warps and lists it in its manifest; segment_panels still segments it (unrectified)."""
+"""A frontal view with too few coarse points in it, the stages run directly (no doit): rectify leaves it
+unrectified, with the coarse mesh's scale at its centre, and lists it in its manifest; segment_panels still
+segments it (in its own pixels)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import shutil
 
 import numpy as np
 
-from facade_pipeline.io.images import read_mask
+from facade_pipeline.io.images import read_image, read_mask
 from facade_pipeline.io.meshes import make_points, read_points, write_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
@@ -45,20 +46,21 @@ def test_view_with_too_few_points_passes_through(scenes, tmp_path, monkeypatch):
 
     run_stage("rectify", layout)
     m = read_manifest(layout, "rectify").metrics
-    assert m["views_without_surface"] == [starved.stem] and m["n_no_surface"] == 1
-    assert m["views"][starved.stem]["kind"] == "no_surface"
+    assert list(m["views_unrectified"]) == [starved.stem] and m["n_unrectified"] == 1
+    assert m["views"][starved.stem]["kind"] == "unrectified"
     assert m["views"][starved.stem]["fit"].startswith("no surface")
-    assert all(v["kind"] == "curved" for s, v in m["views"].items() if s != starved.stem)
+    assert all(v["kind"] == "cylinder" for s, v in m["views"].items() if s != starved.stem)
     mapping = json.loads(layout.path("rectify_mapping", stem=starved.stem).read_text())
-    assert mapping["kind"] == "no_surface"
+    assert mapping["kind"] == "unrectified" and mapping["reason"].startswith("no surface")
+    # the scale from the coarse mesh's depth: within a few percent of the fitted views' own
+    fitted = [v["metres_per_px"] for s, v in m["views"].items() if s != starved.stem]
+    assert abs(mapping["metres_per_px"] / np.median(fitted) - 1.0) < 0.25
     assert json.loads(layout.path("rectify_surface", stem=starved.stem).read_text())["status"].startswith(
         "no surface"
     )
-    # identity warps: the rectified image is the view, byte for byte
-    assert (
-        layout.path("rectify_image", stem=starved.stem).read_bytes()
-        == layout.import_frontal_image(starved.stem).read_bytes()
-    )
+    # not rectified: the image is the view, pixel for pixel
+    assert np.array_equal(read_image(layout.path("rectify_image", stem=starved.stem)),
+                          read_image(layout.import_frontal_image(starved.stem)))
 
     run_stage("segment_panels", layout)
     corners = json.loads(layout.path("segment_corners", stem=starved.stem).read_text())

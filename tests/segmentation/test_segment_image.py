@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from facade_pipeline.config import default_params
+from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
 from facade_pipeline.geometry.rectification import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
 from facade_pipeline.segmentation.panels import inside_quads, segment_image
@@ -14,12 +15,18 @@ from stages import segment_panels
 from stages.segment_panels import panel_labels
 from tests.segmentation.drawn import Drawing
 
+
+def CAMERA(W: int, H: int) -> PinholeCamera:  # noqa: N802
+    return PinholeCamera(intrinsics(100.0, 100.0, W / 2, H / 2), np.eye(4), W, H)
+
 PARAMS = default_params("segment_panels", segment_panels.Params)
+# the drawings' scale: bars of 3.2 px are 0.32 m, pitches of 23-27 px 2.3-2.7 m, as on a building
+M_PER_PX = 0.1
 
 
-def run(d: Drawing):
+def run(d: Drawing, metres_per_px: float = M_PER_PX):
     img = d.render()
-    seg = segment_image(img, PARAMS)
+    seg = segment_image(img, PARAMS, metres_per_px)
     truth = d.corners()
     return img, seg, truth
 
@@ -64,16 +71,18 @@ def test_grid_completeness(reflections):
 # lying on a row of pixel centres flips that whole row on a 0.01 px error, one row of a 20-row panel is 5 %
 # of IoU, so the 0.95 target is a test of panels of 40 rows and more, not of the 96 x 80 drawing.
 FINE = {"W": 192, "H": 160, "x0": 12.6, "y0": 11.2, "pitch": (54.8, 46.6), "bar": 4.8}
+FINE_M_PER_PX = 0.05  # the same facade at twice the resolution
 
 
 @pytest.mark.parametrize("reflections", [False, True])
 def test_grid_masks(reflections):
     d = Drawing(reflections=reflections, **FINE)
-    _, seg, truth = run(d)
+    _, seg, truth = run(d, FINE_M_PER_PX)
     assert seg.facade_found and len(seg.panels) == 9 and all(p.complete for p in seg.panels)
     err = corner_errors(seg, truth, d.W, d.H)
     assert np.median(err) < 0.5 and err.max() < 1.0
-    labels = panel_labels(seg.panels, ViewRectification.identity(d.W, d.H, "planar"), d.W, d.H)
+    rect = ViewRectification.unrectified(CAMERA(d.W, d.H), FINE_M_PER_PX, "drawn")
+    labels = panel_labels(seg.panels, rect, d.W, d.H)
     assert panel_ious(labels, glass_mask(d), 4).min() >= 0.95
 
 
@@ -132,7 +141,7 @@ def test_image_without_facade():
     img[:40] = (140, 180, 240)
     img[40:] = (60, 110, 50)
     img = np.clip(img + rng.normal(0, 3, img.shape), 0, 255).astype(np.uint8)
-    seg = segment_image(img, PARAMS)
+    seg = segment_image(img, PARAMS, M_PER_PX)
     assert not seg.facade_found and seg.panels == []
 
 

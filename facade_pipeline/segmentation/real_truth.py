@@ -1,0 +1,115 @@
+"""Accuracy of a segmentation against real photos with truth (the layout of ``shared/real/gcw_dev``:
+``masks/{img}.png`` with glass = 255 and ``panes.json`` with each visible pane's pixel outline). Tests and
+benchmarks only: no stage reads the truth.
+
+Per photo:
+- whole panes: the truth outlines with 4 corners, none on the image border; one is found when a complete
+  predicted panel overlaps its quad with IoU >= ``found_iou``;
+- corner error of the found whole panes: each true corner against the nearest corner of the matching
+  panel (photo pixels, the truth's own convention: pixel indices, so 0.5 is added to its corners);
+- glass-mask IoU: ``03_segment/masks`` against the truth mask;
+- complete panels less than half glass: the fraction of each complete panel's pixels that the truth mask
+  calls glass.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def quad_mask(corners: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[H, W] bool: pixel centres inside the polygon ``corners`` [K, 2] (pixel centres at +0.5)."""
+    from facade_pipeline.segmentation.panels import inside_quads
+
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    return inside_quads([np.asarray(corners, float)], xs, ys) >= 0
+
+
+def whole_panes(outlines: list, width: int, height: int, border_px: float = 1.0) -> list[np.ndarray]:
+    """True whole panes [4, 2] (pixel centres at +0.5): four corners, none within ``border_px`` of the
+    border."""
+    out = []
+    for o in outlines:
+        c = np.asarray(o, float) + 0.5
+        if len(c) == 4 and (c.min(axis=0) > border_px).all() and (c[:, 0] < width - border_px).all() \
+                and (c[:, 1] < height - border_px).all():
+            out.append(c)
+    return out
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def evaluate_photo(corners_json: dict, mask: np.ndarray, truth_mask: np.ndarray, outlines: list,
+                   found_iou: float = 0.7) -> dict:
+    """Every figure of one photo (module docstring)."""
+    H, W = truth_mask.shape
+    truth = truth_mask > 127
+    panels = corners_json["panels"]
+    complete = [np.asarray(p["corners_px"], float) for p in panels if p["complete"]]
+    masks = [quad_mask(c, W, H) for c in complete]
+    found, errors = 0, []
+    whole = whole_panes(outlines, W, H)
+    for pane in whole:
+        tm = quad_mask(pane, W, H)
+        scores = [iou(tm, m) for m in masks]
+        if scores and max(scores) >= found_iou:
+            found += 1
+            c = complete[int(np.argmax(scores))]
+            errors += [float(np.min(np.linalg.norm(c - q, axis=1))) for q in pane]
+    glass_frac = [float(truth[m].mean()) if m.any() else 0.0 for m in masks]
+    return {"n_whole": len(whole), "n_found": found, "corner_errors_px": errors,
+            "mask_iou": iou(mask > 127, truth), "glass_fraction_complete": glass_frac,
+            "n_panels": len(panels), "n_complete": len(complete)}
+
+
+def evaluate_building(layout, truth_dir: Path) -> dict[str, dict]:
+    """``evaluate_photo`` for every frontal view of ``layout`` whose stem has truth in ``truth_dir``."""
+    from facade_pipeline.io.images import read_mask
+    from facade_pipeline.scene import ImportedScene
+
+    panes = json.loads((truth_dir / "panes.json").read_text())
+    out = {}
+    for v in ImportedScene.load(layout).frontal_views:
+        tm = cv2.imread(str(truth_dir / "masks" / f"{v.stem}.png"), cv2.IMREAD_GRAYSCALE)
+        if tm is None or v.stem not in panes:
+            continue
+        corners = json.loads(layout.path("segment_corners", stem=v.stem).read_text())
+        mask = read_mask(layout.path("segment_mask", stem=v.stem)).astype(np.uint8) * 255
+        out[v.stem] = evaluate_photo(corners, mask, tm, panes[v.stem])
+    return out
+
+
+def summary(per_photo: dict[str, dict]) -> dict:
+    """The targets' figures over all photos."""
+    whole = sum(r["n_whole"] for r in per_photo.values())
+    found = sum(r["n_found"] for r in per_photo.values())
+    err = np.concatenate([r["corner_errors_px"] for r in per_photo.values()] + [np.zeros(0)])
+    ious = np.array([r["mask_iou"] for r in per_photo.values()])
+    frac = np.concatenate([r["glass_fraction_complete"] for r in per_photo.values()] + [np.zeros(0)])
+    return {"photos": len(per_photo), "whole_panes": whole, "found": found,
+            "found_fraction": found / whole if whole else float("nan"),
+            "mask_iou_median": float(np.median(ious)), "mask_iou_min": float(ious.min()),
+            "corner_error_median_px": float(np.median(err)) if len(err) else float("nan"),
+            "complete_panels": len(frac), "complete_less_than_half_glass": int((frac < 0.5).sum())}
+
+
+def grid_corner_errors_m(wall_points: np.ndarray, pitch_m: tuple[float, float],
+                         glass_m: tuple[float, float]) -> np.ndarray:
+    """Distances [N] (m) of 3D corners in the wall frame ([N, 3]: x along rows, y down, z into the wall,
+    the glass plane at z = 0) to the nearest nominal glass corner: the glass of pane k spans
+    [k p - g, k p] along each axis (the gcw wall frame's origin is a glass corner, the glass on its negative
+    side in both axes, as its corners back-projected with the poses show)."""
+    out = []
+    for axis, (p, g) in enumerate(zip(pitch_m, glass_m, strict=True)):
+        v = wall_points[:, axis]
+        i = np.round(v / p)
+        cands = np.stack([(i + k) * p + o for k in (-1, 0, 1) for o in (0.0, -g)], axis=1)
+        out.append(np.min(np.abs(cands - v[:, None]), axis=1))
+    return np.sqrt(out[0] ** 2 + out[1] ** 2 + wall_points[:, 2] ** 2)

@@ -1,0 +1,164 @@
+"""Make a building's raw/ from posed photos of a glass curtain wall (the layout of ``shared/real/gcw_dev``).
+
+    python scripts/make_gcw_building.py SRC_DIR --building NAME [--data-root DIR]
+
+SRC_DIR holds ``images/*.jpg`` and ``cameras.json`` (``{img: {K, cam_from_world, width, height}}``: K in
+OpenCV's pixel convention, ``cam_from_world`` from the wall frame to OpenCV camera axes, metres). Its
+``masks/`` and ``panes.json`` are the truth and are not read. Writes ``<data_root>/<NAME>/raw/`` as a user's
+photogrammetry would give it:
+
+- the photos both as frontal views (``raw/frontal/``) and as UAV views (``raw/images``), each with a
+  PINHOLE COLMAP model from the poses;
+- the world frame z up: the wall frame's y points down (gravity), so world = (x, z, -y) of the wall frame;
+- ``coarse_mesh.ply``: the wall-plane rectangle covering every photo's footprint (with a margin), a grid of
+  cells with Gaussian noise along the wall normal (``--noise-mm``), and ``coarse_points.ply`` sampled on it.
+
+Refuses to write into an existing raw/ unless ``--force``; nothing is written outside the data root.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from facade_pipeline.errors import InputError, PipelineError  # noqa: E402
+from facade_pipeline.geometry.camera import PinholeCamera  # noqa: E402
+from facade_pipeline.io.colmap import ColmapView, write_pinhole_model  # noqa: E402
+from facade_pipeline.io.meshes import make_mesh, make_points, write_mesh, write_points  # noqa: E402
+from facade_pipeline.layout import BuildingLayout, resolve_data_root  # noqa: E402
+
+# world (z up) from the wall frame (x along rows, y down, z into the wall): x -> x, z -> y, -y -> z
+WORLD_FROM_WALL = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0],
+                            [0.0, 0.0, 0.0, 1.0]])
+
+
+def read_cameras(src: Path) -> dict[str, PinholeCamera]:
+    """The photos' cameras in the world frame (pixel centres at +0.5, as everywhere in the pipeline)."""
+    path = src / "cameras.json"
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(path, "a JSON object {img: {K, cam_from_world, width, height}}",
+                         f"{type(e).__name__}: {e}") from None
+    cams = {}
+    for stem, c in sorted(raw.items()):
+        try:
+            K = np.array(c["K"], float)
+            T = np.array(c["cam_from_world"], float)
+            w, h = int(c["width"]), int(c["height"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(path, f"K, cam_from_world, width, height for {stem!r}", repr(e)) from None
+        if K.shape != (3, 3) or T.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(T).all()):
+            raise InputError(path, f"a finite 3 x 3 K and 4 x 4 cam_from_world for {stem!r}",
+                             f"shapes {K.shape} and {T.shape}")
+        K = K.copy()
+        K[:2, 2] += 0.5  # OpenCV's top-left pixel centre (0, 0) -> (0.5, 0.5)
+        cams[stem] = PinholeCamera(K, T @ np.linalg.inv(WORLD_FROM_WALL), w, h)
+    return cams
+
+
+def footprint_wall(cams: dict[str, PinholeCamera], samples: int = 9) -> np.ndarray:
+    """[N, 2] wall-frame (x, y) points where the rays of each photo's border meet the wall plane z = 0."""
+    wall_from_world = np.linalg.inv(WORLD_FROM_WALL)
+    out = []
+    for cam in cams.values():
+        t = np.linspace(0.0, 1.0, samples)
+        W, H = cam.width, cam.height
+        xs = np.concatenate([t * W, np.full_like(t, W), t * W, np.zeros_like(t)])
+        ys = np.concatenate([np.zeros_like(t), t * H, np.full_like(t, H), t * H])
+        o, d = cam.pixel_rays(xs, ys)
+        o = o @ wall_from_world[:3, :3].T + wall_from_world[:3, 3]
+        d = d @ wall_from_world[:3, :3].T
+        lam = -o[:, 2] / d[:, 2]
+        ok = lam > 0
+        out.append((o[ok] + lam[ok, None] * d[ok])[:, :2])
+    return np.concatenate(out)
+
+
+def coarse_wall(cams: dict[str, PinholeCamera], noise_m: float, cell_m: float, margin: float,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices [V, 3] (world) and triangles [T, 3] of the noisy wall rectangle covering every footprint."""
+    xy = footprint_wall(cams)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    pad = margin * (hi - lo)
+    lo, hi = lo - pad, hi + pad
+    nx, ny = (np.ceil((hi - lo) / cell_m).astype(int) + 1).tolist()
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], nx), np.linspace(lo[1], hi[1], ny))
+    wall = np.stack([gx.ravel(), gy.ravel(), rng.normal(0.0, noise_m, gx.size)], axis=1)
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    tris = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    world = wall @ WORLD_FROM_WALL[:3, :3].T
+    return world, tris
+
+
+def make_building(src: Path, layout: BuildingLayout, noise_m: float, n_points: int, seed: int,
+                  force: bool) -> dict:
+    """Write raw/ (module docstring); returns counts for the summary line."""
+    images = sorted((src / "images").glob("*.jpg")) + sorted((src / "images").glob("*.png"))
+    if not images:
+        raise InputError(src / "images", "photos (*.jpg or *.png)", "none")
+    cams = read_cameras(src)
+    missing = sorted({p.stem for p in images} - set(cams))
+    if missing:
+        raise InputError(src / "cameras.json", "a camera for every photo", f"none for {', '.join(missing)}")
+    if layout.raw_dir.exists() and any(layout.raw_dir.iterdir()):
+        if not force:
+            raise InputError(layout.raw_dir, "no raw/ yet (or --force to replace it)", "an existing raw/")
+        shutil.rmtree(layout.raw_dir)
+    rng = np.random.default_rng(seed)
+    views = [ColmapView(p.name, cams[p.stem]) for p in images]
+    for img_dir, model_dir in ((layout.raw_images_dir, layout.raw_sparse_dir),
+                               (layout.raw_frontal_images_dir, layout.raw_frontal_sparse_dir)):
+        img_dir.mkdir(parents=True, exist_ok=True)
+        for p in images:
+            shutil.copyfile(p, img_dir / p.name)
+        write_pinhole_model(model_dir, views)
+    # cells of a tenth of the smaller footprint side: a photogrammetric mesh of a wall is coarse and bumpy
+    xy = footprint_wall(cams)
+    cell = 0.1 * float(np.min(xy.max(axis=0) - xy.min(axis=0)))
+    verts, tris = coarse_wall(cams, noise_m, cell, 0.1, rng)
+    mesh = make_mesh(verts, tris)
+    write_mesh(layout.raw_coarse_mesh_candidates[0], mesh)
+    # points on random triangles (the cells are equal, so uniform by area), with their own noise
+    t = tris[rng.integers(0, len(tris), n_points)]
+    ab = rng.random((n_points, 2))
+    flip = ab.sum(axis=1) > 1.0
+    ab[flip] = 1.0 - ab[flip]
+    a, b, c = verts[t[:, 0]], verts[t[:, 1]], verts[t[:, 2]]
+    pts = a + ab[:, :1] * (b - a) + ab[:, 1:] * (c - a)
+    pts = pts + rng.normal(0.0, noise_m, (n_points, 1)) * WORLD_FROM_WALL[:3, 2]
+    write_points(layout.raw_coarse_points, make_points(pts))
+    return {"photos": len(images), "mesh_triangles": len(tris), "points": len(pts)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("src", type=Path, help="folder with images/ and cameras.json")
+    ap.add_argument("--building", required=True, help="name of the building to make")
+    ap.add_argument("--data-root", default=None, help="data root (default: data/ or $FACADE_DATA_ROOT)")
+    ap.add_argument("--noise-mm", type=float, default=2.0, help="coarse mesh noise along the normal (mm)")
+    ap.add_argument("--points", type=int, default=20000, help="coarse points sampled on the mesh")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--force", action="store_true", help="replace an existing raw/")
+    a = ap.parse_args(argv)
+    try:
+        layout = BuildingLayout(resolve_data_root(a.data_root), a.building)
+        stats = make_building(a.src, layout, a.noise_mm * 1e-3, a.points, a.seed, a.force)
+    except PipelineError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"{layout.raw_dir}: {stats['photos']} photos (frontal and UAV), coarse mesh of "
+          f"{stats['mesh_triangles']} triangles, {stats['points']} coarse points")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
