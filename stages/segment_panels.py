@@ -115,6 +115,18 @@ def _overlay(image: np.ndarray, panels: list[Panel], rect: ViewRectification, sc
     return out
 
 
+def parallax_centre(rect: ViewRectification, view: View) -> np.ndarray:
+    """[2] the rectified pixel about which frames proud of the glass show parallax: the foot of the camera
+    centre on the surface (a frame's front face is seen shifted away from it, in proportion to the
+    distance), which is the principal point only for a fronto-parallel view; the principal point for a
+    view that is not rectified."""
+    if rect.chart is None:
+        return view.camera.K[:2, 2].copy()
+    s, h = rect.chart.coords(view.camera.center[None])
+    m = rect.metres_per_px
+    return np.array([(s[0] - rect.s0_m) / m, (rect.h0_m - h[0]) / m])
+
+
 def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[list[Path], dict]:
     """Segment one view and write its three outputs; returns them and the view's metrics."""
     t0 = time.perf_counter()
@@ -123,8 +135,8 @@ def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[lis
     panels, found, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
     if rect.kind != "skipped":
         valid = valid_region(rect)
-        centre = rect.to_rectified(view.camera.K[:2, 2][None])  # the principal point: frames' parallax
-        centre_xy = (float(centre[0, 0]), float(centre[0, 1])) if np.isfinite(centre).all() else None
+        centre = parallax_centre(rect, view)
+        centre_xy = (float(centre[0]), float(centre[1])) if np.isfinite(centre).all() else None
         image = read_image(layout.path("rectify_image", stem=view.stem))
         seg = segment_image(image, params, rect.metres_per_px, valid, centre_xy)
         labels = panel_labels(seg.panels, rect, W, H)

@@ -69,13 +69,34 @@ def frontal_views(parts: tuple[PartGeometry, ...], cams: CameraParams) -> list[V
                 s = 0.5 * (g.panel_bounds(0, cols[0])[0] + g.panel_bounds(0, cols[-1])[1])
                 z = 0.5 * (g.panel_bounds(rows[0], 0)[2] + g.panel_bounds(rows[-1], 0)[3])
                 target = g.surface(np.array(s), np.array(z), np.array(0.0))
-                eye = target + D * g.normal(np.array(s))
-                cam = PinholeCamera(K, look_at(eye, target), width, height)
-                _check_block(g, cam, rows, cols, cams.frontal_margin_px, len(views))
+                direction = oblique_direction(g.normal(np.array(s)), len(views), cams.frontal_oblique_deg,
+                                              target, D, cams.uav_min_height_m)
+                cam = PinholeCamera(K, look_at(target + D * direction, target), width, height)
+                if cams.frontal_oblique_deg == (0.0, 0.0):  # oblique views may cut their block's panels
+                    _check_block(g, cam, rows, cols, cams.frontal_margin_px, len(views))
                 views.append(
                     View("frontal", len(views), cam, (g.index, tuple(map(int, rows)), tuple(map(int, cols))))
                 )
     return views
+
+
+def oblique_direction(normal: np.ndarray, k: int, max_deg: tuple[float, float], target: np.ndarray,
+                      distance: float, min_height_m: float) -> np.ndarray:
+    """Unit direction [3] from the target to frontal view ``k``'s eye: the facade's ``normal`` turned by
+    yaw and pitch, fractions in [-1, 1] of ``max_deg`` from the additive recurrences of the plastic number
+    (well spread for any number of views); a pitch that would put the eye below ``min_height_m`` is
+    mirrored."""
+    fy, fp = (2.0 * ((k + 1) * a % 1.0) - 1.0 for a in (0.7548776662, 0.5698402910))
+    yaw, pitch = np.radians(max_deg[0] * fy), np.radians(max_deg[1] * fp)
+    up = np.array([0.0, 0.0, 1.0])
+    n = np.asarray(normal, float)
+    side = np.cross(up, n)
+    side /= np.linalg.norm(side)
+    d = np.cos(yaw) * n + np.sin(yaw) * side
+    out = np.cos(pitch) * d + np.sin(pitch) * up
+    if target[2] + distance * out[2] < min_height_m:
+        out = np.cos(pitch) * d - np.sin(pitch) * up
+    return out / np.linalg.norm(out)
 
 
 def _check_block(g: PartGeometry, cam: PinholeCamera, rows, cols, margin: float, index: int) -> None:

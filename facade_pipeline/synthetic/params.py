@@ -169,6 +169,10 @@ class CameraParams:
     """Distance of frontal views from the glass along its local normal (m)."""
     frontal_margin_px: float
     """Every panel of a frontal view's block lies this far inside its image (px)."""
+    frontal_oblique_deg: tuple[float, float] = (0.0, 0.0)
+    """Largest yaw (about the up axis) and pitch (about the facade's horizontal) of frontal views from the
+    local normal (deg): view k turns by a fixed low-discrepancy fraction of each, either sign, about the
+    centre of its block (0, 0: fronto-parallel). Oblique views may cut the block's panels at the border."""
     frontal_width_px: int = 0
     """Width of frontal views (px); 0: ``width_px`` (the UAV views')."""
     frontal_height_px: int = 0

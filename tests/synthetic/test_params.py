@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 
+import numpy as np
 import pytest
 
 from facade_pipeline.config import config_dir, from_dict, load_building_config, to_dict
@@ -143,3 +144,38 @@ def test_frontal_views_have_their_own_resolution():
     assert p.render.supersample_for("frontal") == p.render.supersample  # frontal_supersample 0
     odd = from_dict(SynthesizeParams, _table(**{"render.frontal_supersample": 3})).render
     assert (odd.supersample_for("frontal"), odd.supersample_for("uav")) == (3, p.render.supersample)
+
+
+def test_oblique_frontal_views_of_the_shipped_scene():
+    """`oblique` turns its frontal views by up to 35 deg of yaw and of pitch from the facade's normal, spread
+    over both signs, and renders them at 1600 x 1200 with frame bars of 20-60 px."""
+    from facade_pipeline.synthetic.simulate import planned_frontal_views
+
+    p = shipped("oblique")
+    views = planned_frontal_views(p)
+    assert {(v.camera.width, v.camera.height) for v in views} == {(1600, 1200)}
+    yaws, pitches, bars = [], [], []
+    for v in views:
+        fwd = v.camera.forward
+        view_dir = -fwd  # from the target toward the eye
+        yaws.append(np.degrees(np.arctan2(view_dir[0], view_dir[1])))  # both parts face +y (facing_deg 90)
+        pitches.append(np.degrees(np.arcsin(view_dir[2])))
+        depth = p.cameras.frontal_distance_m  # along the view direction to the block centre
+        bars.append(p.facade.frame_width_m * v.camera.K[0, 0] / depth)
+    yaws, pitches = np.array(yaws), np.array(pitches)
+    assert np.abs(pitches).max() <= 35.0 + 1e-6 and (pitches > 10).any() and (pitches < -10).any()
+    curved = np.array([v.block[0] == 1 for v in views])
+    assert np.abs(yaws[~curved]).max() <= 35.0 + 1e-6 and (yaws[~curved] > 10).any()
+    assert (yaws[~curved] < -10).any()
+    assert 20 <= min(bars) * np.cos(np.radians(35)) and max(bars) <= 60
+
+
+def test_oblique_direction_is_the_normal_at_zero_and_keeps_the_eye_above_ground():
+    from facade_pipeline.synthetic.cameras import oblique_direction
+
+    n = np.array([0.0, 1.0, 0.0])
+    assert np.allclose(oblique_direction(n, 3, (0.0, 0.0), np.zeros(3), 9.0, 2.0), n)
+    for k in range(20):
+        d = oblique_direction(n, k, (35.0, 35.0), np.array([0.0, 0.0, 5.0]), 9.0, 2.0)
+        assert abs(np.linalg.norm(d) - 1.0) < 1e-12 and 5.0 + 9.0 * d[2] >= 2.0
+        assert np.degrees(np.arccos(d @ n)) <= 50.0  # yaw and pitch of 35 deg each at most
