@@ -206,7 +206,10 @@ def evaluate_view(
         sel = {"panels": [p for p in panels_json["panels"] if p["part_index"] == part["index"]]}
         for uv in true_edges_px(sel, cam, local_from_world, surface_interpolator(part)):
             if uv.min() >= 0 and uv[:, 0].max() <= W and uv[:, 1].max() <= H:
-                straight.append(line_deviation_px(rect.to_rectified(uv)))
+                r = rect.to_rectified(uv)
+                r = r[np.isfinite(r).all(axis=1)]  # rays past the fitted surface's silhouette miss it
+                if len(r) >= 3:
+                    straight.append(line_deviation_px(r))
     return {
         "corner_errors_px": errors,
         "n_true": len(kept),

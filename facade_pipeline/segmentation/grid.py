@@ -74,6 +74,9 @@ class GridParams:
     """... and of an outer frame bar, one pitch beyond either end of the MAP run, at least this (-)."""
     uniformity_scale: float
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
+    frame_colour_scale: float
+    """Colour distance (0-1 RGB) of a bar of one family from the median colour of the other family's bars
+    that costs one nat: mullions and transoms are one material (0: not used)."""
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,13 @@ class Gradients:
         """[L, M, 3] gradients at the lattice positions ``j * STEP_PX``."""
         return self._interp(self.d, 1.0)
 
+    def line_colour(self, rows: slice) -> np.ndarray:
+        """[M, 3] median colour over ``rows`` of the image at each lattice position (NaN outside the view)."""
+        col = self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmedian(col, axis=0)
+
     def uniformity(self, rows: slice) -> np.ndarray:
         """v(c) [M]: median over ``rows`` of the colour distance of the image at position c (interpolated
         between pixel centres) from its median along the rows; small along a uniform frame bar."""
@@ -183,15 +193,20 @@ def lsd_evidence(support: np.ndarray, width: np.ndarray, length_px: float) -> np
 
 
 def log_likelihood(
-    e_grad: np.ndarray, e_lsd: np.ndarray, uniformity: np.ndarray, params: GridParams
+    e_grad: np.ndarray, e_lsd: np.ndarray, uniformity: np.ndarray, params: GridParams,
+    colour_distance: np.ndarray | None = None,
 ) -> np.ndarray:
-    """l(c) [M] of the module docstring."""
+    """l(c) [M] of the module docstring; ``colour_distance`` [M] (to the other family's frame colour) costs
+    ``frame_colour_scale`` per nat."""
     background = float(np.median(e_grad)) + 1e-6
-    return (
+    ll = (
         np.log1p(e_grad / background)
         + params.lsd_weight * np.log1p(e_lsd / params.lsd_scale)
         - uniformity / params.uniformity_scale
     )
+    if colour_distance is not None and params.frame_colour_scale > 0:
+        ll = ll - np.where(np.isfinite(colour_distance), colour_distance, 0.0) / params.frame_colour_scale
+    return ll
 
 
 def _relaxed(ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,7 @@ pixel.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 
 import cv2
@@ -120,8 +121,10 @@ def _family(
     span: slice,
     params: SegmentParams,
     sizes: PixelSizes,
+    frame_colour: np.ndarray | None = None,
 ) -> tuple[FamilyFit | None, Gradients]:
-    """MAP bars of one family (axis 0: mullions) with evidence taken over ``span`` along the bars."""
+    """MAP bars of one family (axis 0: mullions) with evidence taken over ``span`` along the bars; with
+    ``frame_colour`` [3] (the other family's bars), bars of another colour are penalised."""
     grad = Gradients.of(image, axis, valid)
     e_grad, widths = bar_evidence(grad, span, params.grid, sizes)
     lo, hi, _ = span.indices(grad.d.shape[0])
@@ -129,10 +132,24 @@ def _family(
     inside = segments[(t >= lo) & (t <= hi)]
     support = support_profile(inside, axis, grad.size, STEP_PX, params.lsd_sigma_px)[: len(e_grad)]
     uniformity = grad.uniformity(span)
-    ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid)
+    dist = None
+    if frame_colour is not None:
+        dist = np.linalg.norm(grad.line_colour(span) - frame_colour, axis=1)[: len(e_grad)]
+    ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid, dist)
     e_out, w_out = bar_evidence(grad, span, params.grid, sizes, params.grid.outer_edge_floor)
-    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
+    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid, dist)
     return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out)), grad
+
+
+def bar_colour(image: np.ndarray, valid: np.ndarray | None, fit: FamilyFit, axis: int,
+               span: slice) -> np.ndarray:
+    """[3] median colour (0-1) of one family's bars: along their centre lines over ``span``."""
+    grad = Gradients.of(image, axis, valid)
+    colour = grad.line_colour(span)
+    idx = np.clip(np.rint(fit.centres / STEP_PX).astype(int), 0, len(colour) - 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(colour[idx], axis=0)
 
 
 def _span(fit: FamilyFit | None, size: int) -> slice:
@@ -243,7 +260,13 @@ def find_bars(
     v, _ = _family(image, valid, vseg, 0, slice(0, H), params, sizes)
     h, _ = _family(image, valid, hseg, 1, slice(0, W), params, sizes)
     v, gv = _family(image, valid, vseg, 0, _span(h, H), params, sizes)
-    h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes)
+    # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
+    # they run the facade's full height, while the long straight lines that reflections bring (horizon,
+    # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
+    colour_h = None
+    if v is not None and params.grid.frame_colour_scale > 0:
+        colour_h = bar_colour(image, valid, v, 0, _span(h, H))
+    h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes, colour_h)
     metrics = {
         "n_segments": len(fam.segments),
         "n_vertical_segments": len(vseg),

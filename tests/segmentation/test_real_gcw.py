@@ -76,9 +76,10 @@ def test_segmentation_against_the_truth(gcw):
     _, per_photo = gcw
     s = summary(per_photo)
     assert s["photos"] == 11
-    assert s["found_fraction"] >= 0.75
-    assert s["mask_iou_median"] >= 0.6 and s["mask_iou_min"] >= 0.25
+    assert s["found_fraction"] >= 0.9
+    assert s["mask_iou_median"] >= 0.65 and sum(r["mask_iou"] > 0.15 for r in per_photo.values()) >= 9
     assert s["corner_error_median_px"] <= 3.0
+    assert s["complete_less_than_half_glass"] <= 3
 
 
 def test_3d_panels_against_the_nominal_grid(gcw):
