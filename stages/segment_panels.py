@@ -21,9 +21,11 @@ import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.errors import UpstreamMissingError
-from facade_pipeline.geometry.rectification import ViewRectification, valid_region
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.geometry.rectification import ViewRectification, facade_support, valid_region
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.images import read_image, write_image, write_mask
+from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene, View
@@ -51,7 +53,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     and no image), the frontal views and scene.json."""
     written = set(read_manifest(layout, "rectify").outputs)
     scene = ImportedScene.load(layout)
-    files = [layout.import_scene]
+    files = [layout.import_scene, layout.import_coarse_mesh]
     for v in scene.frontal_views:
         mapping = layout.path("rectify_mapping", stem=v.stem)
         image = layout.path("rectify_image", stem=v.stem)
@@ -127,8 +129,10 @@ def parallax_centre(rect: ViewRectification, view: View) -> np.ndarray:
     return np.array([(s[0] - rect.s0_m) / m, (rect.h0_m - h[0]) / m])
 
 
-def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[list[Path], dict]:
-    """Segment one view and write its three outputs; returns them and the view's metrics."""
+def segment_one(layout: BuildingLayout, view: View, params: Params,
+                mesh: MeshRaycaster) -> tuple[list[Path], dict]:
+    """Segment one view and write its three outputs (``mesh``: the coarse mesh, which tells where the
+    facade surface is); returns them and the view's metrics."""
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     W, H = view.camera.width, view.camera.height
@@ -138,7 +142,8 @@ def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[lis
         centre = parallax_centre(rect, view)
         centre_xy = (float(centre[0]), float(centre[1])) if np.isfinite(centre).all() else None
         image = read_image(layout.path("rectify_image", stem=view.stem))
-        seg = segment_image(image, params, rect.metres_per_px, valid, centre_xy)
+        support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
+        seg = segment_image(image, params, rect.metres_per_px, valid, centre_xy, support)
         labels = panel_labels(seg.panels, rect, W, H)
         found = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if found else []), seg.metrics
@@ -174,10 +179,12 @@ def segment_one(layout: BuildingLayout, view: View, params: Params) -> tuple[lis
 
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     views = ImportedScene.load(layout).frontal_views
+    coarse = read_mesh(layout.import_coarse_mesh)
+    mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
     for view in tqdm(views, desc="segment_panels: frontal views", unit="img", file=sys.stderr):
-        outs, per_view[view.stem] = segment_one(layout, view, params)
+        outs, per_view[view.stem] = segment_one(layout, view, params, mesh)
         outputs += outs
     return StageReport(
         outputs,

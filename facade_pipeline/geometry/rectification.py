@@ -313,6 +313,24 @@ def warp_image(image: np.ndarray, rect: ViewRectification) -> np.ndarray:
     return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
+def facade_support(rect: ViewRectification, first_hit_m, tolerance_m: float, step_px: int = 4) -> np.ndarray:
+    """[height, width] bool of the rectified canvas: True where the facade surface is really there, i.e.
+    the view's ray to the chart's point first meets the coarse mesh within ``tolerance_m`` of that point
+    (``first_hit_m(origins [N, 3], unit dirs [N, 3]) -> distances [N]``, inf: no hit). Beyond the facade's
+    end the ray meets the ground, the sky or something else. Evaluated every ``step_px`` px and spread to
+    the pixels around; all True for a view that is not rectified (no surface to compare with)."""
+    if not rect.rectified:
+        return np.ones((rect.height, rect.width), bool)
+    ys, xs = np.mgrid[0 : rect.height : step_px, 0 : rect.width : step_px] + 0.5 * step_px
+    m = rect.metres_per_px
+    pts = rect.chart.point(rect.s0_m + xs.ravel() * m, rect.h0_m - ys.ravel() * m)
+    d = pts - rect.camera.center
+    dist = np.linalg.norm(d, axis=1)
+    t = np.asarray(first_hit_m(np.broadcast_to(rect.camera.center, d.shape), d / dist[:, None]), float)
+    ok = (np.abs(t - dist) <= tolerance_m).reshape(xs.shape).astype(np.uint8)
+    return cv2.resize(ok, (rect.width, rect.height), interpolation=cv2.INTER_NEAREST).astype(bool)
+
+
 def valid_region(rect: ViewRectification) -> np.ndarray:
     """[height, width] bool of the rectified canvas: True where the pixel shows the original view."""
     if not rect.rectified:

@@ -7,7 +7,8 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
 (``complete = False``) when it is at least ``min_partial_m`` wide and the bars of the other family continue
-into it (their edge strength there is at least ``continuation_ratio`` of that inside the grid); otherwise
+into it (their frame colour is present over at least ``continuation_presence`` of the strip, where the
+facade surface is there: ``_continues``); otherwise
 the facade ends at that bar. Partly occluded panels: a panel whose frame bars are present (their centre
 line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its colour whatever the glass
 beside it reflects, an object in front of it does not) over less than ``min_edge_support`` of any side's
@@ -74,8 +75,12 @@ class SegmentParams:
     """The image is segmented at a scale where the narrowest bar (``grid.min_bar_m``) spans at least this
     many px, downsampled to it when finer (the grid search's cost grows with the pixel count, its precision
     is a fraction of a pixel at any scale) (px)."""
-    continuation_ratio: float
-    """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
+    continuation_presence: float
+    """Bars of the other family whose frame colour is present over this fraction of a border strip
+    (median over the bars) continue into it: partial panels there (-)."""
+    surface_tolerance_m: float
+    """The facade surface is there where the view's ray meets the coarse mesh within this distance (m) of
+    the rectified surface: border strips beyond the facade's end hold no partial panel."""
     frame_colour_tol: float
     """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
     min_edge_support: float
@@ -170,7 +175,7 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
             continue
         present = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
         edges.append(tuple(dataclasses.replace(line, present=present) for line in e))
-    return _Bars(edges, fit) if len(edges) >= 2 else None
+    return _Bars(edges, fit) if edges else None
 
 
 @dataclass(frozen=True)
@@ -311,36 +316,58 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], ratio: float) -> bool:
-    """Do the bars of ``other`` continue over [lo, hi) along them, with ``ratio`` of their strength over
-    ``inside``? A bar continues where either of its edges does: an outer frame shows only its glass side
-    wherever the background beside it changes colour."""
-    r = []
+def _continues(other: _Bars, lo: float, hi: float, presence: float, support: float) -> bool:
+    """Do the bars of ``other`` continue over [lo, hi) along them? Where the facade surface is there
+    (``support``: the fraction of the strip where the coarse mesh lies on the fitted surface, 1 without a
+    mesh) over at least half of the strip, a bar continues where its frame colour is present on its centre
+    line (``frame_presence``) over at least ``presence`` of the strip's part that shows the view, in the
+    median over the bars. Colour, not edge strength: a specular highlight on the glass beside a bar, or the
+    blur of a far, upsampled part of an oblique rectified photo, takes the bar's edges but not its colour,
+    while the frame around a cell without glass is seen from its reveal. The surface test keeps out the
+    ground or paving beyond the facade's end, which may have the frames' colour."""
+    if support < 0.5:
+        return False
+    fractions = []
     for e in other.edges:
-        seen = None if e[0].present is None else ~np.isnan(e[0].present)
-        best = 0.0
-        for line in e:
-            ref = _mean(line.strength, *inside, seen)
-            best = max(best, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-        r.append(best)
-    return float(np.median(r)) >= ratio
+        if e[0].present is None:
+            continue
+        seg = e[0].present[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
+        seg = seg[~np.isnan(seg)]
+        if len(seg):
+            fractions.append(float(seg.mean()))
+    return bool(fractions) and float(np.median(fractions)) >= presence
+
+
+def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
+                   across: tuple[float, float]) -> float:
+    """Mean of ``support`` [H, W] over a border strip: [lo, hi) along ``axis`` (0: x), ``across`` on the
+    other axis (the other family's outer bars); 1 without a support mask."""
+    if support is None:
+        return 1.0
+    a0, a1 = int(max(0, np.floor(lo))), int(max(0, np.ceil(hi)))
+    b0, b1 = int(max(0, np.floor(across[0]))), int(max(0, np.ceil(across[1])))
+    block = support[b0:b1, a0:a1] if axis == 0 else support[a0:a1, b0:b1]
+    return float(block.mean()) if block.size else 0.0
 
 
 def openings(
-    bars: _Bars, other: _Bars, size: int, length: int, params: SegmentParams, min_partial_px: float
+    bars: _Bars, other: _Bars, size: int, length: int, params: SegmentParams, min_partial_px: float,
+    axis: int, support: np.ndarray | None = None,
 ) -> list[tuple[EdgeLine, EdgeLine, bool]]:
-    """Openings across one family's bars, low to high: (low line, high line, cut by the border)."""
+    """Openings across one family's bars (``axis`` 0: mullions), low to high: (low line, high line, cut by
+    the border)."""
     e = bars.edges
-    inside = (bars.fit.centres[0], bars.fit.centres[-1])
+    across = (other.fit.centres[0], other.fit.centres[-1])
     out = []
-    if e[0][0].a >= min_partial_px and _continues(
-        other, 0, e[0][0].a, inside, params.continuation_ratio
+    lo = e[0][0].a
+    if lo >= min_partial_px and _continues(
+        other, 0, lo, params.continuation_presence, _strip_support(support, axis, 0, lo, across)
     ):
         out.append((_border(0, length), e[0][0], True))
     out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
     top = e[-1][1].a
     if size - top >= min_partial_px and _continues(
-        other, top, size, inside, params.continuation_ratio
+        other, top, size, params.continuation_presence, _strip_support(support, axis, top, size, across)
     ):
         out.append((e[-1][1], _border(size, length), True))
     return out
@@ -357,10 +384,11 @@ def _supported(line: EdgeLine, lo: float, hi: float) -> float:
 
 
 def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: SegmentParams,
-                 min_partial_px: float) -> list[Panel]:
-    """Panels of every opening of the grid (module docstring), rows counted from the bottom."""
-    cols = openings(bars_v, bars_h, width, height, params, min_partial_px)
-    rows = openings(bars_h, bars_v, height, width, params, min_partial_px)  # top to bottom in the image
+                 min_partial_px: float, support: np.ndarray | None = None) -> list[Panel]:
+    """Panels of every opening of the grid (module docstring), rows counted from the bottom; ``support``
+    [H, W] marks where the facade surface is (border strips without it hold no partial panel)."""
+    cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support)
+    rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support)  # top to bottom
     panels = []
     for i, (top, bottom, cut_r) in enumerate(rows):
         for j, (left, right, cut_c) in enumerate(cols):
@@ -397,8 +425,10 @@ def segment_image(
     metres_per_px: float,
     valid: np.ndarray | None = None,
     centre: tuple[float, float] | None = None,
+    support: np.ndarray | None = None,
 ) -> Segmentation:
     """The panels of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view);
+    ``support`` [H, W] marks where the facade surface is (``rectification.facade_support``; None: all);
     ``valid`` [H, W] marks the pixels that show the view (a rectified image has none outside the original);
     ``centre`` is the camera's principal point in this image, about which the frames' parallax is corrected
     (None: not). The image is segmented at the working scale (``work_bar_px``); corners are returned in the
@@ -411,6 +441,8 @@ def segment_image(
         image = cv2.resize(image, (Ww, Hw), interpolation=cv2.INTER_AREA)
         if valid is not None:  # a working pixel shows the view only where all of its source pixels do
             valid = cv2.resize(valid.astype(np.float32), (Ww, Hw), interpolation=cv2.INTER_AREA) > 0.999
+        if support is not None:
+            support = cv2.resize(support.astype(np.uint8), (Ww, Hw), interpolation=cv2.INTER_NEAREST) > 0
         if centre is not None:
             centre = (centre[0] * qx, centre[1] * qy)
     m = metres_per_px / np.sqrt(qx * qy)
@@ -419,7 +451,7 @@ def segment_image(
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     if bars_v is None or bars_h is None:
         return Segmentation(False, [], metrics)
-    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m)
+    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
     for k in ("pitch_x_px", "pitch_y_px"):
