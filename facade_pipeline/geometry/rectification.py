@@ -181,7 +181,8 @@ class ViewRectification:
 
     def to_dict(self) -> dict:
         d = {"kind": self.kind, "rectified_width": self.width, "rectified_height": self.height,
-             "metres_per_px": self.metres_per_px, "reason": self.reason, "camera": self.camera.to_dict(),
+             "metres_per_px": self.metres_per_px if np.isfinite(self.metres_per_px) else None,
+             "reason": self.reason, "camera": self.camera.to_dict(),
              "chart": None if self.chart is None else self.chart.to_dict(),
              "s0_m": self.s0_m, "h0_m": self.h0_m}
         H = self.homography()
@@ -202,7 +203,8 @@ class ViewRectification:
             d = json.loads(Path(path).read_text())
             poly = d.get("polynomial")
             return cls(d["kind"], int(d["rectified_width"]), int(d["rectified_height"]),
-                       float(d["metres_per_px"]), PinholeCamera.from_dict(d["camera"]),
+                       float("nan") if d["metres_per_px"] is None else float(d["metres_per_px"]),
+                       PinholeCamera.from_dict(d["camera"]),
                        None if d["chart"] is None else Chart.from_dict(d["chart"]),
                        float(d["s0_m"]), float(d["h0_m"]), str(d["reason"]),
                        None if poly is None else (PolyWarp.from_dict(poly["forward"]),

@@ -137,3 +137,24 @@ def test_image_warp_valid_region_and_json_round_trip(tmp_path):
     assert np.allclose(again.to_original(xy), rect.to_original(xy))
     unrect = ViewRectification.unrectified(cam, 0.05, "no surface")
     assert np.array_equal(warp_image(img, unrect), img) and np.array_equal(unrect.to_rectified(xy), xy)
+
+
+def test_facade_support_marks_where_the_coarse_mesh_lies_on_the_surface():
+    """A coarse mesh covering only the left half of the plane seen (x < 0): the support is the left half of
+    the canvas (the facade runs left to right seen from outside, which is -x here)."""
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.geometry.rectification import facade_support
+
+    cam = camera()
+    rect = rectify_view(cam, plane(), PARAMS)
+    v = np.array([[-20.0, 0.0, -10.0], [0.0, 0.0, -10.0], [0.0, 0.0, 20.0], [-20.0, 0.0, 20.0]])
+    mesh = MeshRaycaster(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, 0.1, step_px=1)
+    xs = np.arange(rect.width) + 0.5
+    world_x = rect.chart.point(rect.s0_m + xs * rect.metres_per_px, np.full(rect.width, 3.0))[:, 0]
+    row = support[rect.height // 2]
+    assert row[world_x < -0.2].all() and not row[world_x > 0.2].any()
+    far = MeshRaycaster(v + [0.0, -1.0, 0.0], np.array([[0, 1, 2], [0, 2, 3]]))  # 1 m behind: not the facade
+    assert not facade_support(rect, lambda o, d: far.cast(o, d).t, 0.1).any()
+    unrect = ViewRectification.unrectified(cam, 0.05, "no surface")
+    assert facade_support(unrect, lambda o, d: mesh.cast(o, d).t, 0.1).all()

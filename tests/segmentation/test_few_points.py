@@ -71,3 +71,31 @@ def test_view_with_too_few_points_passes_through(scenes, tmp_path, monkeypatch):
     assert mask.shape == (starved.camera.height, starved.camera.width)
     seg = read_manifest(layout, "segment_panels").metrics
     assert seg["n_views"] == len(scene.frontal_views) and seg["views"][starved.stem]["rectified"] is False
+
+
+def test_views_whose_rectified_image_is_too_large_are_skipped_with_the_reason(scenes, tmp_path, monkeypatch):
+    """A config whose size cap no rectified image meets (max_size_factor = 0.01): rectify writes no image
+    for the views, warns and lists them with the reason; segment_panels gives each an empty result saying
+    why."""
+    src, env = scenes[BUILDING]
+    cfg = tmp_path / "configs"
+    shutil.copytree(env["FACADE_CONFIG_DIR"], cfg)
+    toml = cfg / "buildings" / f"{BUILDING}.toml"
+    toml.write_text(toml.read_text() + "\n[rectify]\nmax_size_factor = 0.01\n")
+    monkeypatch.setenv("FACADE_CONFIG_DIR", str(cfg))
+    monkeypatch.setenv("TQDM_DISABLE", "1")
+    layout = BuildingLayout(tmp_path / "data", BUILDING)
+    shutil.copytree(src.root / "01_import", layout.root / "01_import")
+    views = ImportedScene.load(layout).frontal_views
+    run_stage("rectify", layout)
+    m = read_manifest(layout, "rectify").metrics
+    assert m["n_skipped"] == len(views) and set(m["views_skipped"]) == {v.stem for v in views}
+    assert all("max_size_factor" in r for r in m["views_skipped"].values())
+    assert not any(layout.path("rectify_image", stem=v.stem).exists() for v in views)
+    run_stage("segment_panels", layout)
+    seg = read_manifest(layout, "segment_panels").metrics
+    assert seg["n_views_with_facade"] == 0
+    for v in views:
+        c = json.loads(layout.path("segment_corners", stem=v.stem).read_text())
+        assert c["facade_found"] is False and "max_size_factor" in c["reason"] and c["panels"] == []
+        assert not read_mask(layout.path("segment_mask", stem=v.stem)).any()

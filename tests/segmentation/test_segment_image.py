@@ -173,3 +173,28 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     assert fit_parallax(bars, c, 7, 0.05).k == 0.0  # too few bars: no correction
     assert fit_parallax(bars, c, 3, 0.005).k == 0.0  # beyond the largest slope accepted
     assert correct_parallax(bars, fit_parallax(bars, c, 7, 0.05)) is bars
+
+
+def test_border_strips_need_the_facade_surface_and_the_frame_colour():
+    """The drawing cut by the border on every side: partial panels in all four strips; with the facade
+    surface absent from the left strip (the coarse mesh is elsewhere there: paving, sky), none there; with
+    a specular highlight washing out the glass and the bars' edges in the right strip, the frames' colour
+    still carries the bars into it."""
+    d = Drawing(x0=-14.0, y0=-10.0, cols=4, rows=4)
+    img = d.render()
+    full = segment_image(img, PARAMS, M_PER_PX)
+    left = [p for p in full.panels if p.corners[:, 0].min() < 1.0]
+    assert left and all(not p.complete for p in left)
+    support = np.ones(img.shape[:2], bool)
+    support[:, :14] = False  # left of the first whole mullion
+    cut = segment_image(img, PARAMS, M_PER_PX, support=support)
+    assert not [p for p in cut.panels if p.corners[:, 0].min() < 1.0]
+    assert len(cut.panels) == len(full.panels) - len({p.row for p in left})
+    # the glass right of the last whole mullion washed out to the frames' own grey: no bar edges are left
+    # there, only the frames' colour
+    bright = img.copy()
+    x_last = int(np.ceil(d.x0 + 3 * d.pitch[0] + d.bar + 1))
+    frame_grey = np.median(img[int(d.y0 + 2 * d.pitch[1]) + 1, x_last:], axis=0)  # along a transom
+    bright[:, x_last:] = frame_grey.astype(np.uint8)
+    washed = segment_image(bright, PARAMS, M_PER_PX)
+    assert [p for p in washed.panels if p.corners[:, 0].max() > d.W - 1.0]
