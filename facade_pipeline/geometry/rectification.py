@@ -317,7 +317,7 @@ def warp_image(image: np.ndarray, rect: ViewRectification) -> np.ndarray:
 
 def facade_support(rect: ViewRectification, first_hit_m, tolerance_m: float, step_px: int = 4) -> np.ndarray:
     """[height, width] bool of the rectified canvas: True where the facade surface is really there, i.e.
-    the view's ray to the chart's point first meets the coarse mesh within ``tolerance_m`` of that point
+    the view's ray to the chart's point first meets the coarse mesh within ``tolerance_m`` of the surface
     (``first_hit_m(origins [N, 3], unit dirs [N, 3]) -> distances [N]``, inf: no hit). Beyond the facade's
     end the ray meets the ground, the sky or something else. Evaluated every ``step_px`` px and spread to
     the pixels around; all True for a view that is not rectified (no surface to compare with)."""
@@ -328,8 +328,13 @@ def facade_support(rect: ViewRectification, first_hit_m, tolerance_m: float, ste
     pts = rect.chart.point(rect.s0_m + xs.ravel() * m, rect.h0_m - ys.ravel() * m)
     d = pts - rect.camera.center
     dist = np.linalg.norm(d, axis=1)
-    t = np.asarray(first_hit_m(np.broadcast_to(rect.camera.center, d.shape), d / dist[:, None]), float)
-    ok = (np.abs(t - dist) <= tolerance_m).reshape(xs.shape).astype(np.uint8)
+    u = d / dist[:, None]
+    t = np.asarray(first_hit_m(np.broadcast_to(rect.camera.center, d.shape), u), float)
+    hit = rect.camera.center + np.where(np.isfinite(t), t, 0.0)[:, None] * u
+    # distance of the hit from the surface, not along the ray: at grazing incidence a coarse mesh's bumps
+    # move the hit far along the ray
+    near = np.abs(rect.chart.surface().signed_distance(hit)) <= tolerance_m
+    ok = (np.isfinite(t) & near).reshape(xs.shape).astype(np.uint8)
     return cv2.resize(ok, (rect.width, rect.height), interpolation=cv2.INTER_NEAREST).astype(bool)
 
 

@@ -139,10 +139,15 @@ def _family(
     uniformity = grad.uniformity(span)
     dist = None
     if frame_colour is not None:
+        # a difference within the tolerance of frame_presence is the frames' own shading (a curved facade
+        # turns its transoms through many normals): only what lies beyond it costs
         dist = np.linalg.norm(grad.line_colour(span) - frame_colour, axis=1)[: len(e_grad)]
+        dist = np.maximum(dist - params.frame_colour_tol, 0.0)
     ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid, dist)
     e_out, w_out = bar_evidence(grad, span, params.grid, sizes, params.grid.outer_edge_floor)
-    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid, dist)
+    # outer frames are judged without the colour prior: one side meets the background, and the centre line
+    # of a one-sided bar found at its glass-side edge is not reliably on the frame
+    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
     return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out)), grad
 
 
@@ -316,7 +321,8 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _continues(other: _Bars, lo: float, hi: float, presence: float, support: float) -> bool:
+def _continues(other: _Bars, lo: float, hi: float, presence: float, support: float,
+               inside: tuple[float, float] = (0.0, 0.0)) -> bool:
     """Do the bars of ``other`` continue over [lo, hi) along them? Where the facade surface is there
     (``support``: the fraction of the strip where the coarse mesh lies on the fitted surface, 1 without a
     mesh) over at least half of the strip, a bar continues where its frame colour is present on its centre
@@ -335,7 +341,17 @@ def _continues(other: _Bars, lo: float, hi: float, presence: float, support: flo
         seg = seg[~np.isnan(seg)]
         if len(seg):
             fractions.append(float(seg.mean()))
-    return bool(fractions) and float(np.median(fractions)) >= presence
+    if bool(fractions) and float(np.median(fractions)) >= presence:
+        return True
+    r = []
+    for e in other.edges:
+        seen = None if e[0].present is None else ~np.isnan(e[0].present)
+        best = 0.0
+        for line in e:
+            ref = _mean(line.strength, *inside, seen)
+            best = max(best, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
+        r.append(best)
+    return float(np.median(r)) >= 0.5
 
 
 def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
@@ -361,13 +377,15 @@ def openings(
     out = []
     lo = e[0][0].a
     if lo >= min_partial_px and _continues(
-        other, 0, lo, params.continuation_presence, _strip_support(support, axis, 0, lo, across)
+        other, 0, lo, params.continuation_presence, _strip_support(support, axis, 0, lo, across),
+        (bars.fit.centres[0], bars.fit.centres[-1])
     ):
         out.append((_border(0, length), e[0][0], True))
     out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
     top = e[-1][1].a
     if size - top >= min_partial_px and _continues(
-        other, top, size, params.continuation_presence, _strip_support(support, axis, top, size, across)
+        other, top, size, params.continuation_presence, _strip_support(support, axis, top, size, across),
+        (bars.fit.centres[0], bars.fit.centres[-1])
     ):
         out.append((e[-1][1], _border(size, length), True))
     return out
