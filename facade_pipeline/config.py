@@ -107,7 +107,6 @@ def _read_toml(path: Path) -> dict[str, Any]:
 RENAMED = {
     "rectify.warp.planar_shift_px": "none: every view is rectified (rectify.metres_per_px sets the scale)",
     "segment_panels.min_partial_px": "segment_panels.min_partial_m (metres on the facade)",
-    "segment_panels.continuation_ratio": "segment_panels.continuation_presence (frame colour, not edges)",
     "segment_panels.grid.min_pitch_px": "segment_panels.grid.min_pitch_m and max_pitch_m (metres)",
     "segment_panels.grid.min_bar_px": "segment_panels.grid.min_bar_m (metres on the facade)",
     "segment_panels.grid.max_bar_px": "segment_panels.grid.max_bar_m (metres on the facade)",

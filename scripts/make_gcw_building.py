@@ -82,10 +82,10 @@ def footprint_wall(cams: dict[str, PinholeCamera], samples: int = 9) -> np.ndarr
     return np.concatenate(out)
 
 
-def coarse_wall(cams: dict[str, PinholeCamera], noise_m: float, cell_m: float, margin: float,
+def coarse_wall(xy: np.ndarray, noise_m: float, cell_m: float, margin: float,
                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices [V, 3] (world) and triangles [T, 3] of the noisy wall rectangle covering every footprint."""
-    xy = footprint_wall(cams)
+    """Vertices [V, 3] (world) and triangles [T, 3] of the noisy wall rectangle covering the footprint
+    points ``xy`` [N, 2] (wall frame), ``margin`` of its size beyond them on every side."""
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     pad = margin * (hi - lo)
     lo, hi = lo - pad, hi + pad
@@ -124,7 +124,7 @@ def make_building(src: Path, layout: BuildingLayout, noise_m: float, n_points: i
     # cells of a tenth of the smaller footprint side: a photogrammetric mesh of a wall is coarse and bumpy
     xy = footprint_wall(cams)
     cell = 0.1 * float(np.min(xy.max(axis=0) - xy.min(axis=0)))
-    verts, tris = coarse_wall(cams, noise_m, cell, 0.1, rng)
+    verts, tris = coarse_wall(xy, noise_m, cell, 0.1, rng)
     mesh = make_mesh(verts, tris)
     write_mesh(layout.raw_coarse_mesh_candidates[0], mesh)
     # points on random triangles (the cells are equal, so uniform by area), with their own noise

@@ -36,6 +36,7 @@ from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.geometry.rectification import (
     RectifyParams,
     ViewRectification,
+    mesh_scale_m,
     rectify_view,
     warp_image,
 )
@@ -112,17 +113,6 @@ def _fit(points: np.ndarray, view: View, params: Params, source: Path,
         return None, f"no surface: {e}"
 
 
-def mesh_scale_m(camera: PinholeCamera, mesh: MeshRaycaster) -> float:
-    """Ground sample distance (m per px) at the principal point from the coarse mesh's depth there: the
-    scale of a view that is not rectified (NaN when the ray misses the mesh)."""
-    o, d = camera.pixel_rays(np.array([camera.K[0, 2]]), np.array([camera.K[1, 2]]))
-    t = float(mesh.cast(o, d).t[0])
-    if not np.isfinite(t):
-        return float("nan")
-    depth = t * float(d[0] @ camera.forward)
-    return depth / float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
-
-
 def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, scale: float) -> np.ndarray:
     """Original (left) with the images of straight rectified grid lines, rectified image (right, at the
     original's height) with them."""
@@ -152,7 +142,7 @@ def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: 
     fit, status = _fit(points, view, params, layout.import_coarse_points, mesh)
     cam = view.camera
     if fit is None:
-        scale = mesh_scale_m(cam, mesh)
+        scale = mesh_scale_m(cam, lambda o, d: mesh.cast(o, d).t)
         rect = (ViewRectification.unrectified(cam, scale, status) if np.isfinite(scale) else
                 ViewRectification.unrectified(cam, scale, f"{status}; the coarse mesh is not in the view",
                                               "skipped"))

@@ -28,6 +28,7 @@ image would pass ``max_size_factor`` times the view's pixel count.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -252,14 +253,14 @@ def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams)
             f"max_view_angle_deg = {params.max_view_angle_deg:g}): nearly edge-on", "skipped")
     chart = Chart.of(surface)
     kind: Kind = "plane" if surface.curvature_per_m == 0.0 else "cylinder"
-    probe = ViewRectification(kind, 1, 1, 1.0, camera, chart)  # metres: s, h = x, -y
+    unit = ViewRectification(kind, 1, 1, 1.0, camera, chart)  # 1 m per px from (0, 0): s, h = x, -y
     px = image_grid(W, H, params.warp.samples_per_side)
-    sh = probe.to_rectified(px) * [1.0, -1.0]
+    sh = unit.to_rectified(px) * [1.0, -1.0]
     hit = np.isfinite(sh).all(axis=1)
     if hit.mean() < 0.5:
         return ViewRectification.unrectified(
             camera, np.nan, f"only {hit.mean():.0%} of the view's rays meet the fitted surface", "skipped")
-    m = params.metres_per_px if params.metres_per_px != "auto" else ground_sample_m(probe, px[hit])
+    m = params.metres_per_px if params.metres_per_px != "auto" else ground_sample_m(unit, px[hit])
     lo, hi = sh[hit].min(axis=0), sh[hit].max(axis=0)
     width, height = (int(np.ceil(v)) for v in (hi - lo) / m)
     if width * height > params.max_size_factor * W * H:
@@ -272,13 +273,14 @@ def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams)
     return rect
 
 
-def ground_sample_m(probe: ViewRectification, px: np.ndarray) -> float:
-    """Median over ``px`` [N, 2] of the square root of one pixel's footprint area on the surface (m)."""
+def ground_sample_m(unit: ViewRectification, px: np.ndarray) -> float:
+    """Median over ``px`` [N, 2] of the square root of one pixel's footprint area on the surface (m);
+    ``unit`` is the view's rectification at 1 m per px."""
     e = 0.5
-    a = probe.to_rectified(px + [-e, 0.0])
-    b = probe.to_rectified(px + [e, 0.0])
-    c = probe.to_rectified(px + [0.0, -e])
-    d = probe.to_rectified(px + [0.0, e])
+    a = unit.to_rectified(px + [-e, 0.0])
+    b = unit.to_rectified(px + [e, 0.0])
+    c = unit.to_rectified(px + [0.0, -e])
+    d = unit.to_rectified(px + [0.0, e])
     u, v = b - a, d - c
     area = np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])  # m^2 of a 1 x 1 px square
     area = area[np.isfinite(area) & (area > 0)]
@@ -294,8 +296,18 @@ def _with_polynomial(rect: ViewRectification, px: np.ndarray, degree: int) -> Vi
     W, H = rect.camera.width, rect.camera.height
     fwd = fit_polywarp(px[ok], r[ok], degree, (0.0, 0.0, float(W), float(H)))
     inv = fit_polywarp(r[ok], px[ok], degree)
-    return ViewRectification(rect.kind, rect.width, rect.height, rect.metres_per_px, rect.camera, rect.chart,
-                             rect.s0_m, rect.h0_m, rect.reason, (fwd, inv))
+    return dataclasses.replace(rect, polynomial=(fwd, inv))
+
+
+def mesh_scale_m(camera: PinholeCamera, first_hit_m) -> float:
+    """Ground sample distance (m per px) at the principal point from the coarse mesh's depth there
+    (``first_hit_m`` as in ``facade_support``): the scale of a view that is not rectified; NaN where the
+    ray misses the mesh."""
+    o, d = camera.pixel_rays(np.array([camera.K[0, 2]]), np.array([camera.K[1, 2]]))
+    t = float(np.asarray(first_hit_m(o, d), float)[0])
+    if not np.isfinite(t):
+        return float("nan")
+    return t * float(d[0] @ camera.forward) / float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
 
 
 def remap_maps(rect: ViewRectification) -> tuple[np.ndarray, np.ndarray]:

@@ -136,17 +136,21 @@ class Gradients:
         """[L, M, 3] gradients at the lattice positions ``j * STEP_PX``."""
         return self._interp(self.d, 1.0)
 
+    def _line_samples(self, rows: slice) -> np.ndarray:
+        """[L', M, 3] the image over ``rows`` at each lattice position (interpolated between pixel centres),
+        NaN outside the view."""
+        return self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]
+
     def line_colour(self, rows: slice) -> np.ndarray:
         """[M, 3] median colour over ``rows`` of the image at each lattice position (NaN outside the view)."""
-        col = self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            return np.nanmedian(col, axis=0)
+            return np.nanmedian(self._line_samples(rows), axis=0)
 
     def uniformity(self, rows: slice) -> np.ndarray:
         """v(c) [M]: median over ``rows`` of the colour distance of the image at position c (interpolated
         between pixel centres) from its median along the rows; small along a uniform frame bar."""
-        col = self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]  # [L, M, 3]
+        col = self._line_samples(rows)  # [L, M, 3]
         with warnings.catch_warnings():  # positions outside the view (rectified images) are all NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             dev = np.linalg.norm(col - np.nanmedian(col, axis=0, keepdims=True), axis=2)

@@ -7,8 +7,7 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
 (``complete = False``) when it is at least ``min_partial_m`` wide and the bars of the other family continue
-into it (their frame colour is present over at least ``continuation_presence`` of the strip, where the
-facade surface is there: ``_continues``); otherwise
+into it (by their frame colour or their edges, where the facade surface is there: ``_continues``); otherwise
 the facade ends at that bar. Partly occluded panels: a panel whose frame bars are present (their centre
 line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its colour whatever the glass
 beside it reflects, an object in front of it does not) over less than ``min_edge_support`` of any side's
@@ -75,9 +74,10 @@ class SegmentParams:
     """The image is segmented at a scale where the narrowest bar (``grid.min_bar_m``) spans at least this
     many px, downsampled to it when finer (the grid search's cost grows with the pixel count, its precision
     is a fraction of a pixel at any scale) (px)."""
+    continuation_ratio: float
+    """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
     continuation_presence: float
-    """Bars of the other family whose frame colour is present over this fraction of a border strip
-    (median over the bars) continue into it: partial panels there (-)."""
+    """... or whose frame colour is present over this fraction of the strip (median over the bars) (-)."""
     surface_tolerance_m: float
     """The facade surface is there where the view's ray meets the coarse mesh within this distance (m) of
     the rectified surface: border strips beyond the facade's end hold no partial panel."""
@@ -151,10 +151,9 @@ def _family(
     return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out)), grad
 
 
-def bar_colour(image: np.ndarray, valid: np.ndarray | None, fit: FamilyFit, axis: int,
-               span: slice) -> np.ndarray:
-    """[3] median colour (0-1) of one family's bars: along their centre lines over ``span``."""
-    grad = Gradients.of(image, axis, valid)
+def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
+    """[3] median colour (0-1) of one family's bars (``grad`` of that family): along their centre lines
+    over ``span``."""
     colour = grad.line_colour(span)
     idx = np.clip(np.rint(fit.centres / STEP_PX).astype(int), 0, len(colour) - 1)
     with warnings.catch_warnings():
@@ -275,7 +274,7 @@ def find_bars(
     # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
     colour_h = None
     if v is not None and params.grid.frame_colour_scale > 0:
-        colour_h = bar_colour(image, valid, v, 0, _span(h, H))
+        colour_h = bar_colour(gv, v, _span(h, H))
     h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes, colour_h)
     metrics = {
         "n_segments": len(fam.segments),
@@ -321,16 +320,18 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _continues(other: _Bars, lo: float, hi: float, presence: float, support: float,
-               inside: tuple[float, float] = (0.0, 0.0)) -> bool:
-    """Do the bars of ``other`` continue over [lo, hi) along them? Where the facade surface is there
+def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
+               params: SegmentParams) -> bool:
+    """Do the bars of ``other`` continue over [lo, hi) along them? Only where the facade surface is there
     (``support``: the fraction of the strip where the coarse mesh lies on the fitted surface, 1 without a
-    mesh) over at least half of the strip, a bar continues where its frame colour is present on its centre
-    line (``frame_presence``) over at least ``presence`` of the strip's part that shows the view, in the
-    median over the bars. Colour, not edge strength: a specular highlight on the glass beside a bar, or the
-    blur of a far, upsampled part of an oblique rectified photo, takes the bar's edges but not its colour,
-    while the frame around a cell without glass is seen from its reveal. The surface test keeps out the
-    ground or paving beyond the facade's end, which may have the frames' colour."""
+    mesh) over at least half of the strip: that keeps out the ground or paving beyond the facade's end,
+    which may have the frames' colour. There a bar continues where its frame colour is present on its
+    centre line (``frame_presence``) over at least ``continuation_presence`` of the strip's part that shows
+    the view, in the median over the bars, or where its edges keep ``continuation_ratio`` of their strength
+    over ``inside``, in the median over the bars (either edge: an outer frame shows only its glass side
+    wherever the background beside it changes colour). Colour survives what takes the edges away: a
+    specular highlight on the glass beside a bar, the blur of a far, upsampled part of an oblique rectified
+    photo."""
     if support < 0.5:
         return False
     fractions = []
@@ -341,7 +342,7 @@ def _continues(other: _Bars, lo: float, hi: float, presence: float, support: flo
         seg = seg[~np.isnan(seg)]
         if len(seg):
             fractions.append(float(seg.mean()))
-    if bool(fractions) and float(np.median(fractions)) >= presence:
+    if fractions and float(np.median(fractions)) >= params.continuation_presence:
         return True
     r = []
     for e in other.edges:
@@ -351,7 +352,7 @@ def _continues(other: _Bars, lo: float, hi: float, presence: float, support: flo
             ref = _mean(line.strength, *inside, seen)
             best = max(best, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
         r.append(best)
-    return float(np.median(r)) >= 0.5
+    return float(np.median(r)) >= params.continuation_ratio
 
 
 def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
@@ -373,19 +374,17 @@ def openings(
     """Openings across one family's bars (``axis`` 0: mullions), low to high: (low line, high line, cut by
     the border)."""
     e = bars.edges
+    inside = (bars.fit.centres[0], bars.fit.centres[-1])
     across = (other.fit.centres[0], other.fit.centres[-1])
     out = []
-    lo = e[0][0].a
+    lo, top = e[0][0].a, e[-1][1].a
     if lo >= min_partial_px and _continues(
-        other, 0, lo, params.continuation_presence, _strip_support(support, axis, 0, lo, across),
-        (bars.fit.centres[0], bars.fit.centres[-1])
+        other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params
     ):
         out.append((_border(0, length), e[0][0], True))
     out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
-    top = e[-1][1].a
     if size - top >= min_partial_px and _continues(
-        other, top, size, params.continuation_presence, _strip_support(support, axis, top, size, across),
-        (bars.fit.centres[0], bars.fit.centres[-1])
+        other, top, size, inside, _strip_support(support, axis, top, size, across), params
     ):
         out.append((e[-1][1], _border(size, length), True))
     return out

@@ -20,11 +20,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from facade_pipeline.io.images import read_mask
+from facade_pipeline.scene import ImportedScene
+from facade_pipeline.segmentation.panels import inside_quads
+
 
 def quad_mask(corners: np.ndarray, width: int, height: int) -> np.ndarray:
     """[H, W] bool: pixel centres inside the polygon ``corners`` [K, 2] (pixel centres at +0.5)."""
-    from facade_pipeline.segmentation.panels import inside_quads
-
     ys, xs = np.mgrid[0:height, 0:width] + 0.5
     return inside_quads([np.asarray(corners, float)], xs, ys) >= 0
 
@@ -71,9 +73,6 @@ def evaluate_photo(corners_json: dict, mask: np.ndarray, truth_mask: np.ndarray,
 
 def evaluate_building(layout, truth_dir: Path) -> dict[str, dict]:
     """``evaluate_photo`` for every frontal view of ``layout`` whose stem has truth in ``truth_dir``."""
-    from facade_pipeline.io.images import read_mask
-    from facade_pipeline.scene import ImportedScene
-
     panes = json.loads((truth_dir / "panes.json").read_text())
     out = {}
     for v in ImportedScene.load(layout).frontal_views:

@@ -18,6 +18,7 @@ import pytest
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.segmentation.real_truth import evaluate_building, grid_corner_errors_m, summary
+from scripts.make_gcw_building import WORLD_FROM_WALL
 from tests.segmentation.conftest import REPO, doit
 
 SRC = REPO.parent / "shared" / "real" / "gcw_dev"
@@ -87,6 +88,6 @@ def test_3d_panels_against_the_nominal_grid(gcw):
     panels = json.loads(layout.path("regularize_panels").read_text())["panels"]
     assert len(panels) >= 4
     world = np.array([p["corners"] for p in panels], float).reshape(-1, 3)
-    wall = np.stack([world[:, 0], -world[:, 2], world[:, 1]], axis=1)  # the script's world is (x, z, -y)
+    wall = world @ WORLD_FROM_WALL[:3, :3]  # world -> wall frame (a rotation)
     err = grid_corner_errors_m(wall, (0.1032, 0.1532), (0.0932, 0.1432))
     assert np.median(err) <= 1.5 * 0.005  # 1.5 x the poses' own scatter
