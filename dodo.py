@@ -5,37 +5,85 @@
     doit list building=synthetic64         # the stages, in pipeline order
     doit -s import_photogrammetry building=shatin   # one stage alone, upstream not checked
     doit building=shatin data_root=/mnt/uav
+    doit building=shatin verify=1          # also hash every output against its manifest (finds damage)
 
 Each stage task declares: the exact files it reads as ``file_dep`` (computed by a hidden ``_inputs:<stage>``
 task through doit's ``calc_dep``, from raw/ and the upstream manifests, since they are only known once the
 upstream stage ran), its own source files, its targets (the outputs known in advance and its manifest), and
-``config_changed`` of its parameters. doit's state is kept per building in ``<building>/.doit.db``.
+``config_changed`` of its parameters, and that the outputs its manifest lists are still what it wrote (a file
+whose size or time changed is hashed; one that was damaged or deleted reruns the stage). doit's state is kept
+per building in ``<building>/.doit.db``. A run holds ``<building>/.lock`` so that a second one stops at once.
+
+A bad config or building name stops here with one line and exit code 2; a stage that stops on bad input
+prints its own line and doit exits 2 too.
 """
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import sys
+import tempfile
+from typing import NoReturn
 
 from doit import get_var
-from doit.exceptions import TaskFailed
+from doit.exceptions import TaskError, TaskFailed
 from doit.tools import config_changed
 
 from facade_pipeline.config import load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
+from facade_pipeline.io.lock import acquire
 from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import damaged_outputs
 from stages import PIPELINE, load_stage
 from stages._runner import source_files
 
+#: doit commands that change nothing: they run without the building's lock
+READ_ONLY_COMMANDS = {"list", "info", "help", "dumpdb", "tabcompletion"}
+DOIT_COMMANDS = READ_ONLY_COMMANDS | {"run", "clean", "forget", "ignore", "auto", "strace", "reset-dep"}
+
+
+def _stop(message: str) -> NoReturn:
+    """One line, no traceback, exit code 2 (doit's code for an error that is not a failed task)."""
+    print(f"doit: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def _command(argv: list[str]) -> str:
+    return next((a for a in argv if a in DOIT_COMMANDS), "run")
+
+
 BUILDING = get_var("building", "demo")
-DATA_ROOT = get_var("data_root", None)
-LAYOUT = BuildingLayout.for_building(BUILDING, DATA_ROOT)
-CONFIG = load_building_config(BUILDING)
+VERIFY = get_var("verify", "0") not in ("0", "", "false", "no")
+try:
+    LAYOUT = BuildingLayout.for_building(BUILDING, get_var("data_root", None))
+    CONFIG = load_building_config(BUILDING)
+except (PipelineError, ValueError) as e:
+    _stop(str(e))
 SYNTHETIC = CONFIG.building.kind == "synthetic"
 STAGES = [name for name in PIPELINE if SYNTHETIC or name != "synthesize"]
 
-LAYOUT.root.mkdir(parents=True, exist_ok=True)
+try:
+    LAYOUT.root.mkdir(parents=True, exist_ok=True)
+except OSError as e:
+    _stop(f"{LAYOUT.root}: expected a building folder that can be made, found {e.strerror}")
+DEP_FILE = LAYOUT.doit_db
+if not os.access(LAYOUT.root, os.W_OK):
+    # a read-only data root (an archive, a colleague's share): say what is up to date from a copy of
+    # doit's state; a stage that would have to run fails writing and names the folder
+    copy = os.path.join(tempfile.mkdtemp(prefix="facade-doit-"), DEP_FILE.name)
+    if DEP_FILE.is_file():
+        shutil.copyfile(DEP_FILE, copy)
+    DEP_FILE = copy
+elif _command(sys.argv[1:]) not in READ_ONLY_COMMANDS:
+    try:
+        _LOCK = acquire(LAYOUT.lock)  # held until doit exits
+    except PipelineError as e:
+        _stop(str(e))
+
 DOIT_CONFIG = {
-    "dep_file": str(LAYOUT.doit_db),
+    "dep_file": str(DEP_FILE),
     "backend": "sqlite3",
     "default_tasks": STAGES,
     "verbosity": 2,  # stages draw progress bars on stderr
@@ -54,23 +102,51 @@ def _inputs_action(stage, params):
         try:
             return {"file_dep": [str(p) for p in stage.inputs(LAYOUT, params)]}
         except PipelineError as e:
-            return TaskFailed(f"{stage.NAME}: {e}")
+            return TaskError(f"{stage.NAME}: {e}")
 
     return compute
 
 
-def _stage_tasks(name):
-    stage = load_stage(name)
-    params = CONFIG.section(name, stage.Params)
+def _run_stage(name):
+    """The stage as a child process writing straight to the terminal, so that its progress bar is live
+    (doit's command actions pass output on line by line, and a progress bar redraws one line)."""
     command = [
         sys.executable,
         "-m",
-        f"stages.{name}",
+        "stages",
+        name,
         "--building",
         BUILDING,
         "--data-root",
         str(LAYOUT.data_root),
     ]
+
+    def action():
+        code = subprocess.run(command).returncode
+        if code == 2:  # bad input or config: the stage said which in one line above
+            return TaskError(f"{name} stopped on the error above")
+        if code != 0:
+            return TaskFailed(f"{name} failed (exit code {code})")
+        return None
+
+    return action
+
+
+def _outputs_intact(stage):
+    editable = getattr(stage, "EDITABLE", ())
+
+    def check(task, values):
+        return not damaged_outputs(LAYOUT, stage.NAME, full_hash=VERIFY, editable=editable)
+
+    return check
+
+
+def _stage_tasks(name):
+    stage = load_stage(name)
+    try:
+        params = CONFIG.section(name, stage.Params)
+    except PipelineError as e:
+        _stop(str(e))
     upstream = list(stage.UPSTREAM) + (
         ["synthesize"] if SYNTHETIC and name == "import_photogrammetry" else []
     )
@@ -87,11 +163,11 @@ def _stage_tasks(name):
     yield {
         "basename": name,
         "doc": stage.DOC,
-        "actions": [command],
+        "actions": [_run_stage(name)],
         "calc_dep": [f"_inputs:{name}"],
         "file_dep": [str(p) for p in source_files(stage)] + [str(LAYOUT.manifest(u)) for u in upstream],
         "targets": [str(p) for p in stage.targets(LAYOUT, params)] + [str(LAYOUT.manifest(name))],
-        "uptodate": [config_changed(to_dict(params))],
+        "uptodate": [config_changed(to_dict(params)), _outputs_intact(stage)],
         "clean": True,
     }
 

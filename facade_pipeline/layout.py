@@ -104,6 +104,8 @@ ENTRIES: dict[str, str] = {
     "stage_manifest": "{stage_dir}/manifest.json",
     # doit's state, kept per building
     "doit_db": ".doit.db",
+    # held by the run that works on the building (one at a time)
+    "lock": ".lock",
 }
 
 
@@ -113,6 +115,12 @@ def resolve_data_root(explicit: str | Path | None = None) -> Path:
         return Path(explicit).expanduser().resolve()
     env = os.environ.get(DATA_ROOT_ENV)
     return Path(env).expanduser().resolve() if env else (Path.cwd() / DEFAULT_DATA_ROOT).resolve()
+
+
+def entry_regex(key: str) -> re.Pattern[str]:
+    """The paths (relative to the building) of entry ``key`` with any fields, and of files under it."""
+    parts = re.split(r"\{\w+\}", ENTRIES[key])
+    return re.compile(".+".join(re.escape(p) for p in parts) + r"(/.+)?\Z")
 
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
@@ -143,8 +151,19 @@ class BuildingLayout:
         return self.root / ENTRIES[key].format(**fields)
 
     def relative(self, path: str | Path) -> str:
-        """``path`` relative to the building folder, with forward slashes (as manifests record it)."""
-        return Path(path).resolve().relative_to(self.root.resolve()).as_posix()
+        """``path`` relative to the building folder, with forward slashes (as manifests record it).
+
+        Lexical: a folder of the building that is a symlink (photos or a stage's outputs on another disk)
+        keeps its place in the building, so its files are named as if it were a plain folder."""
+        rel = Path(os.path.normpath(os.path.abspath(path))).relative_to(self.root)
+        return rel.as_posix()
+
+    def owned_patterns(self, stage: str) -> list[re.Pattern[str]]:
+        """Regular expressions of the paths (relative to the building) that ``stage`` writes: its own
+        folder's entries (a folder entry: any file under it), or raw/ and gt/ for ``synthesize``. A file
+        that matches none is not the stage's."""
+        prefixes = ("raw/", "gt/") if stage == "synthesize" else (STAGE_DIRS[stage] + "/",)
+        return [entry_regex(key) for key, pattern in ENTRIES.items() if pattern.startswith(prefixes)]
 
     # --- raw ---
     @property
@@ -231,3 +250,7 @@ class BuildingLayout:
     @property
     def doit_db(self) -> Path:
         return self.path("doit_db")
+
+    @property
+    def lock(self) -> Path:
+        return self.path("lock")

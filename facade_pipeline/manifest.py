@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+import os
 import platform
 import subprocess
 from dataclasses import dataclass
@@ -16,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from facade_pipeline import __version__
-from facade_pipeline.errors import InputError, UpstreamMissingError
-from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.errors import InputError, PipelineError, UpstreamMissingError
+from facade_pipeline.layout import BuildingLayout, entry_regex
 
 MANIFEST_VERSION = 1
 
@@ -81,7 +83,10 @@ def build_manifest(
     wall_time_s: float,
     peak_memory_mb: float,
 ) -> dict[str, Any]:
-    """The manifest dict, hashing every input and output file."""
+    """The manifest dict, hashing every input and output file. A metric that is not a finite number (it
+    could not be computed: no pixels, no panels) is recorded as null, with the reason in
+    ``undefined_metrics``; JSON has no NaN, and a reader must not mistake it for a value."""
+    metrics, undefined = finite_or_null(metrics)
     return {
         "manifest_version": MANIFEST_VERSION,
         "stage": stage,
@@ -89,11 +94,67 @@ def build_manifest(
         "params": params,
         "inputs": {layout.relative(p): sha256_file(p) for p in sorted(set(inputs))},
         "outputs": {layout.relative(p): sha256_file(p) for p in sorted(set(outputs))},
+        "output_stats": {layout.relative(p): _stat(p) for p in sorted(set(outputs))},
         "code": {"package_version": __version__, "python": platform.python_version(), **code},
         "wall_time_s": round(wall_time_s, 3),
         "peak_memory_mb": round(peak_memory_mb, 1),
         "metrics": metrics,
+        "undefined_metrics": undefined,
     }
+
+
+def finite_or_null(value: Any, where: str = "") -> tuple[Any, dict[str, str]]:
+    """``value`` with every NaN or infinite number replaced by None, and {dotted path: reason} of those."""
+    if isinstance(value, dict):
+        out, undefined = {}, {}
+        for k, v in value.items():
+            out[k], u = finite_or_null(v, f"{where}.{k}" if where else str(k))
+            undefined.update(u)
+        return out, undefined
+    if isinstance(value, list | tuple):
+        out_list, undefined = [], {}
+        for i, v in enumerate(value):
+            x, u = finite_or_null(v, f"{where}[{i}]")
+            out_list.append(x)
+            undefined.update(u)
+        return out_list, undefined
+    if isinstance(value, float) and not math.isfinite(value):
+        return None, {where: f"not computable ({value}): no samples it could be measured on"}
+    return value, {}
+
+
+def _stat(path: Path) -> dict[str, int]:
+    st = os.stat(path)
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+
+
+def damaged_outputs(
+    layout: BuildingLayout, stage: str, full_hash: bool = False, editable: tuple[str, ...] = ()
+) -> list[str]:
+    """Outputs of ``stage``'s manifest that are missing or no longer what the stage wrote: a file whose
+    size or modification time differs from the record is hashed (``full_hash``: every file is), and it
+    counts if its hash differs. Files of the layout entries in ``editable`` (a mask a person may fix by
+    hand) are not checked. An unreadable manifest: the stage has not completed, nothing to report."""
+    try:
+        m = read_manifest(layout, stage)
+    except PipelineError:
+        return []
+    stats = m.data.get("output_stats", {})
+    skip = [entry_regex(k) for k in editable]
+    bad = []
+    for rel, digest in m.outputs.items():
+        if any(r.match(rel) for r in skip):
+            continue
+        path = layout.root / rel
+        try:
+            now = _stat(path)
+        except OSError:
+            bad.append(rel)
+            continue
+        if full_hash or now != stats.get(rel):
+            if now["size"] != stats.get(rel, now)["size"] or sha256_file(path) != digest:
+                bad.append(rel)
+    return bad
 
 
 def read_manifest(layout: BuildingLayout, stage: str) -> Manifest:

@@ -5,7 +5,8 @@
 - ``inputs(layout, params)``: the exact files it reads, validated (missing ones raise ``InputError``);
 - ``targets(layout, params)``: the outputs whose names are known before it runs;
 - ``run(layout, params) -> StageReport``: does the work, writing every output atomically;
-- a CLI: ``python -m stages.<name> --building NAME``.
+- optionally ``EDITABLE``: layout entries of its outputs that a person may edit (not taken for damage);
+- a CLI: ``python -m stages <name> --building NAME`` (or ``python -m stages.<name>``).
 
 ``stages._runner.execute`` wraps ``run`` with the contract (manifest last, stale files removed) and is
 the one way a stage runs, from doit or from the command line.

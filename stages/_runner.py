@@ -10,6 +10,7 @@ import argparse
 import logging
 import os
 import resource
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -21,8 +22,10 @@ import facade_pipeline
 from facade_pipeline.config import load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.atomic import remove_stale_temporaries, write_json
+from facade_pipeline.io.lock import acquire, release
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.manifest import build_manifest, git_commit, sources_digest
+from facade_pipeline.manifest import build_manifest, git_commit, read_manifest, sources_digest
+from facade_pipeline.threads import policy_in_place, thread_policy
 
 PACKAGE_DIR = Path(facade_pipeline.__file__).resolve().parent
 STAGES_DIR = Path(__file__).resolve().parent
@@ -87,7 +90,7 @@ def _imported_package_files(path: Path) -> list[Path]:
 
 
 def output_folders(stage: ModuleType, layout: BuildingLayout) -> list[Path]:
-    """Folders the stage owns: stale files there are removed after a successful run."""
+    """Folders the stage writes into (they may hold a person's own files too, which are left alone)."""
     if stage.NAME == "synthesize":
         return [layout.raw_dir, layout.gt_dir]
     return [layout.stage_dir(stage.NAME)]
@@ -100,6 +103,7 @@ def load_params(stage: ModuleType, building: str) -> Any:
 def execute(stage: ModuleType, layout: BuildingLayout, params: Any) -> dict[str, Any]:
     """Run ``stage`` under the contract and return its manifest."""
     manifest_path = layout.manifest(stage.NAME)
+    previous = _previous_outputs(layout, stage.NAME)
     manifest_path.unlink(missing_ok=True)
     folders = output_folders(stage, layout)
     for folder in folders:
@@ -108,51 +112,116 @@ def execute(stage: ModuleType, layout: BuildingLayout, params: Any) -> dict[str,
     t0 = time.perf_counter()
     report: StageReport = stage.run(layout, params)
     wall = time.perf_counter() - t0
-    outputs = {p.resolve() for p in report.outputs}
-    for folder in folders:
-        _remove_stale_outputs(folder, outputs | {manifest_path.resolve()})
+    outputs = {layout.relative(p) for p in report.outputs}
+    _remove_stale_outputs(layout, stage.NAME, folders, previous, outputs)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports kB
     code = {"git": git_commit(STAGES_DIR.parent), "sources_sha256": sources_digest(source_files(stage))}
     manifest = build_manifest(
-        stage.NAME, layout, to_dict(params), inputs, sorted(outputs), report.metrics, code, wall, peak_mb
+        stage.NAME,
+        layout,
+        to_dict(params),
+        inputs,
+        [layout.root / rel for rel in sorted(outputs)],
+        report.metrics,
+        code,
+        wall,
+        peak_mb,
     )
     write_json(manifest_path, manifest)
     return manifest
 
 
-def _remove_stale_outputs(folder: Path, keep: set[Path]) -> None:
-    """Delete files under ``folder`` that this run did not write (left by an earlier configuration)."""
-    if not folder.exists():
-        return
-    for p in sorted(folder.rglob("*"), reverse=True):
-        if p.is_file() and p.resolve() not in keep:
-            p.unlink()
-        elif p.is_dir() and not any(p.iterdir()):
-            p.rmdir()
+def _previous_outputs(layout: BuildingLayout, stage: str) -> set[str]:
+    """What the last completed run listed as its outputs (none when its manifest is missing or unreadable)."""
+    try:
+        return set(read_manifest(layout, stage).outputs)
+    except PipelineError:
+        return set()
+
+
+def _remove_stale_outputs(
+    layout: BuildingLayout, stage: str, folders: list[Path], listed: set[str], written: set[str]
+) -> None:
+    """Delete what an earlier run of this stage wrote and this one did not (left by another configuration):
+    the files its last manifest listed, and, for a run that was interrupted before writing one, files whose
+    path is one of the stage's own patterns in the layout. Anything else in its folders (a person's notes,
+    a folder that is a symlink to another disk) is left alone."""
+    owned = layout.owned_patterns(stage)
+    keep = {layout.relative(layout.manifest(stage))}
+    stale = set(listed)
+    for folder in folders:
+        for dirpath, _dirs, files in os.walk(folder):
+            for name in files:
+                rel = layout.relative(Path(dirpath) / name)
+                if any(p.match(rel) for p in owned):
+                    stale.add(rel)
+    for rel in sorted(stale - written - keep, reverse=True):
+        path = layout.root / rel
+        if not path.is_file() and not path.is_symlink():
+            continue
+        path.unlink()
+        # folders the stage made and left empty go too; the stage's own folder stays (it may be a symlink)
+        parent = path.parent
+        while parent not in folders and parent != layout.root and not any(parent.iterdir()):
+            parent.rmdir()
+            parent = parent.parent
 
 
 def main(stage: ModuleType, argv: list[str] | None = None) -> int:
-    """The CLI of every stage: ``python -m stages.<name> --building NAME [--data-root DIR]``."""
-    parser = argparse.ArgumentParser(prog=f"python -m stages.{stage.NAME}", description=stage.DOC)
+    """The CLI of every stage: ``python -m stages <name> --building NAME [--data-root DIR]`` (also reached as
+    ``python -m stages.<name>``, which starts again through ``python -m stages`` to set the thread policy
+    before any numerical library loads)."""
+    if argv is None and not policy_in_place():
+        env = {**os.environ, **thread_policy(os.environ)}
+        os.execve(sys.executable, [sys.executable, "-m", "stages", stage.NAME, *sys.argv[1:]], env)
+    parser = argparse.ArgumentParser(prog=f"python -m stages {stage.NAME}", description=stage.DOC)
     parser.add_argument("--building", default="demo", help="building name (configs/buildings/<name>.toml)")
     parser.add_argument("--data-root", default=None, help="data root (default: $FACADE_DATA_ROOT or ./data)")
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=os.environ.get("FACADE_LOG_LEVEL", "INFO"), format="%(levelname)s %(name)s: %(message)s"
     )
+    lock = None
     try:
         layout = BuildingLayout.for_building(args.building, args.data_root)
         params = load_params(stage, args.building)
+        lock = acquire(layout.lock) if layout.root.is_dir() else None
         manifest = execute(stage, layout, params)
     except PipelineError as e:
         print(f"{stage.NAME}: {e}", file=sys.stderr)
         return 2
+    except OSError as e:
+        # the machine, not the data: a full disk, a read-only folder, a vanished mount
+        print(
+            f"{stage.NAME}: {_os_error_line(e)}; no manifest written, the stage will rerun", file=sys.stderr
+        )
+        return 2
     except KeyboardInterrupt:
         print(f"{stage.NAME}: interrupted; no manifest written, the stage will rerun", file=sys.stderr)
         return 130
+    finally:
+        release(lock)
     summary = ", ".join(f"{k}={v}" for k, v in manifest["metrics"].items() if not isinstance(v, dict | list))
     print(
         f"{stage.NAME}: {len(manifest['outputs'])} outputs in {manifest['wall_time_s']:.1f} s"
         + (f" ({summary})" if summary else "")
     )
     return 0
+
+
+def _os_error_line(e: OSError) -> str:
+    """One line for an ``OSError``: the file, what went wrong and, for writes, the free space there."""
+    where = e.filename or (str(e).split(":", 1)[0] if str(e).startswith("/") else None)
+    what = e.strerror or str(e)
+    line = f"{where}: {what}" if where and where not in what else what
+    if where:
+        folder = Path(where).parent
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        try:
+            free = shutil.disk_usage(folder).free / 2**20
+            writable = os.access(folder, os.W_OK)
+            line += f" ({free:.0f} MiB free in {folder}{'' if writable else ', not writable'})"
+        except OSError:
+            pass
+    return line

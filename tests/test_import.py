@@ -156,9 +156,44 @@ def _spherical_camera(layout):
     rec.write(str(layout.raw_sparse_dir))
 
 
+def _rename_first(layout, name):
+    rec = pycolmap.Reconstruction(str(layout.raw_sparse_dir))
+    next(iter(rec.images.values())).name = name
+    rec.write(str(layout.raw_sparse_dir))
+
+
+def _outside_name(layout):
+    _rename_first(layout, "../../../../x.png")
+
+
+def _absolute_name(layout):
+    _rename_first(layout, "/tmp/x.png")
+
+
+def _two_images_one_stem(layout):
+    """uav.png and uav.jpg: both would become 01_import/images/uav.png."""
+    rec = pycolmap.Reconstruction(str(layout.raw_sparse_dir))
+    a, b = list(rec.images.values())[:2]
+    stem = a.name.rsplit(".", 1)[0]
+    (layout.raw_images_dir / b.name).rename(layout.raw_images_dir / f"{stem}.jpg")
+    b.name = f"{stem}.jpg"
+    rec.write(str(layout.raw_sparse_dir))
+
+
+def _nan_pose(layout):
+    rec = pycolmap.Reconstruction(str(layout.raw_sparse_dir))
+    frame = rec.frames[next(iter(rec.images.values())).frame_id]
+    frame.rig_from_world = pycolmap.Rigid3d(frame.rig_from_world.rotation, np.array([np.nan, 0.0, 0.0]))
+    rec.write(str(layout.raw_sparse_dir))
+
+
 @pytest.mark.parametrize(
     "damage, file_part, words",
     [
+        (_outside_name, "sparse/0", "'../../../../x.png'"),
+        (_absolute_name, "sparse/0", "'/tmp/x.png'"),
+        (_two_images_one_stem, "raw/images", ".jpg"),
+        (_nan_pose, "sparse/0", "NaN or Inf"),
         (_missing_model, "sparse/0", "missing cameras, images, points3D"),
         (_corrupt, "sparse/0", "damaged model"),
         (_missing_image, "raw/images/", "no file"),

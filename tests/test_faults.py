@@ -1,0 +1,236 @@
+"""What a real machine does to a run: folders on other disks (symlinks), a person's own files in a stage
+folder, outputs damaged after the run, two runs at once, a full disk, a damaged checkpoint, metrics that
+cannot be computed. Each gives a correct run or one clear line; nothing outside a stage's outputs is lost."""
+
+from __future__ import annotations
+
+import errno
+import math
+import os
+import shutil
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+from facade_pipeline.config import config_dir, default_params
+from facade_pipeline.io.lock import acquire, release
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import build_manifest, damaged_outputs, read_manifest
+from stages import import_photogrammetry as imp
+from stages._runner import StageReport, execute, main
+from tests.helpers import make_raw
+
+REPO = Path(__file__).resolve().parents[1]
+PARAMS = default_params("import_photogrammetry", imp.Params)
+
+
+def _doit(args, env, data_root, check=True):
+    cmd = [sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), *args, f"data_root={data_root}"]
+    out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    if check:
+        assert out.returncode == 0, out.stdout + out.stderr
+    return out
+
+
+@pytest.fixture
+def real(tmp_path):
+    cfg = tmp_path / "configs"
+    shutil.copytree(config_dir(), cfg)
+    (cfg / "buildings" / "faults.toml").write_text('[building]\nkind = "real"\ndescription = "test"\n')
+    layout = BuildingLayout(tmp_path / "data", "faults")
+    make_raw(layout, frontal=True)
+    env = {**os.environ, "FACADE_CONFIG_DIR": str(cfg), "TQDM_DISABLE": "1"}
+    return layout, env, cfg
+
+
+def test_symlinked_photos_and_stage_folder_work_and_keep_a_persons_files(layout, tmp_path):
+    """raw/images and 01_import on 'another disk'; a note of the user's in the stage folder survives reruns,
+    a stale output of the stage does not."""
+    make_raw(layout)
+    other = tmp_path / "other_disk"
+    other.mkdir()
+    shutil.move(layout.raw_images_dir, other / "images")
+    layout.raw_images_dir.symlink_to(other / "images")
+    (other / "01_import").mkdir()
+    layout.stage_dir("import_photogrammetry").symlink_to(other / "01_import")
+    note = other / "01_import" / "notes.txt"
+    note.write_text("mine")
+    execute(imp, layout, PARAMS)
+    m = read_manifest(layout, "import_photogrammetry")
+    assert all(not rel.startswith("..") for rel in [*m.inputs, *m.outputs])
+    assert any(rel.startswith("raw/images/") for rel in m.inputs)
+    stale = layout.import_image("old_view")  # an output pattern of the stage, not written by this run
+    stale.write_bytes(b"left by another configuration")
+    execute(imp, layout, PARAMS)
+    assert note.read_text() == "mine" and not stale.exists()
+    assert layout.stage_dir("import_photogrammetry").is_symlink()
+
+
+def test_stale_sweep_removes_what_the_last_manifest_listed(layout):
+    make_raw(layout)
+    execute(imp, layout, PARAMS)
+    m = read_manifest(layout, "import_photogrammetry")
+    odd = layout.stage_dir("import_photogrammetry") / "extra" / "odd.bin"  # matches no pattern of the stage
+    odd.parent.mkdir()
+    odd.write_bytes(b"x")
+    data = m.data | {"outputs": {**m.outputs, "01_import/extra/odd.bin": "0" * 64}}
+    m.path.write_text(__import__("json").dumps(data))  # as if an earlier run had written it
+    execute(imp, layout, PARAMS)
+    assert not odd.exists() and not odd.parent.exists()
+
+
+def test_damaged_outputs_are_found_cheaply_or_by_hash(layout):
+    make_raw(layout)
+    execute(imp, layout, PARAMS)
+    assert damaged_outputs(layout, "import_photogrammetry") == []
+    scene = layout.import_scene
+    st = os.stat(scene)
+    text = scene.read_bytes()
+    scene.write_bytes(text.replace(b"0", b"1", 1))  # same size
+    os.utime(scene, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the same time: only a hash sees it
+    assert damaged_outputs(layout, "import_photogrammetry") == []
+    assert damaged_outputs(layout, "import_photogrammetry", full_hash=True) == ["01_import/scene.json"]
+    scene.write_bytes(text)  # touched but the same bytes: not damage
+    assert damaged_outputs(layout, "import_photogrammetry") == []
+    layout.import_coarse_mesh.write_bytes(b"truncated")
+    assert damaged_outputs(layout, "import_photogrammetry") == ["01_import/coarse_mesh.ply"]
+    layout.import_coarse_points.unlink()
+    assert "01_import/coarse_points.ply" in damaged_outputs(layout, "import_photogrammetry")
+    assert damaged_outputs(layout, "import_photogrammetry", editable=("import_coarse_mesh",)) == [
+        "01_import/coarse_points.ply"
+    ]
+
+
+def test_doit_reruns_a_stage_whose_output_was_damaged(real):
+    layout, env, _ = real
+    _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
+    layout.import_coarse_mesh.write_bytes(b"damaged")
+    out = _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
+    assert ".  import_photogrammetry" in out.stdout
+    assert layout.import_coarse_mesh.read_bytes() != b"damaged"
+    # damage that keeps size and time is found with verify=1
+    st = os.stat(layout.import_scene)
+    text = layout.import_scene.read_bytes()
+    layout.import_scene.write_bytes(text.replace(b"0", b"1", 1))
+    os.utime(layout.import_scene, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert "-- import_photogrammetry" in _doit(["import_photogrammetry", "building=faults"], env,
+                                               layout.data_root).stdout  # fmt: skip
+    out = _doit(["import_photogrammetry", "building=faults", "verify=1"], env, layout.data_root)
+    assert ".  import_photogrammetry" in out.stdout and layout.import_scene.read_bytes() == text
+
+
+def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
+    layout, env, _ = real
+    layout.root.mkdir(parents=True, exist_ok=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time; from facade_pipeline.io.lock import acquire; acquire(sys.argv[1]); "
+         "print('held', flush=True); time.sleep(60)", str(layout.lock)],
+        cwd=REPO, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        out = _doit(["import_photogrammetry", "building=faults"], env, layout.data_root, check=False)
+        assert out.returncode == 2 and "Traceback" not in out.stderr
+        assert f"another run (pid {holder.pid}) holds this building" in out.stderr
+        assert not layout.manifest("import_photogrammetry").exists()
+        # a stage run by hand is refused as well
+        cli = subprocess.run(
+            [sys.executable, "-m", "stages", "import_photogrammetry", "--building", "faults", "--data-root",
+             str(layout.data_root)], cwd=REPO, env=env, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        assert cli.returncode == 2 and "holds this building" in cli.stderr
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder was killed: its lock file remains, with its pid, and is taken over
+    assert layout.lock.read_text().strip() == str(holder.pid)
+    _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
+    assert layout.manifest("import_photogrammetry").exists()
+
+
+def test_lock_in_process(tmp_path):
+    path = tmp_path / ".lock"
+    script = "import sys; from facade_pipeline.io.lock import acquire; print(acquire(sys.argv[1]))"
+    fd = acquire(path)
+    try:
+        assert path.read_text().strip() == str(os.getpid())
+        # this process's children are covered by it (a doit run's stages)
+        child = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, capture_output=True,
+                               text=True)  # fmt: skip
+        assert child.returncode == 0 and child.stdout.strip() == "None", child.stderr
+        # a process that did not inherit it is refused
+        env = {k: v for k, v in os.environ.items() if k != "FACADE_BUILDING_LOCK"}
+        other = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, env=env,
+                               capture_output=True, text=True)  # fmt: skip
+        assert other.returncode != 0 and "BuildingBusyError" in other.stderr
+    finally:
+        release(fd)
+    assert "FACADE_BUILDING_LOCK" not in os.environ
+    release(acquire(path))  # free again
+
+
+def test_config_errors_are_one_line_with_exit_code_2(real):
+    layout, env, cfg = real
+    toml = cfg / "buildings" / "faults.toml"
+    for extra, words in [
+        ("[train_gs]\niteratons = 3\n", "unknown key 'train_gs.iteratons'"),
+        ("[train_gs]\niterations = -5\n", "'train_gs.iterations' >= 1"),
+    ]:
+        toml.write_text('[building]\nkind = "real"\ndescription = "test"\n' + extra)
+        out = _doit(["building=faults"], env, layout.data_root, check=False)
+        assert out.returncode == 2, out.stdout + out.stderr
+        assert "Traceback" not in out.stderr and words in out.stderr and "faults.toml" in out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_a_write_that_fails_is_one_line(layout, capsys, monkeypatch):
+    """A full disk: the stage names the file and the free space, writes no manifest, exits 2."""
+    make_raw(layout)
+
+    def run(layout, params):
+        raise OSError(errno.ENOSPC, "No space left on device", str(layout.import_scene))
+
+    stage = types.SimpleNamespace(**{k: getattr(imp, k) for k in ("NAME", "DOC", "Params", "inputs")})
+    stage.run = run
+    monkeypatch.setattr("stages._runner.load_params", lambda stage, building: PARAMS)
+    code = main(stage, ["--building", layout.building, "--data-root", str(layout.data_root)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "scene.json: No space left on device" in err and "MiB free" in err
+    assert not layout.manifest("import_photogrammetry").exists()
+
+
+def test_metrics_that_cannot_be_computed_are_null_with_a_reason(layout, tmp_path):
+    f = layout.root / "01_import" / "x.txt"
+    f.parent.mkdir(parents=True)
+    f.write_text("x")
+    m = build_manifest("import_photogrammetry", layout, {}, [], [f],
+                       {"psnr": math.nan, "n": 3, "per_view": [{"psnr": math.inf}, {"psnr": 20.0}]},
+                       {}, 1.0, 1.0)  # fmt: skip
+    assert m["metrics"] == {"psnr": None, "n": 3, "per_view": [{"psnr": None}, {"psnr": 20.0}]}
+    assert set(m["undefined_metrics"]) == {"psnr", "per_view[0].psnr"}
+    assert m["output_stats"]["01_import/x.txt"]["size"] == 1
+
+
+def test_stage_report_outputs_outside_the_building_are_refused(layout):
+    """A stage's output must lie in the building (a programming error, caught before any manifest)."""
+    make_raw(layout)
+    stage = types.SimpleNamespace(**{k: getattr(imp, k) for k in ("NAME", "DOC", "Params", "inputs")})
+    stage.run = lambda layout, params: StageReport([layout.data_root / "elsewhere.txt"])
+    with pytest.raises(ValueError):
+        execute(stage, layout, PARAMS)
+    assert not layout.manifest("import_photogrammetry").exists()
+
+
+def test_an_unreadable_checkpoint_is_moved_aside_and_training_starts_afresh(tmp_path, caplog):
+    from facade_pipeline.training.trainer import load_checkpoint
+
+    ckpt = tmp_path / "checkpoint.pt"
+    ckpt.write_bytes(b"PK\x03\x04 truncated by a full disk")
+    assert load_checkpoint(ckpt, None, None, None, "cpu", "fingerprint") is None
+    assert not ckpt.exists() and (tmp_path / "checkpoint.pt.bad").exists()
+    assert "unreadable checkpoint" in caplog.text and "iteration 0" in caplog.text
