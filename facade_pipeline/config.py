@@ -3,17 +3,22 @@
 dataclass. An unknown key, a missing key or a wrong type is a ``ConfigError`` naming the key and the file.
 
 Merging: tables merge key by key; any other value (arrays of tables included) replaces the default whole.
+
+Every number is declared with its allowed range beside it, as one of the aliases below (``PosInt``,
+``Fraction``, ...) or ``Annotated[float, Range(...)]``; a value outside it is a ``ConfigError`` naming the
+key, the file and the range. TOML's ``nan`` is refused everywhere, ``inf`` where the range does not allow it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args, get_origin
+from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
 
 import tomllib
 
@@ -21,6 +26,54 @@ from facade_pipeline.errors import ConfigError
 
 CONFIG_DIR_ENV = "FACADE_CONFIG_DIR"
 T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Range:
+    """The allowed values of a number: ``low`` to ``high`` (None: unbounded), inclusive unless ``*_open``."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    infinite: bool = False
+    """``inf`` (beyond ``high``) is allowed: it switches a limit off"""
+
+    def __contains__(self, value: float) -> bool:
+        if math.isnan(value) or (math.isinf(value) and not (self.infinite and value > 0)):
+            return False
+        if math.isinf(value):
+            return True
+        if self.low is not None and (value < self.low or (self.low_open and value == self.low)):
+            return False
+        return not (self.high is not None and (value > self.high or (self.high_open and value == self.high)))
+
+    def __str__(self) -> str:
+        if self.low is None and self.high is None:
+            return "a finite number"
+        lo = "" if self.low is None else ("> " if self.low_open else ">= ") + f"{self.low:g}"
+        hi = "" if self.high is None else ("< " if self.high_open else "<= ") + f"{self.high:g}"
+        text = " and ".join(x for x in (lo, hi) if x)
+        return text + (" (or inf)" if self.infinite else "")
+
+
+# The ranges most parameters need. A number with another range is ``Annotated[float, Range(...)]``.
+PosInt = Annotated[int, Range(1)]
+"""a count or size that must be at least 1 (iterations, pixels, samples)"""
+Count = Annotated[int, Range(0)]
+"""a count where 0 is meaningful (0 iterations between events: never)"""
+AnyInt = Annotated[int, Range()]
+"""an integer without bounds (a seed)"""
+Positive = Annotated[float, Range(0.0, low_open=True)]
+"""a length, scale, rate or tolerance that must be above 0"""
+NonNeg = Annotated[float, Range(0.0)]
+"""a weight, margin or threshold where 0 switches it off"""
+Fraction = Annotated[float, Range(0.0, 1.0)]
+"""a probability, ratio or share in [0, 1]"""
+Real = Annotated[float, Range()]
+"""a signed value (an offset, a log gain): any finite number"""
+Degrees = Annotated[float, Range(0.0, 180.0)]
+"""an angle between directions"""
 
 
 def config_dir() -> Path:
@@ -157,7 +210,7 @@ def _build(cls: type, table: Any, where: str, files: tuple[Path | None, ...]) ->
     file = _file_label(files)
     if not isinstance(table, dict):
         raise ConfigError(file, f"a table at '{where}'", type(table).__name__)
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for key in table:
         if key not in fields:
@@ -185,6 +238,13 @@ def _convert(tp: Any, value: Any, key: str, files: tuple[Path | None, ...]) -> A
     file = _file_label(files)
     if dataclasses.is_dataclass(tp):
         return _build(tp, value, key, files)
+    if origin is Annotated:
+        inner, *extras = get_args(tp)
+        out = _convert(inner, value, key, files)
+        for rule in extras:
+            if isinstance(rule, Range) and out not in rule:
+                raise ConfigError(file, f"'{key}' {rule}", repr(value))
+        return out
     if origin is Literal:
         if value not in get_args(tp):
             raise ConfigError(file, f"'{key}' one of {list(get_args(tp))}", repr(value))
@@ -211,7 +271,9 @@ def _convert(tp: Any, value: Any, key: str, files: tuple[Path | None, ...]) -> A
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(file, f"'{key}' a number", repr(value))
-        return float(value)
+        if math.isnan(value):
+            raise ConfigError(file, f"'{key}' a number", repr(value))
+        return float(value)  # inf: the key's Range says whether it may be
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(file, f"'{key}' an integer", repr(value))

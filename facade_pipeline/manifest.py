@@ -134,7 +134,8 @@ def damaged_outputs(
     """Outputs of ``stage``'s manifest that are missing or no longer what the stage wrote: a file whose
     size or modification time differs from the record is hashed (``full_hash``: every file is), and it
     counts if its hash differs. Files of the layout entries in ``editable`` (a mask a person may fix by
-    hand) are not checked. An unreadable manifest: the stage has not completed, nothing to report."""
+    hand) only count when they are missing. An unreadable manifest: the stage has not completed, nothing to
+    report."""
     try:
         m = read_manifest(layout, stage)
     except PipelineError:
@@ -143,9 +144,9 @@ def damaged_outputs(
     skip = [entry_regex(k) for k in editable]
     bad = []
     for rel, digest in m.outputs.items():
-        if any(r.match(rel) for r in skip):
-            continue
         path = layout.root / rel
+        if any(r.match(rel) for r in skip) and path.is_file():
+            continue
         try:
             now = _stat(path)
         except OSError:

@@ -6,7 +6,8 @@ took 4x as long as one, not 2x). Passive waiting gives idle cores back, and no p
 this process may run on (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's).
 
 The runtimes read these variables once, when their library is loaded, so they are set before anything imports
-torch, OpenCV, open3d or NumPy: ``python -m stages NAME`` does it first. A value the user set is kept.
+torch, OpenCV, open3d or NumPy: ``python -m stages NAME`` does it first. A value the user set is kept;
+``FACADE_THREAD_POLICY=off`` leaves the runtimes' own defaults (to measure what the policy changes).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ def usable_cores() -> int:
 
 def thread_policy(environ: dict[str, str] | os._Environ[str]) -> dict[str, str]:
     """The variables to add to ``environ`` (those it already has are left as the user set them)."""
+    if environ.get(POLICY_ENV) == "off":
+        return {}
     wanted = {"OMP_WAIT_POLICY": "PASSIVE", POLICY_ENV: "1"}
     n = str(usable_cores())
     wanted |= {var: n for var in COUNT_VARS}
@@ -35,7 +38,7 @@ def thread_policy(environ: dict[str, str] | os._Environ[str]) -> dict[str, str]:
 
 
 def policy_in_place() -> bool:
-    return os.environ.get(POLICY_ENV) == "1"
+    return os.environ.get(POLICY_ENV) in ("1", "off")
 
 
 def apply_thread_policy() -> None:

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import PosInt
+from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.bake import bake_view
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.exr import read_exr, write_exr
@@ -37,7 +39,7 @@ UPSTREAM: tuple[str, ...] = ("correct_mesh", "import_photogrammetry")
 
 @dataclass(frozen=True)
 class Params:
-    chunk_rays: int
+    chunk_rays: PosInt
     """Rays cast per batch; bounds memory (-)."""
 
 
@@ -113,6 +115,13 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
                 errs.append(truth[0])
                 ious[v.stem] = round(truth[1], 4)
                 ious_f.append(truth[2])
+    if views and n_valid == 0:
+        raise InputError(
+            layout.path("correct_mesh"),
+            "a mesh the training views see (their rays meet it)",
+            f"no ray of {len(views)} views meets it: check 05_correct_mesh/overlay.png and the import's "
+            "uav_views_seeing_mesh",
+        )
     metrics = {
         "n_views": len(views),
         "rays": n_rays,

@@ -14,17 +14,18 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
+from facade_pipeline.config import Degrees, Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import write_image
 from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.meshing.correct import LABEL_NAMES, correct_mesh, label_triangles, write_labels
+from facade_pipeline.meshing.correct import FRAME, LABEL_NAMES, correct_mesh, label_triangles, write_labels
 from facade_pipeline.meshing.metrics import surface_errors
 from facade_pipeline.meshing.overlay import scaled_camera, shaded_render, side_by_side, upscale_factor
 from facade_pipeline.panels import PanelSet
@@ -35,33 +36,35 @@ NAME = "correct_mesh"
 DOC = "replace the coarse mesh inside each panel's cuboid by the shrunk 3D panel, keeping the frames"
 UPSTREAM: tuple[str, ...] = ("regularize_corners", "import_photogrammetry")
 OVERLAY_MIN_WIDTH_PX = 480  # renders of small views are upscaled to at least this width
+Scale = Annotated[float, Range(0.0, 1.0, low_open=True)]
+"""a factor a panel is scaled by about its centre: 0 would leave nothing of it"""
 
 
 @dataclass(frozen=True)
 class Params:
-    shrink_factor: float
+    shrink_factor: Scale
     """Each panel is shrunk in its surface about its centre by this factor (0-1) before insertion."""
-    insert_factor: float
+    insert_factor: Scale
     """The panel put in the cuboid's place is the 3D panel scaled about its centre by this factor (0-1):
     1 puts the whole glass back, running on under the kept frames, so no gap is left around it."""
-    cuboid_half_depth_m: float
+    cuboid_half_depth_m: Positive
     """The coarse mesh within this distance (m) of a shrunk panel along its normal is removed."""
     removal: Literal["any_vertex", "centroid", "all_vertices"]
     """A coarse triangle is inside a cuboid when any vertex, its centroid, or all vertices are."""
-    max_facet_deg: float
+    max_facet_deg: Annotated[float, Range(0.0, 180.0, low_open=True)]
     """Panels on cylindrical parts are split into flat facets spanning at most this angle (deg)."""
-    panel_color: tuple[float, float, float]
+    panel_color: tuple[Fraction, Fraction, Fraction]
     """Vertex colour of the inserted glass (0-1)."""
-    frame_half_depth_m: float
+    frame_half_depth_m: NonNeg
     """Kept coarse triangles inside a part's facade outline and within this distance (m) of the glass
     surface are labelled frame (the rest: other)."""
-    metric_samples: int
+    metric_samples: PosInt
     """Points sampled on a mesh for the metrics against gt/ (synthetic buildings) (-)."""
-    metric_max_match_m: float
+    metric_max_match_m: Positive
     """Samples farther than this (m) from every true surface are left out of the metrics."""
-    target_normal_error_deg: float
+    target_normal_error_deg: Degrees
     """Target: mean normal error on glass (deg) of the corrected mesh."""
-    target_distance_fraction: float
+    target_distance_fraction: NonNeg
     """Target: mean surface distance on glass as a fraction of the median panel width (-)."""
 
 
@@ -118,6 +121,9 @@ def _overlay(layout: BuildingLayout, coarse: tuple, fixed: tuple, labels) -> Non
     write_image(layout.path("correct_mesh_overlay"), side_by_side(left, right))
 
 
+NO_PANELS = "no panels: no mesh correction (the coarse mesh is the facade)"
+
+
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     coarse = read_mesh(layout.import_coarse_mesh)
     panels = PanelSet.load(layout.path("regularize_panels"))
@@ -135,6 +141,10 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     labels = label_triangles(
         fixed.vertices, fixed.triangles, fixed.is_panel, panels, params.frame_half_depth_m
     )
+    if not panels.panels:
+        # nothing says where the facade is: the coarse mesh is taken for it, opaque, so that training has the
+        # pixels it covers (glass is then learnt only through reflectivity, without the panels' geometry)
+        labels[:] = FRAME
     colors = np.tile(np.asarray(params.panel_color), (len(fixed.vertices), 1))
     if coarse.has_vertex_colors():
         colors[: len(v)] = np.asarray(coarse.vertex_colors)
@@ -148,6 +158,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     _overlay(layout, (v, f), (fixed.vertices, fixed.triangles), labels)
     width = float(np.median([p.width_m for p in panels.panels])) if panels.panels else 0.0
     metrics = {
+        **({} if panels.panels else {"note": NO_PANELS}),
         "n_panels_inserted": len(panels.panels),
         "coarse_triangles_removed": fixed.n_removed,
         "panel_triangles": int(fixed.is_panel.sum()),

@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import Count, Fraction, PosInt, Positive
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.geometry_eval import (
     Truth,
@@ -67,7 +68,7 @@ from stages._runner import StageReport, main
 
 NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
-UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "import_photogrammetry")
+UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
 MAIN_VARIANT = "07_train"
 
 
@@ -84,15 +85,15 @@ class Params:
     """LPIPS figures to compute; the first is the one the tables show"""
     lpips_weights_dir: str
     """folder or file of the LPIPS weights; "" searches $FACADE_LPIPS_DIR, then ../shared/lpips"""
-    heatmap_max_error: float
+    heatmap_max_error: Positive
     """absolute error (0-1, mean over RGB) at the top of the heat-map colour ramp"""
-    report_views: int
+    report_views: Count
     """comparison images per variant embedded in the report"""
-    geometry_samples: int
+    geometry_samples: PosInt
     """points sampled by area on each mesh for the geometry metrics"""
-    geometry_max_match_m: float
+    geometry_max_match_m: Positive
     """samples farther than this (m) from both true glass and frames are left out"""
-    gaussian_min_opacity: float
+    gaussian_min_opacity: Fraction
     """Gaussians less opaque than this are left out of the geometry metrics"""
     align: AlignParams
     """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
@@ -317,16 +318,26 @@ def _report_images(layout: BuildingLayout, metrics: dict[str, Any], n: int) -> l
 def metrics_header(layout: BuildingLayout, params: Params, test_every: int) -> dict[str, Any]:
     """What ``metrics.json`` says before any variant: the building, the split rule, the LPIPS conventions
     and whether their weights were found, the heat-map scale; ``variants`` is filled in by ``run``."""
+    try:
+        note = read_manifest(layout, "correct_mesh").metrics.get("note")
+    except InputError:  # a model trained outside the DAG
+        note = None
     return {
         "building": layout.building,
         "test_every": test_every,
         "lpips": {"conventions": list(params.lpips_conventions), "status": lpips_status(params)},
         "heatmap_max_error": params.heatmap_max_error,
+        # what the reader must know before the figures (e.g. that no panels corrected the mesh)
+        "notes": [note] if note else [],
         "variants": {},
     }
 
 
+
 def run(layout: BuildingLayout, params: Params) -> StageReport:
+    # an earlier run's report must not pass for this one's while it runs, or after it is killed
+    for path in targets(layout, params):
+        path.unlink(missing_ok=True)
     scene = ImportedScene.load(layout)
     device = resolve_device(params.device)
     setting = LpipsSetting(params.lpips_conventions, params.lpips_weights_dir or None)

@@ -7,16 +7,18 @@ writes the normalised scene into ``01_import/``. Nothing under ``raw/`` is modif
 
 from __future__ import annotations
 
+import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from facade_pipeline.errors import InputError
+from facade_pipeline.config import Fraction, NonNeg, Positive, Range
+from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.geometry.frames import (
     AXES,
     estimate_up_from_cameras,
@@ -24,6 +26,7 @@ from facade_pipeline.geometry.frames import (
     local_from_model,
     transform_points,
 )
+from facade_pipeline.geometry.scene_checks import SceneCheck, check_scene, units_hint
 from facade_pipeline.io import colmap
 from facade_pipeline.io.images import image_size, read_image, write_image
 from facade_pipeline.io.meshes import make_points, read_mesh, read_points, write_mesh, write_points
@@ -31,6 +34,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.scene import ImportedScene, Role, View
 from stages._runner import StageReport, main
 
+log = logging.getLogger(__name__)
 NAME = "import_photogrammetry"
 DOC = "import the COLMAP model, images, coarse mesh and points into a local z-up frame, undistorted"
 UPSTREAM: tuple[str, ...] = ()
@@ -40,17 +44,29 @@ UPSTREAM: tuple[str, ...] = ()
 class Params:
     up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
     """World up in the raw model; ``auto`` uses z for georeferenced models, else the camera orientations."""
-    georef_threshold_m: float
+    georef_threshold_m: Positive
     """A model with a coordinate beyond this (m) is georeferenced (UTM: z up, far from the origin)."""
     recenter: Literal["auto", "always", "never"]
     """Move to a local origin: ``auto`` for georeferenced models only."""
-    origin_rounding_m: float
+    origin_rounding_m: NonNeg
     """The local origin is rounded to a multiple of this (m)."""
-    auto_up_snap_deg: float
+    auto_up_snap_deg: Annotated[float, Range(0.0, 90.0)]
     """An estimated up within this angle (deg) of a model axis is snapped to it."""
-    undistort_blank_pixels: float
-    undistort_min_scale: float
-    undistort_max_scale: float
+    undistort_blank_pixels: Fraction
+    undistort_min_scale: Positive
+    undistort_max_scale: Positive
+    max_size_ratio: Annotated[float, Range(1.0)]
+    """The coarse mesh's size may differ from the camera layout's by at most this factor (a unit error)."""
+    min_views_seeing_mesh: Fraction
+    """At least this share of the UAV views must have rays that meet the coarse mesh (0: no check)."""
+
+    def __post_init__(self) -> None:
+        if self.undistort_min_scale > self.undistort_max_scale:
+            raise ConfigError(
+                None,
+                "'import_photogrammetry.undistort_min_scale' <= undistort_max_scale",
+                f"{self.undistort_min_scale} > {self.undistort_max_scale}",
+            )
 
 
 @dataclass(frozen=True)
@@ -85,6 +101,18 @@ def _coarse_mesh_path(layout: BuildingLayout) -> Path:
     return found[0]
 
 
+def _checked_name(name: str, src: _Source) -> str:
+    """An image name of a COLMAP model, checked to stay inside the model's image folder."""
+    p = PurePosixPath(name)
+    if not name or p.is_absolute() or ".." in p.parts or "\\" in name:
+        raise InputError(
+            src.model_dir,
+            f"image names relative to {src.image_dir}, without '..' or a leading '/'",
+            f"{name!r}: rename the image in the model",
+        )
+    return name
+
+
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     """Every raw file the stage reads, after checking the models, images and sizes."""
     if not layout.raw_dir.is_dir():
@@ -93,10 +121,26 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     for src in _sources(layout):
         rec = colmap.read_reconstruction(src.model_dir)
         files += _model_files(src.model_dir)
+        stems: dict[str, str] = {}
         for im in colmap.registered_images(rec):
-            path = src.image_dir / im.name
+            path = src.image_dir / _checked_name(im.name, src)
+            stem = str(PurePosixPath(im.name).with_suffix(""))
+            if stem in stems:
+                raise InputError(
+                    src.image_dir,
+                    "one image per name without extension (outputs are named by it)",
+                    f"{stems[stem]} and {im.name}: rename one and its entry in {src.model_dir}",
+                )
+            stems[stem] = im.name
             cam = im.camera
             colmap.check_camera_supported(cam, src.model_dir)
+            pose = im.cam_from_world().matrix()
+            if not (np.isfinite(pose).all() and np.isfinite(cam.params).all()):
+                raise InputError(
+                    src.model_dir,
+                    f"a finite pose and camera for image {im.name}",
+                    "NaN or Inf: re-export the model, or remove the image from it",
+                )
             w, h = image_size(path)
             if (w, h) != (cam.width, cam.height):
                 raise InputError(
@@ -154,6 +198,48 @@ def _import_views(
     return views, model_views
 
 
+def _check_scene(layout: BuildingLayout, params: Params, views: list[View], mesh) -> SceneCheck:
+    """The cameras and the coarse mesh in one frame and one unit, or one line saying which is off."""
+    mesh_path = _coarse_mesh_path(layout)
+    cams = {f"{v.role}:{v.stem}": v.camera for v in views}
+    uav = [k for k in cams if k.startswith("uav:")]
+    check = check_scene(cams, np.asarray(mesh.vertices), np.asarray(mesh.triangles), uav)
+    ratio, limit = check.size_ratio, params.max_size_ratio
+    units_off = not 1 / limit <= ratio <= limit
+    share = check.share_seeing(uav)
+    if share < params.min_views_seeing_mesh:
+        raise InputError(
+            mesh_path,
+            f"a coarse mesh the UAV cameras see (rays of at least {params.min_views_seeing_mesh:.0%} of the "
+            "views meet it: import_photogrammetry.min_views_seeing_mesh)",
+            f"{share:.0%} of {len(uav)} views: is it in the world frame of "
+            f"{layout.relative(layout.raw_sparse_dir)} (same origin, axes and scale)?"
+            + (f" And {units_hint(ratio)}" if units_off else ""),
+        )
+    if units_off:
+        raise InputError(
+            mesh_path,
+            f"a coarse mesh in the units of {layout.relative(layout.raw_sparse_dir)} (its size within "
+            f"{limit:g}x of the camera layout's: import_photogrammetry.max_size_ratio)",
+            units_hint(ratio),
+        )
+    frontal = [k for k in cams if k.startswith("frontal:")]
+    blind = [k.split(":", 1)[1] for k in frontal if check.seeing[k] == 0]
+    if frontal and len(blind) == len(frontal):
+        raise InputError(
+            layout.raw_frontal_sparse_dir,
+            "frontal views in the world frame of the UAV model (their rays meet the coarse mesh)",
+            f"none of {len(frontal)} frontal views sees the coarse mesh: register the frontal images "
+            "together with the UAV images (one COLMAP run) or align the two models",
+        )
+    if blind:
+        log.warning(
+            "%d of %d frontal views do not see the coarse mesh (%s): they will be skipped; check their poses",
+            len(blind), len(frontal), ", ".join(blind[:5]) + (" ..." if len(blind) > 5 else ""),
+        )  # fmt: skip
+    return check
+
+
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     sources = _sources(layout)
     recs = [colmap.read_reconstruction(s.model_dir) for s in sources]
@@ -178,6 +264,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     outputs += [layout.root / v.image for v in views]
 
     mesh.vertices = type(mesh.vertices)(transform_points(T, np.asarray(mesh.vertices)))
+    check = _check_scene(layout, params, views, mesh)
     mesh.compute_vertex_normals()
     write_mesh(layout.import_coarse_mesh, mesh)
     if layout.raw_coarse_points.is_file():
@@ -209,6 +296,11 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "coarse_mesh_triangles": len(mesh.triangles),
             "coarse_points": len(pcd.points),
             "points_source": points_source,
+            "mesh_size_ratio": round(check.size_ratio, 3),
+            "uav_views_seeing_mesh": check.share_seeing([f"uav:{v.stem}" for v in views if v.role == "uav"]),
+            "frontal_views_seeing_mesh": check.share_seeing(
+                [f"frontal:{v.stem}" for v in views if v.role == "frontal"]
+            ),
         },
     )
 

@@ -18,12 +18,13 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import Positive, Range
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.cylinder import (
@@ -31,6 +32,7 @@ from facade_pipeline.geometry.cylinder import (
     SurfaceFitError,
     SurfaceFitParams,
     fit_surface,
+    implausible,
 )
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.geometry.rectification import (
@@ -59,9 +61,9 @@ class Params(RectifyParams):
     """``auto`` fits a plane or a cylinder per view; ``planar`` declares the facade flat: planes only."""
     fit: SurfaceFitParams
     """The robust surface fit (``[rectify.fit]``)."""
-    overlay_scale: float
+    overlay_scale: Positive
     """The overlay is drawn at this many times the view's size (-)."""
-    occlusion_margin_m: float
+    occlusion_margin_m: Annotated[float, Range(0.0, infinite=True)]
     """A coarse point whose line of sight meets the coarse mesh more than this (m) before it is hidden and
     left out of the fit (the ground and surroundings behind the facade); inf: every point is kept. Scales
     with the facade: about a third of a panel's width."""
@@ -82,8 +84,12 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
     return []  # per-view outputs are only known once the import ran; the manifest lists them
 
 
-def view_points(points: np.ndarray, camera: PinholeCamera, hidden_by: MeshRaycaster | None = None,
-                margin_m: float = np.inf) -> np.ndarray:
+def view_points(
+    points: np.ndarray,
+    camera: PinholeCamera,
+    hidden_by: MeshRaycaster | None = None,
+    margin_m: float = np.inf,
+) -> np.ndarray:
     """The points [N, 3] that project inside the image in front of the camera (Eq. 6). With ``hidden_by``,
     less those it hides: the line of sight meets the mesh more than ``margin_m`` before the point. A dense
     cloud holds the ground all around the facade; seen through the facade, it outnumbers the facade's own
@@ -102,12 +108,24 @@ def view_points(points: np.ndarray, camera: PinholeCamera, hidden_by: MeshRaycas
     return p[~(t < dist - margin_m)]
 
 
-def _fit(points: np.ndarray, view: View, params: Params, source: Path,
-         mesh: MeshRaycaster) -> tuple[SurfaceFit | None, str]:
+def _fit(
+    points: np.ndarray, view: View, params: Params, source: Path, mesh: MeshRaycaster
+) -> tuple[SurfaceFit | None, str]:
     try:
         seen = view_points(points, view.camera, mesh, params.occlusion_margin_m)
-        fit = fit_surface(seen, view.camera.center, params.fit, source, -view.camera.forward,
-                          curved=params.surface == "auto")
+        fit = fit_surface(
+            seen,
+            view.camera.center,
+            params.fit,
+            source,
+            -view.camera.forward,
+            curved=params.surface == "auto",
+        )
+        cam = view.camera
+        depth = abs(float((fit.surface.origin - cam.center) @ cam.forward))
+        why = implausible(fit, depth * cam.width / cam.K[0, 0], params.fit)
+        if why is not None:
+            return None, f"no surface: implausible fit, {why}"
         return fit, "fitted"
     except SurfaceFitError as e:
         return None, f"no surface: {e}"
@@ -122,20 +140,23 @@ def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, 
     k = size[1] / rect.height  # the rectified image drawn at the original's height
     right = cv2.resize(rectified, (max(1, round(rect.width * k)), size[1]), interpolation=cv2.INTER_AREA)
     for frac in np.linspace(0.1, 0.9, 5):
-        for line in (np.stack([np.full(50, frac * rect.width), np.linspace(0, rect.height, 50)], 1),
-                     np.stack([np.linspace(0, rect.width, 50), np.full(50, frac * rect.height)], 1)):
+        for line in (
+            np.stack([np.full(50, frac * rect.width), np.linspace(0, rect.height, 50)], 1),
+            np.stack([np.linspace(0, rect.width, 50), np.full(50, frac * rect.height)], 1),
+        ):
             cv2.polylines(right, [np.int32(line * k)], False, (255, 255, 0), 1)
             back = rect.to_original(line)
             back = back[np.isfinite(back).all(axis=1)]
             cv2.polylines(left, [np.int32(back * scale)], False, (255, 255, 0), 1)
     out = np.zeros((size[1], left.shape[1] + right.shape[1] + 4, 3), np.uint8)
     out[:, : left.shape[1]] = left
-    out[:, left.shape[1] + 4:] = right
+    out[:, left.shape[1] + 4 :] = right
     return out
 
 
-def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: Params,
-                mesh: MeshRaycaster) -> tuple[list[Path], dict]:
+def rectify_one(
+    layout: BuildingLayout, view: View, points: np.ndarray, params: Params, mesh: MeshRaycaster
+) -> tuple[list[Path], dict]:
     """Fit, rectify and write one view (``mesh``: the coarse mesh, which hides points and gives the scale
     of a view without a surface); returns its outputs and its metrics."""
     t0 = time.perf_counter()
@@ -143,9 +164,13 @@ def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: 
     cam = view.camera
     if fit is None:
         scale = mesh_scale_m(cam, lambda o, d: mesh.cast(o, d).t)
-        rect = (ViewRectification.unrectified(cam, scale, status) if np.isfinite(scale) else
-                ViewRectification.unrectified(cam, scale, f"{status}; the coarse mesh is not in the view",
-                                              "skipped"))
+        rect = (
+            ViewRectification.unrectified(cam, scale, status)
+            if np.isfinite(scale)
+            else ViewRectification.unrectified(
+                cam, scale, f"{status}; the coarse mesh is not in the view", "skipped"
+            )
+        )
     else:
         rect = rectify_view(cam, fit.surface, params)
     if rect.kind == "skipped":
@@ -160,12 +185,17 @@ def rectify_one(layout: BuildingLayout, view: View, points: np.ndarray, params: 
         write_image(outs[2], rectified)
         write_image(outs[3], _overlay(image, rectified, rect, params.overlay_scale))
     poly = rect.polynomial
-    metrics = {"kind": rect.kind, "fit": status, "reason": rect.reason,
-               "radius_m": None if fit is None else _finite(fit.surface.radius_m),
-               "fit_rms_m": None if fit is None else fit.rms_m,
-               "metres_per_px": _finite(rect.metres_per_px), "size_px": [rect.width, rect.height],
-               "polynomial_max_px": None if poly is None else max(poly[0].max_px, poly[1].max_px),
-               "seconds": round(time.perf_counter() - t0, 3)}
+    metrics = {
+        "kind": rect.kind,
+        "fit": status,
+        "reason": rect.reason,
+        "radius_m": None if fit is None else _finite(fit.surface.radius_m),
+        "fit_rms_m": None if fit is None else fit.rms_m,
+        "metres_per_px": _finite(rect.metres_per_px),
+        "size_px": [rect.width, rect.height],
+        "polynomial_max_px": None if poly is None else max(poly[0].max_px, poly[1].max_px),
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
     return outs, metrics
 
 
@@ -185,16 +215,20 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
         outs, per_view[view.stem] = rectify_one(layout, view, points, params, mesh)
         outputs += outs
     kinds = [m["kind"] for m in per_view.values()]
-    return StageReport(outputs, {
-        "n_views": len(views),
-        **{f"n_{k}": kinds.count(k) for k in ("plane", "cylinder", "unrectified", "skipped")},
-        "views_unrectified": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "unrectified"},
-        "views_skipped": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "skipped"},
-        "max_polynomial_residual_px": max((m["polynomial_max_px"] or 0.0 for m in per_view.values()),
-                                          default=0.0),
-        "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
-        "views": per_view,
-    })
+    return StageReport(
+        outputs,
+        {
+            "n_views": len(views),
+            **{f"n_{k}": kinds.count(k) for k in ("plane", "cylinder", "unrectified", "skipped")},
+            "views_unrectified": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "unrectified"},
+            "views_skipped": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "skipped"},
+            "max_polynomial_residual_px": max(
+                (m["polynomial_max_px"] or 0.0 for m in per_view.values()), default=0.0
+            ),
+            "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
+            "views": per_view,
+        },
+    )
 
 
 if __name__ == "__main__":

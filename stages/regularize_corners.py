@@ -92,6 +92,13 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
         found, stats = reconcile_with_mask(
             vc.quads if vc.facade_found else (), mask, params.mask_min_region_px, params.mask_refit_iou
         )
+        if stats["merged"]:
+            raise InputError(
+                mpath,
+                "one mask region per panel, the frame bars between panels black (a panel mask)",
+                f"{stats['merged']} region(s) spanning several panels and much more than them (frames "
+                "painted over): paint the bars between panels black, or delete the file to have it made anew",
+            )
         for k in counts:
             counts[k] += stats[k]
         for q in found:
@@ -133,11 +140,20 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     quads, complete, view, counts = _observations(layout, scene, params)
     cameras = [v.camera for v in scene.frontal_views]
     panels, metrics = build_panel_set(quads, complete, view, cameras, rc, points, params)
+    if cameras and not panels.panels and params.require_panels:
+        raise InputError(
+            layout.stage_dir("segment_panels"),
+            f"glass panels in the {len(cameras)} frontal views",
+            f"none ({len(quads)} quads segmented: {_why_none(layout, scene)}): check the frontal views' "
+            "poses and [segment_panels.grid] sizes (metres on the facade), paint the masks by hand, or set "
+            "[regularize_corners] require_panels = false to go on without mesh correction",
+        )
     out = layout.path("regularize_panels")
     panels.save(out)
     overlays = _overlays(layout, scene, quads, view, panels)
     metrics = {
         "n_frontal_views": len(cameras),
+        **({} if panels.panels else {"note": _no_panels_note(len(cameras))}),
         "coarse_triangles_degenerate": rc.n_dropped,
         **{f"mask_panels_{k}": n for k, n in counts.items()},
         **metrics,
@@ -148,6 +164,25 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
 
 def targets(layout: BuildingLayout, params: Params) -> list[Path]:
     return [layout.path("regularize_panels")]
+
+
+def _no_panels_note(n_frontal: int) -> str:
+    if n_frontal == 0:
+        return "no frontal views: no panels, no mesh correction"
+    return "no panels found in the frontal views (require_panels = false): no mesh correction"
+
+
+def _why_none(layout: BuildingLayout, scene: ImportedScene) -> str:
+    """What segment_panels said about the views where it found no facade (its manifest), in a few words."""
+    try:
+        reasons = read_manifest(layout, "segment_panels").metrics.get("views_without_facade") or {}
+    except InputError:
+        reasons = {}
+    if not reasons:
+        return "no view's quads could be placed on the coarse mesh"
+    first = "; ".join(f"{stem}: {why}" for stem, why in list(reasons.items())[:2])
+    more = f" and {len(reasons) - 2} more" if len(reasons) > 2 else ""
+    return f"{len(reasons)} of {len(scene.frontal_views)} views without a facade ({first}{more})"
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import Positive
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.geometry.rectification import ViewRectification, facade_support, valid_region
@@ -40,11 +41,13 @@ from stages._runner import StageReport, main
 NAME = "segment_panels"
 DOC = "find the glass panels of each frontal view (MAP panel grid): corners, panel mask, overlay"
 UPSTREAM: tuple[str, ...] = ("rectify", "import_photogrammetry")
+#: outputs a person may fix by hand (the README's route for a missed panel): an edit is not damage
+EDITABLE: tuple[str, ...] = ("segment_mask",)
 
 
 @dataclass(frozen=True)
 class Params(SegmentParams):
-    overlay_scale: float
+    overlay_scale: Positive
     """The overlay is drawn this many times the view's size (-)."""
 
 
@@ -57,8 +60,11 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     for v in scene.frontal_views:
         mapping = layout.path("rectify_mapping", stem=v.stem)
         image = layout.path("rectify_image", stem=v.stem)
-        need = [mapping] + ([image] if layout.relative(image) in written else []) + [
-            layout.import_frontal_image(v.stem)]
+        need = (
+            [mapping]
+            + ([image] if layout.relative(image) in written else [])
+            + [layout.import_frontal_image(v.stem)]
+        )
         for f in need:
             if f.parent.parent.name == "02_rectify" and layout.relative(f) not in written:
                 raise UpstreamMissingError(
@@ -112,8 +118,16 @@ def _overlay(image: np.ndarray, panels: list[Panel], rect: ViewRectification, sc
         colour = (0, 255, 0) if p.complete else (255, 160, 0)
         cv2.polylines(out, [np.int32(np.rint(outline * scale))], True, colour, thick, cv2.LINE_AA)
         centre = outline.mean(axis=0) * scale
-        cv2.putText(out, f"{p.row},{p.col}", (int(centre[0]) - 8, int(centre[1]) + 4),
-                    cv2.FONT_HERSHEY_PLAIN, 0.8 * thick, colour, thick, cv2.LINE_AA)
+        cv2.putText(
+            out,
+            f"{p.row},{p.col}",
+            (int(centre[0]) - 8, int(centre[1]) + 4),
+            cv2.FONT_HERSHEY_PLAIN,
+            0.8 * thick,
+            colour,
+            thick,
+            cv2.LINE_AA,
+        )
     return out
 
 
@@ -129,8 +143,9 @@ def parallax_centre(rect: ViewRectification, view: View) -> np.ndarray:
     return np.array([(s[0] - rect.s0_m) / m, (rect.h0_m - h[0]) / m])
 
 
-def segment_one(layout: BuildingLayout, view: View, params: Params,
-                mesh: MeshRaycaster) -> tuple[list[Path], dict]:
+def segment_one(
+    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster
+) -> tuple[list[Path], dict]:
     """Segment one view and write its three outputs (``mesh``: the coarse mesh, which tells where the
     facade surface is); returns them and the view's metrics."""
     t0 = time.perf_counter()

@@ -41,6 +41,8 @@ NAME = "synthesize"
 DOC = "Make a synthetic building: ray-traced glass facade images, COLMAP models, coarse mesh, truth"
 Params = SynthesizeParams
 UPSTREAM: tuple[str, ...] = ()
+#: raw/ is what a user brings, even when this stage made it: an image edited by hand is taken as given
+EDITABLE: tuple[str, ...] = ("raw_dir",)
 
 #: Files pycolmap 4 writes for a binary model.
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin")

@@ -116,6 +116,26 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
     labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
     init = InitGeometry(pts, colors, np.asarray(mesh.vertices), np.asarray(mesh.triangles), labels == GLASS)
     train_idx, test_idx = split_views(len(views), params.test_every)
+    if params.mask_by_facade:
+        # a view whose rays miss the facade has nothing to learn from (its loss is over no pixel) nor to be
+        # measured on: left out of both lists and counted
+        empty = {i for i, v in enumerate(views) if not v.facade_mask.any()}
+        if len(empty) == len(views):
+            raise InputError(
+                layout.stage_dir("bake_normals") / "masks" / "facade",
+                "facade pixels in some training view (where the corrected mesh's facade is seen)",
+                f"none in {len(views)} views: check that the coarse mesh covers the facade, or set "
+                "[train_gs] mask_by_facade = false to train on whole images",
+            )
+        train_idx = tuple(i for i in train_idx if i not in empty)
+        test_idx = tuple(i for i in test_idx if i not in empty)
+        if not train_idx:
+            raise InputError(
+                layout.stage_dir("bake_normals") / "masks" / "facade",
+                "facade pixels in some training view",
+                f"only in held-out views ({len(views) - len(empty)} of {len(views)}): change "
+                "[train_gs] test_every",
+            )
     return TrainData(views, train_idx, test_idx, init)
 
 
@@ -181,6 +201,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "device": str(device),
             "n_train_views": len(data.train_idx),
             "n_test_views": len(data.test_idx),
+            "n_views_without_facade": len(data.views) - len(data.train_idx) - len(data.test_idx),
             "final_train_loss": last.get("loss"),
             "final_train_psnr": last.get("psnr"),
             "test_psnr": metrics["psnr"],

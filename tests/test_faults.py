@@ -234,3 +234,30 @@ def test_an_unreadable_checkpoint_is_moved_aside_and_training_starts_afresh(tmp_
     assert load_checkpoint(ckpt, None, None, None, "cpu", "fingerprint") is None
     assert not ckpt.exists() and (tmp_path / "checkpoint.pt.bad").exists()
     assert "unreadable checkpoint" in caplog.text and "iteration 0" in caplog.text
+
+
+def test_a_read_only_data_root_with_everything_up_to_date_exits_0(real):
+    """An archive or a colleague's share: doit says what is up to date and writes nothing."""
+    layout, env, _ = real
+    _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
+    before = {p: p.stat().st_mtime_ns for p in layout.root.rglob("*")}
+    root = str(layout.data_root)
+    cmd = [sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), "import_photogrammetry",
+           "building=faults", f"data_root={root}"]  # fmt: skip
+    if os.geteuid() == 0:
+        # root writes through permissions: make the data root a read-only mount, in a mount namespace
+        if subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode != 0:
+            pytest.skip("a read-only data root needs a mount namespace (unshare -m), not permitted here")
+        mount = f'mount --bind {root} {root} && mount -o remount,bind,ro {root} && exec "$@"'
+        cmd = ["unshare", "-m", "sh", "-c", mount, "sh", *cmd]
+    else:
+        for p in [layout.data_root, *layout.data_root.rglob("*")]:
+            p.chmod(p.stat().st_mode & ~0o222)
+    try:
+        out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    finally:
+        for p in [layout.data_root, *layout.data_root.rglob("*")]:
+            p.chmod(p.stat().st_mode | 0o200)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "-- import_photogrammetry" in out.stdout and "Traceback" not in out.stderr
+    assert {p: p.stat().st_mtime_ns for p in layout.root.rglob("*")} == before

@@ -223,6 +223,7 @@ def build_markdown(metrics: dict[str, Any], images: Sequence[tuple[str, str]] = 
         "(baked from the corrected mesh); glass and frames (facade minus glass) separately. SSIM: 11x11 "
         "Gaussian window, sigma 1.5, statistics renormalised over the mask. PSNR in dB, averaged over views.",
         "",
+        *[f"**Note: {n}.**\n" for n in metrics.get("notes", [])],
         "LPIPS conventions (the tables show the first):",
         *_lpips_lines(metrics),
         "",
@@ -416,6 +417,7 @@ def build_html(metrics: dict[str, Any], images: Sequence[tuple[str, Path]] = ())
         f"<h1>Evaluation: {e(metrics['building'])}</h1>",
         f"<p>Held-out views: every {metrics['test_every']}-th view. Metrics over the facade mask; glass and "
         "frames separately. SSIM: 11x11 Gaussian window, sigma 1.5. PSNR in dB, averaged over views.</p>",
+        *[f"<p><strong>Note: {e(n)}.</strong></p>" for n in metrics.get("notes", [])],
         "<ul>" + "".join(f"<li>{e(line[2:])}</li>" for line in _lpips_lines(metrics)) + "</ul>",
         "<h2>Table 1: variants side by side (held-out views)</h2>",
         _html_table(TABLE1_HEADER, table1_rows(metrics)),

@@ -24,12 +24,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import open3d as o3d
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from facade_pipeline.config import AnyInt, Count, NonNeg, PosInt, Positive, Range
 from facade_pipeline.errors import PipelineError
 
 
@@ -39,29 +41,61 @@ class SurfaceFitError(PipelineError):
 
 @dataclass(frozen=True)
 class SurfaceFitParams:
-    min_points: int
+    min_points: PosInt
     """Fewest points a fit accepts (-)."""
-    min_spread_m: float
+    min_spread_m: NonNeg
     """Points must spread at least this much (m, standard deviation) in two directions: else on one line."""
-    ransac_threshold_m: float
+    ransac_threshold_m: Positive
     """Distance (m) within which a point supports a RANSAC plane: generous, it only drops far outliers."""
-    ransac_iterations: int
+    ransac_iterations: PosInt
     """RANSAC plane hypotheses (-)."""
-    max_normal_angle_deg: float
+    max_normal_angle_deg: Annotated[float, Range(0.0, 90.0)]
     """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera
     (and, with ``normal_knn``, each fitted point's normal within it of the optical axis)."""
-    inlier_scale_m: float
+    inlier_scale_m: Positive
     """Scale (m) of the soft-L1 loss; points within 3x this of the surface are inliers (m)."""
-    normal_knn: int
+    normal_knn: Count
     """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
     viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out
     before the fit (the ground before a facade seen from a low camera); 0: every point is kept."""
-    min_sagitta_rms: float
+    min_sagitta_rms: NonNeg
     """A cylinder whose bulge over the view's points (its sagitta, |kappa| width^2 / 8) is less than this
     many times the fit's RMS residual is not told from a plane by the points: a plane is fitted instead
     (-)."""
-    seed: int
+    seed: AnyInt
     """Seed of the RANSAC sampler (-)."""
+    max_tilt_deg: Annotated[float, Range(0.0, 90.0)]
+    """A facade stands upright: a cylinder's axis within this angle (deg) of up, a plane's normal within it
+    of horizontal; a fit beyond is not the facade (a floor, a table) and the view gets no surface."""
+    min_radius_footprint: NonNeg
+    """A cylinder's radius must be at least this many times the view's footprint (the width it frames at
+    the surface's depth): a tighter one is a chair or a column in front of the camera (-)."""
+    max_rms_footprint: Positive
+    """The fit's RMS residual must be under this fraction of the footprint: a looser fit is of clutter (-)."""
+
+
+def implausible(fit: SurfaceFit, footprint_m: float, params: SurfaceFitParams,
+                up: np.ndarray = (0.0, 0.0, 1.0)) -> str | None:
+    """Why ``fit`` cannot be the facade a view frames, or None when it can: tilted from upright, tighter
+    than the view's footprint allows (``footprint_m``: the width the view frames at the surface's depth),
+    or too loose a fit for it."""
+    s, up = fit.surface, np.asarray(up, float)
+    if np.isfinite(s.radius_m):
+        tilt = np.degrees(np.arccos(min(1.0, abs(float(s.axis @ up)))))
+        what = "cylinder axis"
+    else:
+        tilt = np.degrees(np.arcsin(min(1.0, abs(float(s.normal @ up)))))
+        what = "plane normal"
+    if tilt > params.max_tilt_deg:
+        off = "from up" if what == "cylinder axis" else "from horizontal"
+        return f"{what} {tilt:.0f} deg {off} (max_tilt_deg {params.max_tilt_deg:g}): not an upright facade"
+    if np.isfinite(s.radius_m) and s.radius_m < params.min_radius_footprint * footprint_m:
+        return (f"radius {s.radius_m:.3g} m under {params.min_radius_footprint:g} x the view's footprint of "
+                f"{footprint_m:.3g} m (min_radius_footprint): an object, not a facade")
+    if fit.rms_m > params.max_rms_footprint * footprint_m:
+        return (f"RMS residual {fit.rms_m:.3g} m over {params.max_rms_footprint:g} x the view's footprint of "
+                f"{footprint_m:.3g} m (max_rms_footprint): clutter, not a surface")
+    return None
 
 
 @dataclass(frozen=True, eq=False)

@@ -32,11 +32,12 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
 
+from facade_pipeline.config import PosInt, Positive, Range
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.cylinder import Surface
@@ -49,21 +50,21 @@ WORLD_UP = np.array([0.0, 0.0, 1.0])
 
 @dataclass(frozen=True)
 class WarpParams:
-    samples_per_side: int
+    samples_per_side: Annotated[int, Range(2)]
     """Samples along each side of the view for the canvas extent, the scale and the polynomial fit (-)."""
-    degree: int
+    degree: PosInt
     """Total degree of the polynomial recorded for a cylinder, both directions (-); the paper uses 7."""
 
 
 @dataclass(frozen=True)
 class RectifyParams:
-    metres_per_px: float | Literal["auto"]
+    metres_per_px: Positive | Literal["auto"]
     """Scale of the rectified image (m per px on the facade); "auto": the view's own ground sample distance
     on the surface (the median over the image of the square root of a pixel's footprint area)."""
-    max_view_angle_deg: float
+    max_view_angle_deg: Annotated[float, Range(0.0, 90.0, high_open=True)]
     """A view whose surface normal (at the principal point's ray) is further than this (deg) from the
     optical axis sees the facade nearly edge-on: skipped."""
-    max_size_factor: float
+    max_size_factor: Positive
     """A rectified image of more than this many times the view's pixel count is refused: skipped (-)."""
     warp: WarpParams
     """Sampling of the view and the polynomial recorded for cylinders (``[rectify.warp]``)."""

@@ -19,10 +19,11 @@ Frames: local (01_import), metres. Surface coordinates (s, z, h): see ``facade_p
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
+from facade_pipeline.config import Count, Degrees, Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster, grazing
 from facade_pipeline.panels import PartSurface
@@ -35,43 +36,45 @@ STATUS_NAMES = {MISS: "missed", GRAZING: "grazing", GHOST: "ghost"}
 class RegularizeConfig:
     """Parameters of the 3D panel reconstruction (the ``[regularize_corners]`` config section)."""
 
-    grazing_max_deg: float
+    grazing_max_deg: Annotated[float, Range(0.0, 90.0)]
     """A corner ray hitting the mesh more than this angle (deg) from its normal is rejected."""
-    ghost_max_m: float
+    ghost_max_m: Positive
     """A hit farther than this (m) from the part's fitted surface is ghost geometry and rejected."""
-    part_link_factor: float
+    part_link_factor: Positive
     """Two panels belong to the same part when their centres are closer than this times their size (-)."""
-    part_max_angle_deg: float
+    part_max_angle_deg: Degrees
     """... and their normals differ by less than this (deg)."""
-    planar_max_sagitta_m: float
+    planar_max_sagitta_m: NonNeg
     """A part is cylindrical when its fitted circle bulges more than this (m) over the part's width."""
-    cluster_gap_factor: float
+    cluster_gap_factor: Positive
     """Panel centres farther apart than this times the panel size (-) start a new row or column."""
-    outlier_mad_factor: float
+    outlier_mad_factor: Positive
     """A corner farther from its row or column line than this many robust sigmas is an outlier (-)."""
-    outlier_floor_m: float
+    outlier_floor_m: NonNeg
     """... but never when it is within this distance (m) of the line."""
     depth_refinement: Literal["coarse_points_mode", "coarse_mesh_median", "none"]
     """Where the glass lies along the normal: densest coarse-point offset, median coarse-mesh offset, or
     the corner hits themselves (the paper's plain ray casting)."""
-    depth_window_m: float
+    depth_window_m: Positive
     """Evidence within this distance (m) of the corner surface is searched for the glass."""
-    depth_bandwidth_m: float
+    depth_bandwidth_m: Positive
     """Kernel width (m) of the coarse-point density along the normal."""
-    depth_min_points: int
+    depth_min_points: PosInt
     """Fewer coarse points than this in a part's panels falls back to the coarse mesh median (-)."""
-    footprint_shrink: float
+    footprint_shrink: Annotated[float, Range(0.0, 1.0, low_open=True)]
     """Evidence is taken inside panels shrunk about their centre by this factor (0-1), away from frames."""
-    border_margin_px: float
+    border_margin_px: NonNeg
     """Corners of a quad marked incomplete (cut by the image border) closer than this (px) to the border
     are not panel corners and are left out; its other corners count like any other."""
-    min_visible_fraction: float
+    min_visible_fraction: Fraction
     """A quad whose corners span less than this fraction of a panel's width and of its height (a speck
     in the mask, a panel's corner at the image's corner) is left out of the grid (0-1)."""
-    mask_min_region_px: int
+    mask_min_region_px: Count
     """Mask regions smaller than this (px) are ignored."""
-    mask_refit_iou: float
+    mask_refit_iou: Fraction
     """A panel whose quadrilateral overlaps its mask region with IoU below this (0-1) is refitted."""
+    require_panels: bool
+    """Frontal views that yield no panel at all stop the run (false: go on without mesh correction)."""
 
 
 @dataclass(frozen=True, eq=False)

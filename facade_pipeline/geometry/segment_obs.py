@@ -104,12 +104,18 @@ def fit_quad(region: np.ndarray) -> np.ndarray:
     return np.array([[xs[i], ys[i]] for i in picks], dtype=np.float64) + outer
 
 
+#: a mask region this many times larger than the panels it holds together has lost its frame bars
+MERGED_AREA_FACTOR = 1.5
+
+
 def reconcile_with_mask(
     quads: tuple[Quad, ...], mask: np.ndarray, min_region_px: int, refit_iou: float
 ) -> tuple[list[Quad], dict[str, int]]:
     """Make the view's panels agree with its authoritative ``mask`` [H, W] bool (8-connected regions of at
     least ``min_region_px`` px). Returns the panels and counts: dropped (no mask pixel), refit (IoU with its
-    region below ``refit_iou``) and added (region without panel)."""
+    region below ``refit_iou``), added (region without panel) and merged: regions over several panels and
+    much larger than they are together (frames painted over: the mask no longer says where panels are,
+    and keeping the panels as they were would ignore it, so the caller reports it)."""
     n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     sizes = np.bincount(labels.ravel(), minlength=n)
     owners: dict[int, list[int]] = {}
@@ -122,7 +128,13 @@ def reconcile_with_mask(
         if best[-1]:
             owners.setdefault(best[-1], []).append(i)
     out: list[Quad] = []
-    stats = {"dropped": 0, "refit": 0, "added": 0}
+    stats = {"dropped": 0, "refit": 0, "added": 0, "merged": 0}
+    for lab, idx in owners.items():
+        if len(idx) > 1:
+            union = np.zeros(mask.shape, dtype=bool)
+            for i in idx:
+                union |= quad_mask(quads[i].corners_px, mask.shape)
+            stats["merged"] += int(sizes[lab] > MERGED_AREA_FACTOR * union.sum())
     for i, q in enumerate(quads):
         lab = best[i]
         if lab == 0:

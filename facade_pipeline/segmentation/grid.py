@@ -43,40 +43,52 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facade_pipeline.config import Fraction, NonNeg, Positive
+from facade_pipeline.errors import ConfigError
+
 STEP_PX = 0.5  # lattice of bar-centre hypotheses (px)
 
 
 @dataclass(frozen=True)
 class GridParams:
-    min_pitch_m: float
+    min_pitch_m: Positive
     """Smallest panel pitch (m on the facade) considered."""
-    max_pitch_m: float
+    max_pitch_m: Positive
     """Largest panel pitch (m on the facade) considered."""
-    sigma_frac: float
+    sigma_frac: NonNeg
     """Std of a bar's deviation from the regular grid, as a fraction of the pitch (-)."""
-    sigma_min_px: float
+    sigma_min_px: Positive
     """... but at least this (px)."""
-    line_cost: float
+    line_cost: NonNeg
     """Prior cost of one grid line (nats): the evidence a bar must bring to be accepted."""
-    min_bar_m: float
+    min_bar_m: Positive
     """Narrowest frame bar (m on the facade; at least 2 px in the image segmented)."""
-    max_bar_m: float
+    max_bar_m: Positive
     """Widest frame bar (m on the facade)."""
-    lsd_weight: float
+    lsd_weight: NonNeg
     """Weight of the LSD line-support term against the gradient term (-)."""
-    lsd_scale: float
+    lsd_scale: Positive
     """Line support (fraction of the grid's length covered by LSD segments) that counts as strong (-)."""
-    edge_search_px: float
+    edge_search_px: Positive
     """A bar edge is searched this far (px) around its MAP position."""
-    weak_edge_floor: float
+    weak_edge_floor: Fraction
     """The weaker edge of a bar counts at least this fraction of the stronger (-)."""
-    outer_edge_floor: float
+    outer_edge_floor: Fraction
     """... and of an outer frame bar, one pitch beyond either end of the MAP run, at least this (-)."""
-    uniformity_scale: float
+    uniformity_scale: Positive
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
-    frame_colour_scale: float
+    frame_colour_scale: NonNeg
     """Colour distance (0-1 RGB) of a bar of one family from the median colour of the other family's bars
     that costs one nat: mullions and transoms are one material (0: not used)."""
+
+    def __post_init__(self) -> None:
+        for low, high in (("min_pitch_m", "max_pitch_m"), ("min_bar_m", "max_bar_m")):
+            if getattr(self, low) > getattr(self, high):
+                raise ConfigError(
+                    None,
+                    f"'segment_panels.grid.{low}' <= {high}",
+                    f"{getattr(self, low)} > {getattr(self, high)}",
+                )
 
 
 @dataclass(frozen=True)

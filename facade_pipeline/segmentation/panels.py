@@ -35,10 +35,12 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import cv2
 import numpy as np
 
+from facade_pipeline.config import Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.segmentation.edges import EdgeLine, bar_edges, frame_presence
 from facade_pipeline.segmentation.grid import (
     STEP_PX,
@@ -53,41 +55,44 @@ from facade_pipeline.segmentation.grid import (
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
 
+HalfQuadrant = Annotated[float, Range(0.0, 45.0)]
+"""an angle about a family's direction (deg): beyond 45 the vertical and horizontal families overlap"""
+
 
 @dataclass(frozen=True)
 class SegmentParams:
-    upsample: int
+    upsample: PosInt
     """LSD runs on the image upsampled by this factor (-)."""
-    min_segment_px: float
+    min_segment_px: NonNeg
     """Shortest LSD segment kept (px of the view)."""
-    orientation_search_deg: float
+    orientation_search_deg: HalfQuadrant
     """The dominant vertical and horizontal angles are searched this far (deg) from 90 and 0 deg."""
-    orientation_tolerance_deg: float
+    orientation_tolerance_deg: HalfQuadrant
     """A segment belongs to a family within this angle (deg) of its dominant angle."""
-    lsd_sigma_px: float
+    lsd_sigma_px: Positive
     """Smoothing of the LSD line-support profile (px)."""
     grid: GridParams
     """The MAP grid model (``[segment_panels.grid]``)."""
-    min_partial_m: float
+    min_partial_m: NonNeg
     """A border strip narrower than this (m on the facade) holds no partial panel."""
-    work_bar_px: float
+    work_bar_px: Positive
     """The image is segmented at a scale where the narrowest bar (``grid.min_bar_m``) spans at least this
     many px, downsampled to it when finer (the grid search's cost grows with the pixel count, its precision
     is a fraction of a pixel at any scale) (px)."""
-    continuation_ratio: float
+    continuation_ratio: Fraction
     """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
-    continuation_presence: float
+    continuation_presence: Fraction
     """... or whose frame colour is present over this fraction of the strip (median over the bars) (-)."""
-    surface_tolerance_m: float
+    surface_tolerance_m: Positive
     """The facade surface is there where the view's ray meets the coarse mesh within this distance (m) of
     the rectified surface: border strips beyond the facade's end hold no partial panel."""
-    frame_colour_tol: float
+    frame_colour_tol: NonNeg
     """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
-    min_edge_support: float
+    min_edge_support: Fraction
     """A panel side supported over less than this fraction of its length is occluded (-)."""
-    parallax_max_slope: float
+    parallax_max_slope: NonNeg
     """Largest frame parallax d / (Z - d) accepted (frames d proud of glass seen from Z); 0: no correction."""
-    parallax_min_bars: int
+    parallax_min_bars: PosInt
     """Fewer bars than this in a family leave its parallax uncorrected (-)."""
 
 

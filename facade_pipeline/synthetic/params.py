@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
+from facade_pipeline.config import AnyInt, Count, Fraction, NonNeg, PosInt, Positive, Range, Real
 from facade_pipeline.errors import ConfigError
 
 Effect = Literal[
@@ -25,7 +26,13 @@ Effect = Literal[
 ]
 ALL_EFFECTS: tuple[str, ...] = Effect.__args__  # type: ignore[attr-defined]
 
-RGB = tuple[float, float, float]
+RGB = tuple[Fraction, Fraction, Fraction]
+FieldOfView = Annotated[float, Range(1.0, 170.0)]
+"""a camera's horizontal field of view (deg)"""
+Elevation = Annotated[float, Range(-10.0, 90.0, high_open=True)]
+"""a view's elevation above the horizontal (deg): from slightly below it up to, not including, the zenith"""
+Oblique = Annotated[float, Range(0.0, 90.0, high_open=True)]
+"""the largest turn of a view from the facade's normal, either sign (deg): 90 would be edge-on"""
 
 
 @dataclass(frozen=True)
@@ -39,19 +46,19 @@ class FacadePart:
     """Unique name, used in panels.json."""
     kind: Literal["planar", "cylindrical"]
     """A plane, or a section of a vertical cylinder that is convex toward the cameras."""
-    origin_m: tuple[float, float, float]
+    origin_m: tuple[Real, Real, Real]
     """World position of the facade frame origin (m)."""
-    facing_deg: float
+    facing_deg: Real
     """Azimuth of the outward normal at the origin, counter-clockwise from world +x (deg)."""
-    width_m: float
+    width_m: Positive
     """Length along the glass surface, frames included (m); the arc length for a cylindrical part."""
-    height_m: float
+    height_m: Positive
     """Height, frames included (m)."""
-    rows: int
+    rows: PosInt
     """Panel rows (bottom to top)."""
-    cols: int
+    cols: PosInt
     """Panel columns (left to right seen from outside)."""
-    radius_m: float = 0.0
+    radius_m: NonNeg = 0.0
     """Radius of the glass cylinder (m); cylindrical parts only, 0 for planar ones."""
 
 
@@ -59,17 +66,17 @@ class FacadePart:
 class FacadeStyle:
     """``[synthesize.facade]``: frames and materials shared by every part."""
 
-    frame_width_m: float
+    frame_width_m: Positive
     """Width of mullions and transoms (m)."""
-    frame_depth_m: float
+    frame_depth_m: Positive
     """How far frames stand proud of the glass (m)."""
-    frame_back_m: float
+    frame_back_m: NonNeg
     """How far frames reach behind the glass plane (m)."""
-    body_depth_m: float
+    body_depth_m: Positive
     """Depth of the opaque building body behind the glass (m)."""
-    curve_segments_per_panel: int
+    curve_segments_per_panel: PosInt
     """Flat facets per panel column on cylindrical parts."""
-    glass_reflectivity: float
+    glass_reflectivity: Fraction
     """refl of Eq. 7 on glass (0-1)."""
     glass_f0: RGB
     """Schlick F0 of glass (Eq. 8) (0-1)."""
@@ -77,7 +84,7 @@ class FacadeStyle:
     """Transmission tint multiplying the interior colour (0-1)."""
     interior_color: RGB
     """Colour seen through the glass (diffuse D of Eq. 7) (0-1)."""
-    interior_variation: float
+    interior_variation: Fraction
     """Relative per-panel brightness variation of the interior (0-1)."""
     frame_color: RGB
     """Albedo of frames (0-1)."""
@@ -90,92 +97,98 @@ class EnvironmentParams:
     """``[synthesize.environment]``: the near field in front of the facade, in the site frame (origin at the
     mean of the parts' origins on the ground, y the mean outward normal, z up)."""
 
-    ground_half_size_m: float
+    ground_half_size_m: Positive
     """Half the side of the square ground (m)."""
-    ground_tile_m: float
+    ground_tile_m: Positive
     """Side of the ground mesh tiles (m)."""
     grass_color: RGB
     paving_color: RGB
     road_color: RGB
     marking_color: RGB
     court_color: RGB
-    road_distance_m: float
+    road_distance_m: Real
     """Site y of the road's centre line (m); the road runs parallel to the facade."""
-    road_width_m: float
-    plaza_depth_m: float
+    road_width_m: NonNeg
+    plaza_depth_m: NonNeg
     """Paved strip in front of the facade, site y in [0, this] (m)."""
-    court_center_m: tuple[float, float]
+    court_center_m: tuple[Real, Real]
     """Site (x, y) of the sports court centre (m)."""
-    court_size_m: tuple[float, float]
+    court_size_m: tuple[NonNeg, NonNeg]
     """Court length along site x and width along site y (m)."""
-    fountain_center_m: tuple[float, float]
+    fountain_center_m: tuple[Real, Real]
     """Site (x, y) of the fountain (m)."""
-    fountain_radius_m: float
-    fountain_height_m: float
+    fountain_radius_m: Positive
+    fountain_height_m: Positive
     """Height of the basin wall (m)."""
     stone_color: RGB
     water_color: RGB
-    building_count: int
-    building_distance_m: tuple[float, float]
+    building_count: Count
+    building_distance_m: tuple[Positive, Positive]
     """Site y range of the nearby buildings' front faces (m)."""
-    building_width_m: tuple[float, float]
-    building_depth_m: tuple[float, float]
-    building_height_m: tuple[float, float]
+    building_width_m: tuple[Positive, Positive]
+    building_depth_m: tuple[Positive, Positive]
+    building_height_m: tuple[Positive, Positive]
     building_colors: tuple[RGB, ...]
     """Wall colours the buildings pick from (0-1)."""
     window_color: RGB
-    tree_count: int
-    tree_distance_m: tuple[float, float]
+    tree_count: Count
+    tree_distance_m: tuple[Positive, Positive]
     """Site y range of tree trunks (m)."""
-    tree_height_m: tuple[float, float]
+    tree_height_m: tuple[Positive, Positive]
     trunk_color: RGB
     crown_color: RGB
     sky_zenith_color: RGB
     sky_horizon_color: RGB
-    sun_azimuth_deg: float
+    sun_azimuth_deg: Real
     """Counter-clockwise from world +x (deg)."""
-    sun_elevation_deg: float
-    sun_disc_deg: float
+    sun_elevation_deg: Annotated[float, Range(-90.0, 90.0)]
+    sun_disc_deg: Annotated[float, Range(0.0, 90.0)]
     """Angular radius of the sun disc in the sky (deg)."""
-    sun_color: RGB
+    sun_color: tuple[NonNeg, NonNeg, NonNeg]
     """Radiance of the sun disc (may exceed 1: it saturates)."""
-    sun_intensity: float
+    sun_intensity: NonNeg
     """Lambert term scale of direct sun light (-)."""
-    ambient: float
+    ambient: NonNeg
     """Ambient light level (-)."""
+
+    def __post_init__(self) -> None:
+        for key in ("building_width_m", "building_depth_m"):
+            low, high = getattr(self, key)
+            if low > high:
+                _fail(f"environment.{key}", "(low, high) with low <= high", (low, high))
 
 
 @dataclass(frozen=True)
 class CameraParams:
     """``[synthesize.cameras]``: UAV views (raw/images) and close-range frontal views (raw/frontal)."""
 
-    width_px: int
-    height_px: int
-    fov_deg: float
+    width_px: PosInt
+    height_px: PosInt
+    fov_deg: FieldOfView
     """Horizontal field of view of UAV views (deg)."""
-    uav_count: int
-    uav_distance_m: tuple[float, float]
+    uav_count: PosInt
+    uav_distance_m: tuple[Positive, Positive]
     """Range of camera-to-target distances (m)."""
-    uav_elevation_deg: tuple[float, float]
+    uav_elevation_deg: tuple[Elevation, Elevation]
     """Range of view elevations above the facade's horizontal (deg)."""
-    uav_azimuth_deg: float
+    uav_azimuth_deg: Annotated[float, Range(0.0, 90.0, high_open=True)]
     """Largest azimuth from the facade normal (deg); azimuths are spread over +- this (near 90: grazing)."""
-    uav_min_height_m: float
+    uav_min_height_m: NonNeg
     """Lowest camera height above the ground (m)."""
-    uav_max_tries: int
+    uav_max_tries: PosInt
     """Random draws per view before giving up on an unoccluded one."""
-    frontal_fov_deg: float
-    frontal_distance_m: float
+    frontal_fov_deg: FieldOfView
+    frontal_distance_m: Positive
     """Distance of frontal views from the glass along its local normal (m)."""
-    frontal_margin_px: float
+    frontal_margin_px: NonNeg
     """Every panel of a frontal view's block lies this far inside its image (px)."""
-    frontal_oblique_deg: tuple[float, float] = (0.0, 0.0)
+    frontal_oblique_deg: tuple[Oblique, Oblique] = (0.0, 0.0)
     """Largest yaw (about the up axis) and pitch (about the facade's horizontal) of frontal views from the
     local normal (deg): view k turns by a fixed low-discrepancy fraction of each, either sign, about the
     centre of its block (0, 0: fronto-parallel). Oblique views may cut the block's panels at the border."""
-    frontal_width_px: int = 0
+    frontal_width_px: Count = 0
     """Width of frontal views (px); 0: ``width_px`` (the UAV views')."""
-    frontal_height_px: int = 0
+    frontal_height_px: Count = 0
     """Height of frontal views (px); 0: ``height_px``."""
 
     @property
@@ -188,13 +201,13 @@ class CameraParams:
 class RenderParams:
     """``[synthesize.render]``."""
 
-    supersample: int
+    supersample: PosInt
     """Sub-pixel grid per pixel side (1: one ray through each pixel centre)."""
-    chunk_rays: int
+    chunk_rays: PosInt
     """Rays cast per batch: bounds memory by this, not by image or view count."""
-    ray_offset_m: float
+    ray_offset_m: Positive
     """Offset of secondary ray origins along the normal, against self-intersection (m)."""
-    frontal_supersample: int = 0
+    frontal_supersample: Count = 0
     """The same for frontal views; 0: ``supersample``. An odd grid has a ray through the pixel centre, as
     the truth maps do, so a panel edge crossing a pixel is on the same side of its centre in both."""
 
@@ -207,27 +220,27 @@ class RenderParams:
 class CoarseParams:
     """``[synthesize.coarse]``: the photogrammetry-like raw/coarse_mesh.ply and raw/coarse_points.ply."""
 
-    mesh_resolution_m: float
+    mesh_resolution_m: Positive
     """Grid step of the coarse mesh over each part (m)."""
-    glass_bump_m: float
+    glass_bump_m: NonNeg
     """Largest deviation of glass from the truth along the normal (m) (coarse_mesh_distortion)."""
-    glass_bump_scale_m: float
+    glass_bump_scale_m: Positive
     """Feature size of the glass bumps (m)."""
-    glass_hole_fraction: float
+    glass_hole_fraction: Fraction
     """Fraction of glass triangles removed as holes (0-1) (coarse_mesh_distortion)."""
-    frame_noise_m: float
+    frame_noise_m: NonNeg
     """Largest deviation of frames from the truth along the normal (m) (coarse_mesh_distortion)."""
-    points_per_m2: float
+    points_per_m2: Positive
     """Facade point density of the coarse point cloud (1/m^2)."""
-    glass_points_keep_fraction: float
+    glass_points_keep_fraction: Fraction
     """Fraction of glass points kept (0-1) (coarse_points_glass_artifacts)."""
-    ghost_points_per_part: int
+    ghost_points_per_part: Count
     """Mirrored environment points put behind each part's glass (coarse_points_glass_artifacts)."""
-    environment_points: int
+    environment_points: Count
     """Points sampled on the environment near the facade."""
-    environment_radius_m: float
+    environment_radius_m: Positive
     """Environment points lie within this distance of the site origin (m)."""
-    sparse_points: int
+    sparse_points: Count
     """Points of the coarse cloud copied into the raw COLMAP model."""
 
 
@@ -235,13 +248,13 @@ class CoarseParams:
 class NoiseParams:
     """``[synthesize.noise]``: amounts of the image and pose effects."""
 
-    pose_rotation_deg: float
+    pose_rotation_deg: NonNeg
     """Std of the raw pose rotation error (deg) (pose_noise)."""
-    pose_translation_m: float
+    pose_translation_m: NonNeg
     """Std of the raw camera centre error per axis (m) (pose_noise)."""
-    sensor_std: float
+    sensor_std: NonNeg
     """Std of Gaussian pixel noise on [0, 1] intensities (sensor_noise)."""
-    exposure_stops: float
+    exposure_stops: NonNeg
     """Per-view exposure gain 2^u with u uniform in +- this (exposure_change)."""
 
 
@@ -249,7 +262,7 @@ class NoiseParams:
 class SynthesizeParams:
     """``[synthesize]``: a synthetic building. Only the declared ``effects`` are simulated."""
 
-    seed: int
+    seed: AnyInt
     """Same seed, same parameters -> bit-identical files."""
     effects: tuple[Effect, ...]
     parts: tuple[FacadePart, ...]

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from facade_pipeline.config import Count, Positive
+
 #: Below this squared angle (rad^2) the rotation uses its Taylor series (exact to float64 rounding).
 _SMALL = 1e-8
 
@@ -82,13 +84,13 @@ class ViewCorrections(nn.Module):
 class AlignParams:
     """``[evaluate.align]``: how a measured view is aligned to the frozen model before it is measured."""
 
-    steps: int
+    steps: Count
     """Adam steps on the view's whole image (0: no alignment)"""
-    lr_rotation: float
+    lr_rotation: Positive
     """of the rotation correction (rad)"""
-    lr_translation: float
+    lr_translation: Positive
     """of the translation correction (m)"""
-    lr_exposure: float
+    lr_exposure: Positive
     """of the log gain per colour channel (-)"""
     exposure: bool
     """fit the exposure gain as well as the pose"""

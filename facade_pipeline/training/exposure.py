@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from facade_pipeline.config import Count, NonNeg, PosInt
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.training.data import TrainView
 from facade_pipeline.training.init import sample_mesh
@@ -44,15 +45,15 @@ _VALID = (0.02, 0.98)
 class ExposureParams:
     """``[train_gs.exposure]``: how the per-view gains are estimated before training."""
 
-    samples: int
+    samples: PosInt
     """points drawn on the corrected mesh's opaque triangles (-)"""
-    erode_px: int
+    erode_px: Count
     """facade and glass masks eroded by this before a point counts in a view (px)"""
-    occlusion_tolerance: float
+    occlusion_tolerance: NonNeg
     """a point is seen where the mesh's first hit along the ray is within this fraction of its distance (-)"""
-    min_samples: int
+    min_samples: Count
     """fewer usable samples than this in a view: its gain stays 1 (-)"""
-    iterations: int
+    iterations: PosInt
     """alternating-median rounds (-)"""
 
 

@@ -13,6 +13,7 @@ import dataclasses
 import io
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -185,7 +186,14 @@ def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | No
     )
     few = [data.views[i].stem for i in data.train_idx if est.samples[i] < p.exposure.min_samples]
     if few:
-        log.warning("exposure estimate: too few samples of the facade's opaque parts in %s; gain 1", few)
+        shown = ", ".join(few[:5]) + (f" and {len(few) - 5} more" if len(few) > 5 else "")
+        log.warning(
+            "exposure estimate: %d of %d training views have fewer than %d usable samples of the facade's "
+            "opaque parts (non-glass points of the corrected mesh inside their facade mask) (%s); their gain "
+            "stays 1. Expected where the mesh covers little of a view; if their exposure differs, lower "
+            "[train_gs.exposure] min_samples",
+            len(few), len(data.train_idx), p.exposure.min_samples, shown,
+        )  # fmt: skip
     return est
 
 
@@ -636,19 +644,29 @@ def load_checkpoint(
     fingerprint: str,
 ) -> Trainer | None:
     """The trainer saved at ``path``, or None when there is none or it belongs to other parameters or
-    inputs (its fingerprint differs) or an older format. A damaged file raises ``InputError``."""
-    from facade_pipeline.errors import InputError
-
+    inputs (its fingerprint differs) or an older format. A damaged file is moved aside to
+    ``<name>.bad`` (kept for a person to look at) and training starts afresh."""
     path = Path(path)
     if not path.is_file():
         return None
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(state, dict):
+            raise TypeError(f"a {type(state).__name__}, not a dict")
     except Exception as e:  # torch raises several types for truncated or foreign files
-        raise InputError(
-            path, "a train_gs checkpoint", f"an unreadable file ({type(e).__name__}: {e})"
-        ) from None
+        bad = path.with_name(path.name + ".bad")
+        os.replace(path, bad)
+        log.warning(
+            "%s: unreadable checkpoint (%s: %s), moved to %s; training starts from iteration 0",
+            path, type(e).__name__, str(e).splitlines()[0] if str(e) else "", bad.name,
+        )  # fmt: skip
+        return None
     if state.get("format") != CHECKPOINT_FORMAT or state.get("fingerprint") != fingerprint:
+        log.warning(
+            "%s: checkpoint of iteration %s was made with other parameters, inputs or code; "
+            "training starts from iteration 0",
+            path, state.get("iteration", "?"),
+        )  # fmt: skip
         return None
     device = torch.device(device)
     model = GaussianModel.from_state(state["model"], device)

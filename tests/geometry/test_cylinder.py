@@ -3,12 +3,20 @@ points on one line, non-vertical axis, ghost outliers)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from facade_pipeline.config import default_params
-from facade_pipeline.geometry.cylinder import Surface, SurfaceFitError, _stable_distance, fit_surface
+from facade_pipeline.geometry.cylinder import (
+    Surface,
+    SurfaceFitError,
+    _stable_distance,
+    fit_surface,
+    implausible,
+)
 from stages import rectify
 
 FIT = default_params("rectify", rectify.Params).fit
@@ -70,3 +78,27 @@ def test_stable_distance_matches_the_exact_formula_and_the_plane_limit():
     assert np.array_equal(_stable_distance(t, w, 0.0), w)
     s = Surface(np.zeros(3), np.array([0.0, 0, 1]), np.array([0.0, 1, 0]), 1 / 15.0)
     assert Surface.from_dict(s.to_dict()).radius_m == pytest.approx(15.0)
+
+
+def test_fits_that_cannot_be_a_facade_are_named():
+    """An upright facade passes; a cylinder lying down (axis 26 deg off up), one tight against the width the
+    view frames (a column or a chair before the camera) and a loose fit to clutter do not, with reasons."""
+    pts, _ = cylinder_points(12.0)
+    fit = fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT)
+    assert implausible(fit, 8.0, FIT) is None
+    pts, R = cylinder_points(12.0, rotvec=(np.radians(26.0), 0.0, 0.0))
+    fit = fit_surface(pts, R @ np.array([0.0, 10.0, 3.0]), FIT)
+    assert "cylinder axis 26 deg from up" in implausible(fit, 8.0, FIT)
+    pts, _ = cylinder_points(1.0, width=2.5, noise=0.002)  # 2.5 m of arc on a 1 m radius
+    fit = fit_surface(pts, np.array([0.0, 10.0, 1.0]), FIT)
+    assert fit.surface.radius_m == pytest.approx(1.0, rel=0.05)
+    assert implausible(fit, 1.5, FIT) is None  # a column framed closely is a plausible (narrow) facade
+    assert "an object, not a facade" in implausible(fit, 6.0, FIT)  # framed in a 6 m wide view
+    floor, _ = cylinder_points(1e9, rotvec=(np.pi / 2, 0.0, 0.0), noise=0.0)  # a horizontal plane
+    fit = fit_surface(floor, np.array([0.0, 3.0, 10.0]), FIT, curved=False)
+    assert "plane normal 90 deg from horizontal" in implausible(fit, 8.0, FIT)
+    rng = np.random.default_rng(3)
+    clutter = np.stack([rng.uniform(-3, 3, 500), rng.normal(0, 0.6, 500), rng.uniform(0, 6, 500)], 1)
+    fit = fit_surface(clutter, np.array([0.0, 10.0, 3.0]), dataclasses.replace(FIT, ransac_threshold_m=5.0,
+                      inlier_scale_m=1.0), curved=False)  # fmt: skip
+    assert "clutter" in implausible(fit, 6.0, FIT)

@@ -96,6 +96,18 @@ def cfg(**changes):
     return params_of("regularize_corners", **changes)
 
 
+def test_a_mask_with_its_frames_painted_over_is_reported_not_ignored():
+    """All white: one region over every panel, far larger than they are together."""
+    a = np.array([[5, 30], [25, 30], [25, 10], [5, 10]], float)
+    b = np.array([[40, 30], [60, 30], [60, 10], [40, 10]], float)
+    _, stats = reconcile_with_mask((Quad(a), Quad(b)), np.ones((60, 80), bool), 8, 0.6)
+    assert stats["merged"] == 1
+    # two panels whose mask regions touch (no frame between them in the mask) are not a merge
+    touching = np.zeros((60, 80), bool)
+    touching[10:30, 5:60] = True
+    assert reconcile_with_mask((Quad(a), Quad(b)), touching, 8, 0.6)[1]["merged"] == 0
+
+
 @pytest.mark.parametrize("kind", ["planar", "cylindrical"])
 def test_panels_recovered_with_rulings_and_glass_depth(kind):
     surf, corners, v, f = facade(kind)
@@ -159,7 +171,7 @@ def test_mask_drops_refits_and_adds_panels():
     b = np.array([[40, 30], [50, 30], [50, 20], [40, 20]], float)
     d = np.array([[65, 50], [75, 50], [75, 40], [65, 40]], float)  # no mask pixel: dropped
     out, stats = reconcile_with_mask((Quad(a), Quad(b), Quad(d)), mask, 8, 0.6)
-    assert stats == {"dropped": 1, "refit": 1, "added": 1}
+    assert stats == {"dropped": 1, "refit": 1, "added": 1, "merged": 0}
     assert np.allclose(out[0].corners_px, a)
     assert np.allclose(out[1].corners_px, [[40, 30], [60, 30], [60, 10], [40, 10]])
     assert np.allclose(out[2].corners_px, [[5, 55], [25, 55], [25, 40], [5, 40]])

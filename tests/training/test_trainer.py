@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from facade_pipeline.errors import InputError, PipelineError
+from facade_pipeline.errors import PipelineError
 from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.render import Camera, random_subset, render_view, splatting_rasterizer
 from facade_pipeline.training.trainer import (
@@ -448,9 +448,9 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     _states_equal(ref, resumed)
     assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "other") is None  # other parameters or inputs
     assert load_checkpoint(tmp_path / "none.pt", p, data64, RASTER, "cpu", "fp") is None
-    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(InputError, match="bad.pt"):
-        load_checkpoint(tmp_path / "bad.pt", p, data64, RASTER, "cpu", "fp")
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")  # moved aside, training starts afresh
+    assert load_checkpoint(tmp_path / "bad.pt", p, data64, RASTER, "cpu", "fp") is None
+    assert (tmp_path / "bad.pt.bad").is_file() and not (tmp_path / "bad.pt").exists()
 
 
 def test_training_improves_the_training_views(data64):

@@ -1,0 +1,156 @@
+"""Every number of every config section is declared with its allowed range; the shipped configs keep to
+them, and a value outside one (or a min above its max) is a ConfigError naming the key and the file."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal, get_args, get_origin
+
+import pytest
+
+from facade_pipeline.config import (
+    BuildingParams,
+    PosInt,
+    Range,
+    available_buildings,
+    config_dir,
+    load_building_config,
+)
+from facade_pipeline.errors import ConfigError
+from stages import PIPELINE, load_stage
+
+
+def _sections() -> list[tuple[str, type]]:
+    return [("building", BuildingParams)] + [(name, load_stage(name).Params) for name in PIPELINE]
+
+
+def unranged_numbers(tp: Any, key: str) -> list[str]:
+    """The keys under ``tp`` (a config dataclass or a field's type) whose int or float has no ``Range``:
+    through nested dataclasses, unions, tuples and Optional."""
+    if dataclasses.is_dataclass(tp):
+        hints = typing.get_type_hints(tp, include_extras=True)
+        return [k for f in dataclasses.fields(tp) for k in unranged_numbers(hints[f.name], f"{key}.{f.name}")]
+    origin = get_origin(tp)
+    if origin is Annotated:
+        inner, *extras = get_args(tp)
+        if inner in (int, float):
+            return [] if any(isinstance(e, Range) for e in extras) else [key]
+        return unranged_numbers(inner, key)
+    if origin is Literal:
+        return []
+    if origin is not None:  # a union, tuple[...], Optional
+        return [k for arg in get_args(tp) if arg is not Ellipsis for k in unranged_numbers(arg, key)]
+    if tp is int or tp is float:
+        return [key]
+    return []
+
+
+def test_every_number_of_every_section_has_a_range():
+    missing = [k for name, cls in _sections() for k in unranged_numbers(cls, name)]
+    assert not missing, f"numbers declared without a Range (use PosInt, Fraction, ...): {missing}"
+
+
+@dataclass(frozen=True)
+class _Inner:
+    ok: PosInt
+    size_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class _Outer:
+    mode: Literal["a", "b"]
+    scale: float | Literal["auto"]
+    parts: tuple[_Inner, ...]
+    count: int | None = None
+    flag: bool = False
+
+
+def test_the_walk_finds_numbers_without_a_range():
+    assert unranged_numbers(_Outer, "x") == ["x.scale", "x.parts.size_m", "x.parts.size_m", "x.count"]
+    assert unranged_numbers(_Inner, "y") == ["y.size_m", "y.size_m"]
+
+
+@pytest.mark.parametrize("building", available_buildings())
+def test_every_building_loads_every_section(building):
+    cfg = load_building_config(building)
+    for name, cls in _sections():
+        cfg.section(name, cls)
+
+
+@pytest.fixture
+def write_building(tmp_path):
+    """Writes ``configs/buildings/bad.toml`` beside a copy of default.toml; returns its path."""
+    d = tmp_path / "configs"
+    (d / "buildings").mkdir(parents=True)
+    shutil.copy(config_dir() / "default.toml", d / "default.toml")
+
+    def write(table: str, lines: str) -> Path:
+        p = d / "buildings" / "bad.toml"
+        p.write_text(f'[building]\nkind = "real"\ndescription = "x"\n\n[{table}]\n{lines}\n')
+        return p
+
+    return write
+
+
+BAD_VALUES = [
+    # (table, lines of the table, key the error names, a fragment of the message)
+    ("train_gs", "iterations = -5", "train_gs.iterations", ">= 1"),
+    ("train_gs", "patch_px = -32", "train_gs.patch_px", ">= 0"),
+    ("train_gs.densify", "max_gaussians = -1", "train_gs.densify.max_gaussians", ">= 1"),
+    ("train_gs", "checkpoint_every = -1", "train_gs.checkpoint_every", ">= 0"),
+    ("segment_panels", "upsample = 0", "segment_panels.upsample", ">= 1"),
+    ("rectify.warp", "degree = -1", "rectify.warp.degree", ">= 1"),
+    ("bake_normals", "chunk_rays = 0", "bake_normals.chunk_rays", ">= 1"),
+    ("synthesize.render", "chunk_rays = 0", "synthesize.render.chunk_rays", ">= 1"),
+    ("train_gs", "lowpass_sigma_px = -1.0", "train_gs.lowpass_sigma_px", "> 0"),
+    ("train_gs", "lowpass_sigma_px = 0.0", "train_gs.lowpass_sigma_px", "> 0"),
+    ("train_gs.densify", "prune_opacity = 1.5", "train_gs.densify.prune_opacity", "<= 1"),
+    ("synthesize.coarse", "glass_hole_fraction = 1.5", "synthesize.coarse.glass_hole_fraction", "<= 1"),
+    ("segment_panels.grid", "sigma_frac = nan", "segment_panels.grid.sigma_frac", "found nan"),
+    ("train_gs", "near_m = inf", "train_gs.near_m", "> 0, found inf"),
+    ("train_gs.lr", "position_init = -inf", "train_gs.lr.position_init", "found -inf"),
+    ("rectify", "occlusion_margin_m = -inf", "rectify.occlusion_margin_m", ">= 0 (or inf)"),
+    ("rectify", "max_view_angle_deg = 90.0", "rectify.max_view_angle_deg", "< 90"),
+    ("rectify", "metres_per_px = -0.01", "rectify.metres_per_px", "> 0"),
+    ("correct_mesh", "panel_color = [0.3, 1.5, 0.8]", "correct_mesh.panel_color[1]", "<= 1"),
+    ("train_gs", "sh_degree = 4", "train_gs.sh_degree", "<= 3"),
+    ("evaluate.align", "steps = -1", "evaluate.align.steps", ">= 0"),
+    # a min above its max
+    ("segment_panels.grid", "min_pitch_m = 7.0", "segment_panels.grid.min_pitch_m", "max_pitch_m"),
+    ("segment_panels.grid", "min_bar_m = 0.5", "segment_panels.grid.min_bar_m", "max_bar_m"),
+    ("train_gs.densify", "start_fraction = 0.6", "train_gs.densify.start_fraction", "end_fraction"),
+    ("import_photogrammetry", "undistort_min_scale = 3.0", "import_photogrammetry.undistort_min_scale",
+     "undistort_max_scale"),
+    ("synthesize.environment", "building_width_m = [28.0, 14.0]", "synthesize.environment.building_width_m",
+     "low <= high"),
+    ("synthesize.environment", "tree_height_m = [9.0, 5.0]", "synthesize.environment.tree_height_m",
+     "low <= high"),
+]
+
+
+@pytest.mark.parametrize(("table", "lines", "key", "fragment"), BAD_VALUES, ids=[c[1] for c in BAD_VALUES])
+def test_a_value_out_of_range_names_key_file_and_range(write_building, table, lines, key, fragment):
+    path = write_building(table, lines)
+    stage = table.split(".")[0]
+    cfg = load_building_config("bad", path.parents[1])
+    with pytest.raises(ConfigError) as e:
+        cfg.section(stage, load_stage(stage).Params)
+    message = str(e.value)
+    assert f"'{key}'" in message and str(path) in message and fragment in message, message
+    assert "\n" not in message
+
+
+def test_the_bounds_themselves_are_allowed(write_building):
+    """Closed ends are in range: a fraction of 0 and of 1, a count of 0; inf where a limit may be off."""
+    lines = "prune_opacity = 1.0\nopacity_reset_value = 0.0\nopacity_reset_interval = 0\nstart_fraction = 0.0"
+    path = write_building("train_gs.densify", lines)
+    cfg = load_building_config("bad", path.parents[1])
+    d = cfg.section("train_gs", load_stage("train_gs").Params).densify
+    assert (d.prune_opacity, d.opacity_reset_value, d.opacity_reset_interval) == (1.0, 0.0, 0)
+    path = write_building("rectify", "occlusion_margin_m = inf")
+    cfg = load_building_config("bad", path.parents[1])
+    assert cfg.section("rectify", load_stage("rectify").Params).occlusion_margin_m == float("inf")
