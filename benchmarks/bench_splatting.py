@@ -1,4 +1,4 @@
-"""Benchmark of the 2DGS renderer (issue 6): forward + backward time and peak memory on 2 CPU threads.
+"""Benchmark of the 2DGS renderer: forward + backward time and peak memory on 2 CPU threads.
 
 Scenes: splats on a facade-like plane (40 m x 30 m, normals within ~10 degrees of the facade normal, a few
 cm of relief, opacities 0.2-1, 8 feature channels) seen by a UAV-like camera 35 m away, 12 m up and yawed 25

@@ -1,6 +1,6 @@
 """Benchmark of the ``synthesize`` stage: wall time and peak memory for the shipped scenes.
 
-Targets (issue 3): synthetic64 within 10 s and demo within 2 minutes on 2 CPU cores; peak memory bounded
+Targets: synthetic64 within 10 s and demo within 2 minutes on 2 CPU cores; peak memory bounded
 by the image size, not by the number of views (checked by running demo with 15 and with 60 UAV views).
 
 Each case runs in a fresh process (so peak RSS is its own) against a temporary data root. The script prints

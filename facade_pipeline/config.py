@@ -14,13 +14,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import tomllib
 import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
-
-import tomllib
 
 from facade_pipeline.errors import ConfigError
 
@@ -196,6 +195,13 @@ def from_dict(cls: type[T], table: dict[str, Any], where: str = "", file: Path |
 def to_dict(params: Any) -> dict[str, Any]:
     """The plain-dict form of a params dataclass (tuples become lists), for manifests and doit."""
     return _plain(dataclasses.asdict(params))
+
+
+def result_dict(params: Any, run_only: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``to_dict(params)`` without the keys that only say how a run goes (where it runs, how often it
+    logs or saves): what a result depends on, so changing one of those neither reruns a stage nor drops
+    a checkpoint."""
+    return {k: v for k, v in to_dict(params).items() if k not in run_only}
 
 
 def _plain(x: Any) -> Any:

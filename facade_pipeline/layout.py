@@ -99,6 +99,8 @@ ENTRIES: dict[str, str] = {
     "eval_comparison": "08_evaluate/comparisons/{variant}/{split}/{stem}.png",
     "eval_report_md": "08_evaluate/report.md",
     "eval_report_html": "08_evaluate/report.html",
+    "eval_video": "08_evaluate/flythrough.mp4",
+    "eval_clip": "08_evaluate/flythrough.webp",
     # every stage folder ends with its manifest
     "stage_dir": "{stage_dir}",
     "stage_manifest": "{stage_dir}/manifest.json",

@@ -6,6 +6,7 @@
 - ``targets(layout, params)``: the outputs whose names are known before it runs;
 - ``run(layout, params) -> StageReport``: does the work, writing every output atomically;
 - optionally ``EDITABLE``: layout entries of its outputs that a person may edit (not taken for damage);
+- optionally ``RUN_ONLY``: parameters that change how it runs, not its result (a change reruns nothing);
 - a CLI: ``python -m stages <name> --building NAME`` (or ``python -m stages.<name>``).
 
 ``stages._runner.execute`` wraps ``run`` with the contract (manifest last, stale files removed) and is

@@ -16,6 +16,7 @@ import hashlib
 import json
 import sys
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -55,20 +56,34 @@ from facade_pipeline.evaluation.render_views import (
     variant_from_dir,
 )
 from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
+from facade_pipeline.evaluation.video import (
+    VideoParams,
+    merge_films,
+    orbit_path,
+    render_path,
+    write_clip,
+    write_mp4,
+)
+from facade_pipeline.geometry.bake import bake_view
+from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.images import read_image, read_mask, write_image
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
+from facade_pipeline.meshing.correct import FRAME, read_labels
 from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
+from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.trainer import resolve_device
 from stages._runner import StageReport, main
 
 NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
 UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
+#: where the renders run changes no figure beyond rounding: a change reruns nothing
+RUN_ONLY: tuple[str, ...] = ("device",)
 MAIN_VARIANT = "07_train"
 
 
@@ -96,6 +111,8 @@ class Params:
     gaussian_min_opacity: Fraction
     """Gaussians less opaque than this are left out of the geometry metrics"""
     align: AlignParams
+    video: VideoParams
+    """``[evaluate.video]``: the fly-through of each model (frames = 0: none)"""
     """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
     against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
 
@@ -171,6 +188,8 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
         for split in splits:
             for view in _views_of(layout, v, scene, split):
                 files += _view_files(layout, view)
+    if params.video.frames > 0:  # each frame's facade mask is cast from the corrected mesh
+        files += [layout.path("correct_mesh"), layout.path("correct_mesh_labels")]
     if is_synthetic(layout):
         files += [
             layout.import_coarse_mesh,
@@ -185,7 +204,8 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
 
 
 def targets(layout: BuildingLayout, params: Params) -> list[Path]:
-    return [layout.path(k) for k in ("eval_metrics", "eval_report_md", "eval_report_html")]
+    video = ("eval_video", "eval_clip") if params.video.frames > 0 else ()
+    return [layout.path(k) for k in ("eval_metrics", "eval_report_md", "eval_report_html", *video)]
 
 
 def lpips_status(params: Params) -> dict[str, str]:
@@ -277,15 +297,11 @@ def scene_geometry(
     return out
 
 
-#: parameters that do not change what is trained (where it runs, how often it logs or saves)
-_NOT_TRAINING = ("device", "raster_backend", "checkpoint_every", "log_every")
-
-
 def ablation_group(params: dict[str, Any]) -> str:
     """A digest of the training parameters other than the MLP architecture: variants with the same one
     differ only in L, depth, width, skip, the environment proxy and the self hits, and form a Table 3
     ablation."""
-    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + _NOT_TRAINING}
+    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + TRAINING_RUN_ONLY}
     return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -347,9 +363,16 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     metrics = metrics_header(layout, params, found[0].params["test_every"])
     outputs: list[Path] = []
     jobs = [(v, s, _views_of(layout, v, scene, s)) for v in found for s in splits]
-    with tqdm(total=sum(len(j[2]) for j in jobs), desc="evaluate", unit="view", file=sys.stderr) as bar:
+    path = orbit_path([v.camera for v in scene.uav_views], params.video.frames, params.video.scale)
+    facade_mask = _facade_masker(layout) if path else None
+    films: list[list[np.ndarray]] = []
+    n_views = sum(len(j[2]) for j in jobs) + len(path) * len(found)
+    with tqdm(total=n_views, desc="evaluate", unit="view", file=sys.stderr) as bar:
         for v in found:
             tm = load_trained(v, device)
+            if path:
+                render = partial(_render_rgb, tm)
+                films.append(render_path(path, render, facade_mask, bar.update))
             entry = _variant_entry(v, tm)
             for variant, split, views in jobs:
                 if variant is v:
@@ -361,8 +384,33 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             metrics["variants"][v.name] = entry
     if truth is not None:
         metrics["geometry"] = scene_geometry(layout, params, scene, truth)
+    if films:
+        frames = merge_films(films) if len(films) > 1 else films[0]
+        vp = params.video
+        write_mp4(layout.path("eval_video"), frames, vp.fps)
+        write_clip(layout.path("eval_clip"), frames, vp.clip_frames, vp.clip_width_px, vp.fps)
+        metrics["video"] = {
+            "variants": [v.name for v in found],
+            "frames": len(frames),
+            "size_px": [int(frames[0].shape[1]), int(frames[0].shape[0])],
+            "fps": vp.fps,
+            "file": layout.path("eval_video").name,
+            "clip": layout.path("eval_clip").name,
+        }
     write_reports(layout, params, metrics)
     return StageReport(outputs + targets(layout, params), summary(metrics))
+
+
+def _facade_masker(layout: BuildingLayout):
+    """camera -> its facade mask [H, W] bool, cast from the corrected mesh as bake_normals casts it."""
+    mesh = read_mesh(layout.path("correct_mesh"))
+    rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
+    return lambda cam: bake_view(rc, cam, 1 << 18, None, labels).label >= FRAME
+
+
+def _render_rgb(tm, camera, facade_mask):
+    return render_trained(tm, camera, facade_mask).rgb
 
 
 def write_reports(layout: BuildingLayout, params: Params, metrics: dict[str, Any]) -> list[Path]:
@@ -374,8 +422,8 @@ def write_reports(layout: BuildingLayout, params: Params, metrics: dict[str, Any
         layout.path("eval_report_md"),
         build_markdown(metrics, [(c, p.relative_to(report_dir).as_posix()) for c, p in images]),
     )
-    write_text(layout.path("eval_report_html"), build_html(metrics, images))
-    return targets(layout, params)
+    write_text(layout.path("eval_report_html"), build_html(metrics, images, layout.path("eval_clip")))
+    return [layout.path(k) for k in ("eval_metrics", "eval_report_md", "eval_report_html")]
 
 
 def summary(metrics: dict[str, Any]) -> dict[str, Any]:

@@ -31,6 +31,7 @@ from facade_pipeline.io import colmap
 from facade_pipeline.io.images import image_size, read_image, write_image
 from facade_pipeline.io.meshes import make_points, read_mesh, read_points, write_mesh, write_points
 from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.meshing.clean import clean_mesh
 from facade_pipeline.scene import ImportedScene, Role, View
 from stages._runner import StageReport, main
 
@@ -243,7 +244,7 @@ def _check_scene(layout: BuildingLayout, params: Params, views: list[View], mesh
 def run(layout: BuildingLayout, params: Params) -> StageReport:
     sources = _sources(layout)
     recs = [colmap.read_reconstruction(s.model_dir) for s in sources]
-    mesh = read_mesh(_coarse_mesh_path(layout))
+    mesh, cleaned = clean_mesh(read_mesh(_coarse_mesh_path(layout)))
     T, up_method = _local_frame(recs[0], np.asarray(mesh.vertices), params)
     sim = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(T[:3, :3]), T[:3, 3].copy())
     for rec in recs:
@@ -294,6 +295,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "georef_offset_m": georef_from_local[:3, 3].tolist(),
             "coarse_mesh_vertices": len(mesh.vertices),
             "coarse_mesh_triangles": len(mesh.triangles),
+            "coarse_mesh_cleaned": cleaned,
             "coarse_points": len(pcd.points),
             "points_source": points_source,
             "mesh_size_ratio": round(check.size_ratio, 3),

@@ -162,7 +162,7 @@ def segment_one(
         labels = panel_labels(seg.panels, rect, W, H)
         found = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if found else []), seg.metrics
-        reason = "" if found else "no panel grid: too few regular frame bars in either direction"
+        reason = "" if found else (seg.reason or "no panel inside the view")
     out = {k: layout.path(k, stem=view.stem) for k in ("segment_corners", "segment_mask", "segment_overlay")}
     write_json(
         out["segment_corners"],

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import to_dict
+from facade_pipeline.config import result_dict
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.exr import read_exr
@@ -29,6 +29,7 @@ from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.shading.reflection import reflection_record
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
+from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.ply import write_ply
 from facade_pipeline.training.render import splatting_rasterizer
@@ -48,6 +49,7 @@ NAME = "train_gs"
 DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
 UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
 Params = TrainParams
+RUN_ONLY = TRAINING_RUN_ONLY  # where it runs and how often it logs or saves: a change reruns nothing
 BAKED = ("normal_map", "facade_mask", "glass_mask")
 
 
@@ -141,7 +143,7 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
 
 def fingerprint(layout: BuildingLayout, params: Params) -> str:
     """What a checkpoint must match to be resumed: the parameters, the inputs' contents and the code."""
-    h = hashlib.sha256(json.dumps(to_dict(params), sort_keys=True).encode())
+    h = hashlib.sha256(json.dumps(result_dict(params, RUN_ONLY), sort_keys=True).encode())
     for f in inputs(layout, params):
         h.update(sha256_file(f).encode())
     code = [p for d in ("training", "shading", "splatting") for p in (PACKAGE_DIR / d).rglob("*.py")]

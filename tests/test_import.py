@@ -274,3 +274,27 @@ def test_two_meshes_is_ambiguous(layout):
     shutil.copy(layout.raw_coarse_mesh_candidates[0], layout.raw_coarse_mesh_candidates[1])
     with pytest.raises(InputError, match="exactly one coarse mesh"):
         execute(stage, layout, PARAMS)
+
+
+def test_coarse_mesh_is_cleaned_with_its_geometry_kept(layout):
+    """Seams repeat vertices, exports repeat faces, Poisson leaves zero-area faces: all go, colours stay."""
+    from facade_pipeline.io.meshes import read_mesh
+    from facade_pipeline.meshing.clean import clean_mesh
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0], [5, 5, 5], [0, 0, 0], [1, 1, 0]], float)
+    f = np.array([[0, 1, 2], [0, 3, 2], [0, 1, 2], [0, 5, 1], [1, 6, 2]])
+    colours = np.linspace(0, 1, 21).reshape(7, 3)
+    mesh, removed = clean_mesh(make_mesh(v, f, colours))
+    assert removed == {"vertices_removed": 3, "faces_removed": 3}
+    cv, cf = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    assert sorted(map(tuple, cv[cf].reshape(-1, 3).round(6))) == sorted(
+        map(tuple, v[f[[0, 4]]].reshape(-1, 3))
+    )  # the two real faces, corner for corner
+    assert np.allclose(np.asarray(mesh.vertex_colors)[0], colours[0], atol=1 / 255)  # 8 bits, as in PLY
+    make_raw(layout)
+    quad = read_mesh(layout.raw_coarse_mesh_candidates[0])
+    qv, qf = np.asarray(quad.vertices), np.asarray(quad.triangles)
+    write_mesh(layout.raw_coarse_mesh_candidates[0], make_mesh(qv, np.concatenate([qf, qf[:1]])))
+    m = execute(stage, layout, PARAMS)["metrics"]
+    assert m["coarse_mesh_cleaned"] == {"vertices_removed": 0, "faces_removed": 1}
+    assert m["coarse_mesh_triangles"] == len(qf)

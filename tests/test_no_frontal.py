@@ -81,6 +81,12 @@ def test_no_frontal_views_runs_the_whole_dag_without_mesh_correction(survey):
     metrics = json.loads(layout.path("eval_metrics").read_text())
     assert any("no mesh correction" in n for n in metrics["notes"])
     assert "no mesh correction" in layout.path("eval_report_html").read_text()
+    # how often training logs changes no result: nothing reruns
+    toml = survey[2] / "buildings" / "nofrontal.toml"
+    assert "log_every = 25" in toml.read_text()
+    toml.write_text(toml.read_text().replace("log_every = 25", "log_every = 5"))
+    out = _doit(["building=nofrontal"], env, root)
+    assert not re.findall(r"^\.  (\S+)", out.stdout, flags=re.M), out.stdout
 
 
 def test_frontal_views_without_any_panel_stop_with_one_line_unless_allowed(survey):

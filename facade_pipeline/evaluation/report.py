@@ -248,6 +248,9 @@ def build_markdown(metrics: dict[str, Any], images: Sequence[tuple[str, str]] = 
         ]
         line = _corner_line(metrics)
         md += ["", line] if line else []
+    video = metrics.get("video")
+    if video:
+        md += ["", "## Fly-through", "", f"![fly-through]({video['clip']})", "", _video_line(video)]
     if images:
         md += [
             "",
@@ -407,8 +410,20 @@ _CSS = (
 )
 
 
-def build_html(metrics: dict[str, Any], images: Sequence[tuple[str, Path]] = ()) -> str:
-    """The report as one self-contained HTML page; ``images`` are (caption, PNG path) pairs, embedded."""
+def _video_line(video: dict[str, Any]) -> str:
+    w, h = video["size_px"]
+    names = ", ".join(video["variants"])
+    return (
+        f"[{video['file']}]({video['file']}): {video['frames']} frames of {w} x {h} px at "
+        f"{video['fps']} fps, an orbit through the training cameras' range; left to right: {names}."
+    )
+
+
+def build_html(
+    metrics: dict[str, Any], images: Sequence[tuple[str, Path]] = (), clip: Path | None = None
+) -> str:
+    """The report as one self-contained HTML page; ``images`` are (caption, PNG path) pairs, embedded, and
+    ``clip`` the fly-through's looping clip (animated WebP), embedded too."""
     e = html.escape
     conv = primary_convention(metrics)
     parts = [
@@ -437,6 +452,17 @@ def build_html(metrics: dict[str, Any], images: Sequence[tuple[str, Path]] = ())
         ]
         line = _corner_line(metrics)
         parts += [f"<p>{e(line)}</p>"] if line else []
+    video = metrics.get("video")
+    if video and clip is not None and Path(clip).is_file():
+        data = base64.b64encode(Path(clip).read_bytes()).decode("ascii")
+        line = e(_video_line(video)).replace(
+            e(f"[{video['file']}]({video['file']})"), f"<a href='{e(video['file'])}'>{e(video['file'])}</a>"
+        )
+        parts += [
+            "<h2>Fly-through</h2>",
+            f"<figure><img src='data:image/webp;base64,{data}' alt='fly-through'><figcaption>{line}"
+            "</figcaption></figure>",
+        ]
     if images:
         parts += [
             "<h2>Renders</h2>",

@@ -113,6 +113,8 @@ class Segmentation:
     facade_found: bool
     panels: list[Panel]
     metrics: dict = field(default_factory=dict)
+    reason: str = ""
+    """without panels: which evidence was missing"""
 
 
 @dataclass(frozen=True)
@@ -287,6 +289,8 @@ def find_bars(
         "n_horizontal_segments": len(hseg),
         "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
         "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal)),
+        "mullions_found": v is not None,
+        "transoms_found": h is not None,
     }
     if v is None or h is None:
         return None, None, metrics
@@ -472,14 +476,24 @@ def segment_image(
     bars_v, bars_h, metrics = find_bars(image, params, sizes, valid, centre)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     if bars_v is None or bars_h is None:
-        return Segmentation(False, [], metrics)
+        g = params.grid
+        missing = " nor ".join(
+            name for name, key in (("vertical (mullions)", "mullions_found"),
+                                   ("horizontal (transoms)", "transoms_found"))
+            if not metrics.get(key)
+        )  # fmt: skip
+        return Segmentation(False, [], metrics, (
+            f"no regular {missing} frame bars {g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of "
+            f"{g.min_pitch_m:g}-{g.max_pitch_m:g} m (the image at {1000 * m:.3g} mm per working pixel)"
+        ))  # fmt: skip
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
     for k in ("pitch_x_px", "pitch_y_px"):
         if k in metrics:
             metrics[k.replace("_px", "_m")] = metrics[k] * m
-    return Segmentation(bool(panels), panels, metrics)
+    why = "" if panels else "frame bars found, but no opening between them looks like a pane"
+    return Segmentation(bool(panels), panels, metrics, why)
 
 
 def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

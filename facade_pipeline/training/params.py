@@ -74,6 +74,11 @@ class DensifyParams:
             )
 
 
+#: settings that change how a run goes, not what it trains (where it runs, how often it logs or saves):
+#: changing one neither reruns train_gs nor drops its checkpoint (a run begun on the CPU resumes on a GPU)
+RUN_ONLY: tuple[str, ...] = ("device", "raster_backend", "log_every", "checkpoint_every")
+
+
 @dataclass(frozen=True)
 class TrainParams:
     """``[train_gs]``: every number that changes the trained model."""

@@ -71,6 +71,13 @@ def test_whole_dag_on_synthetic64_reaches_evaluate(tmp_path):
 
     page = layout.path("eval_report_html").read_text()
     assert "Table 1" in page and page.count("data:image/png;base64,") == len(split["test"])
+    # the fly-through: an MP4 beside the report, its looping clip inside it
+    from facade_pipeline.evaluation.video import read_mp4
+
+    video = m["video"]
+    frames = read_mp4(layout.path("eval_video"))
+    assert len(frames) == video["frames"] == 48 and frames[0].shape[1::-1] == tuple(video["size_px"])
+    assert "data:image/webp;base64," in page and "href='flythrough.mp4'" in page
     assert "src='comparisons" not in page  # nothing outside the page
     manifest = json.loads(layout.manifest("evaluate").read_text())
     assert manifest["metrics"]["07_train_test_psnr"] == facade["psnr"]
@@ -89,5 +96,9 @@ def test_whole_dag_on_synthetic64_reaches_evaluate(tmp_path):
     trained_with = json.loads(layout.manifest("train_gs").read_text())["params"]
     (saved / "params.json").write_text(json.dumps(trained_with))
     assert _executed(_doit(["building=synthetic64"], env, root)) == ["evaluate"]
-    copy = json.loads(layout.path("eval_metrics").read_text())["variants"]["copy"]
+    again = json.loads(layout.path("eval_metrics").read_text())
+    copy = again["variants"]["copy"]
     assert copy["test"]["mean"]["facade"]["psnr"] == facade["psnr"]  # the same model renders the same
+    # two models: the fly-through shows them side by side, the pipeline's first
+    assert again["video"]["variants"] == ["07_train", "copy"]
+    assert again["video"]["size_px"][0] > 2 * video["size_px"][0]

@@ -158,3 +158,49 @@ def test_report_builds_from_a_tiny_run(tiny):
     )  # self-contained
     img = np.array(Image.open(io.BytesIO(base64.b64decode(srcs[0].split(",", 1)[1]))))
     assert img.shape == (v.camera.height, 3 * v.camera.width + 4, 3)  # photo | render | heat map
+
+
+def test_fly_through_video_of_a_tiny_run(tiny, tmp_path):
+    """A 10-frame orbit rendered by the trained model: an MP4 of 10 frames of the path's size whose frames
+    differ (the camera moves), a looping WebP clip, and the report embedding it."""
+    from facade_pipeline.evaluation.report import build_html, build_markdown
+    from facade_pipeline.evaluation.video import (
+        look_target,
+        merge_films,
+        orbit_path,
+        read_mp4,
+        render_path,
+        write_clip,
+        write_mp4,
+    )
+
+    layout, data, tr = tiny
+    cams = [v.camera for v in data.views]
+    path = orbit_path(cams, 10, scale=1.0)
+    target = look_target(cams)
+    centres = np.array([c.center for c in cams])
+    for cam in path:  # each frame looks at the target, from within the training cameras' range
+        d = target - cam.center
+        assert np.dot(d / np.linalg.norm(d), cam.forward) > 0.9999
+        assert centres[:, 2].min() - 1e-6 <= cam.center[2] <= centres[:, 2].max() + 1e-6
+    tm = from_trainer(tr, "tiny_run")
+    frames = render_path(path, lambda c, m: render_trained(tm, c, m).rgb, lambda c: None)
+    mp4 = tmp_path / "flythrough.mp4"
+    write_mp4(mp4, frames, fps=8)
+    back = read_mp4(mp4)
+    assert len(back) == 10 and back[0].shape == (path[0].height, path[0].width, 3)
+    assert np.abs(back[0].astype(int) - back[5].astype(int)).mean() > 1.0  # the view changes
+    assert np.abs(back[0].astype(int) - frames[0].astype(int)).mean() < 8.0  # H.264 keeps the picture
+    clip = tmp_path / "clip.webp"
+    write_clip(clip, frames, n=5, width_px=32, fps=8)
+    with Image.open(clip) as im:
+        assert im.n_frames == 5 and im.size[0] == 32
+    pair = merge_films([frames, frames])
+    assert len(pair) == 10 and pair[0].shape[1] >= 2 * frames[0].shape[1] and pair[0].shape[1] % 2 == 0
+    lpips = {"conventions": ["vgg_3dgs"], "status": {"vgg_3dgs": "unavailable"}}
+    metrics = {"building": "x", "test_every": 4, "lpips": lpips, "heatmap_max_error": 0.2, "variants": {},
+               "video": {"variants": ["07_train"], "frames": 10, "size_px": [64, 64], "fps": 8,
+                         "file": "flythrough.mp4", "clip": "clip.webp"}}  # fmt: skip
+    page = build_html(metrics, (), clip)
+    assert "data:image/webp;base64," in page and "href='flythrough.mp4'" in page
+    assert "![fly-through](clip.webp)" in build_markdown(metrics)

@@ -1,4 +1,4 @@
-"""Robust cylinder fit and the stable surface form: hard cases of issue 4 (near-planar, too few points,
+"""Robust cylinder fit and the stable surface form: hard cases (near-planar, too few points,
 points on one line, non-vertical axis, ghost outliers)."""
 
 from __future__ import annotations

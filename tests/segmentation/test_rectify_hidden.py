@@ -1,6 +1,6 @@
 """A dense coarse cloud holds the ground all around the facade; `rectify` leaves out the points the coarse
-mesh hides from the camera, so the ground behind the facade cannot take the plane fit (session 21: with
-150,000 environment points on demo, every frontal view was fitted to the wrong surface)."""
+mesh hides from the camera, so the ground behind the facade cannot take the plane fit (with 150,000
+environment points on demo, every frontal view was otherwise fitted to the wrong surface)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Panel segmentation on drawn views with exact truth: the hard cases of issue 4 (strong straight
+"""Panel segmentation on drawn views with exact truth: the hard cases (strong straight
 reflections, panels cut by the border, partly occluded panels, no facade)."""
 
 from __future__ import annotations
@@ -143,6 +143,22 @@ def test_image_without_facade():
     img = np.clip(img + rng.normal(0, 3, img.shape), 0, 255).astype(np.uint8)
     seg = segment_image(img, PARAMS, M_PER_PX)
     assert not seg.facade_found and seg.panels == []
+    # the view says which evidence was missing, in the facade's units
+    assert "no regular vertical (mullions) nor horizontal (transoms) frame bars" in seg.reason
+    g = PARAMS.grid
+    assert f"{g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of {g.min_pitch_m:g}-{g.max_pitch_m:g} m" in (
+        seg.reason
+    )
+
+
+def test_only_one_family_of_bars_is_named():
+    """Vertical bars only (no transoms): the reason names the missing family."""
+    img = np.full((80, 96, 3), 200, np.uint8)
+    for x in range(10, 96, 25):
+        img[:, x : x + 3] = 40
+    seg = segment_image(img, PARAMS, M_PER_PX)
+    assert not seg.facade_found
+    assert "no regular horizontal (transoms) frame bars" in seg.reason and "mullions" not in seg.reason
 
 
 def test_parallax_of_proud_frames_is_fitted_and_corrected():

@@ -88,6 +88,10 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     assert again["metrics"]["resumed_from_iteration"] == 6
     assert upstream.path("train_ply").read_bytes() == ply_bytes
     assert again["outputs"] == manifest["outputs"]
+    # settings of how the run goes (backend, logging, saving) keep the checkpoint: it resumes
+    run_only = dataclasses.replace(p, raster_backend="torch", log_every=3, checkpoint_every=2)
+    assert train_gs.fingerprint(upstream, run_only) == train_gs.fingerprint(upstream, p)
+    assert execute(train_gs, upstream, run_only)["metrics"]["resumed_from_iteration"] == 6
     # other parameters: the old checkpoint is not trusted, training starts over
     other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3, exposure_estimate=True))
     assert other["metrics"]["resumed_from_iteration"] == 0 and other["metrics"]["iterations"] == 3

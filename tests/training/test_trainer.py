@@ -63,7 +63,7 @@ def test_adapter_matches_the_dense_reference(data64, sigma):
         ("depth", "depth_expected"),
         ("distortion", "distortion"),
     ):
-        # 1e-5: the renderer's own tolerance against this reference (issue 6)
+        # 1e-5: the renderer's own tolerance against this reference (tests/splatting)
         assert torch.allclose(getattr(a, ours), b[theirs], atol=1e-5), ours
 
 

@@ -1,0 +1,152 @@
+"""Fly-through videos of a trained facade: reflections only show when the camera moves.
+
+The default path is an orbit in front of the facade: it looks at the point the training cameras look at
+(the point nearest to all their optical axes) and sweeps their range of azimuths there and back, while its
+height and distance move through the training cameras' ranges, so every frame is seen from where the model
+was trained to be seen. The specular term is limited to the facade, as in training: each frame's facade
+mask is cast from the corrected mesh. Frames are written as MP4 (H.264 through imageio-ffmpeg's bundled
+ffmpeg) and as a short looping animated WebP (Pillow) that the report shows inline.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from facade_pipeline.config import Count, PosInt, Positive
+from facade_pipeline.geometry.camera import PinholeCamera, look_at
+from facade_pipeline.io.atomic import atomic_path
+
+
+@dataclass(frozen=True)
+class VideoParams:
+    """``[evaluate.video]``: the fly-through of each trained model."""
+
+    frames: Count
+    """frames of the orbit, there and back (0: no video)"""
+    fps: PosInt
+    """frames per second of the MP4"""
+    scale: Positive
+    """frame size as a multiple of the training views' size (-)"""
+    clip_frames: PosInt
+    """frames of the looping clip shown in the report (taken evenly from the video)"""
+    clip_width_px: PosInt
+    """width of the report's clip (px; no wider than the video)"""
+
+
+def look_target(cameras: Sequence[PinholeCamera]) -> np.ndarray:
+    """The point nearest (least squares) to the optical axes of ``cameras``; where the axes are nearly
+    parallel, the point at their median distance along the mean axis."""
+    centres = np.array([c.center for c in cameras])
+    axes = np.array([c.forward for c in cameras])
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, f in zip(centres, axes, strict=True):
+        P = np.eye(3) - np.outer(f, f)
+        A += P
+        b += P @ c
+    if np.linalg.cond(A) < 1e6:
+        return np.linalg.solve(A, b)
+    mean_axis = axes.mean(axis=0) / np.linalg.norm(axes.mean(axis=0))
+    reach = np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)) + 1.0
+    return centres.mean(axis=0) + reach * mean_axis
+
+
+def orbit_path(cameras: Sequence[PinholeCamera], n: int, scale: float = 1.0) -> list[PinholeCamera]:
+    """``n`` cameras on a closed orbit in front of the facade through the range of ``cameras`` (z up):
+    azimuth there and back over their azimuth range, height and distance through theirs; the intrinsics
+    of the first camera, scaled by ``scale`` (even sizes, as video codecs need)."""
+    target = look_target(cameras)
+    rel = np.array([c.center for c in cameras]) - target
+    az = np.arctan2(rel[:, 1], rel[:, 0])
+    az0 = np.arctan2(np.sin(az).mean(), np.cos(az).mean())
+    daz = np.angle(np.exp(1j * (az - az0)))  # wrapped about the mean direction
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    first = cameras[0]
+    w, h = (max(2, 2 * round(first.width * scale / 2)), max(2, 2 * round(first.height * scale / 2)))
+    K = first.K.copy()
+    K[0] *= w / first.width
+    K[1] *= h / first.height
+    out = []
+    for i in range(n):
+        t = 2 * np.pi * i / max(n, 1)
+        s = 0.5 - 0.5 * np.cos(t)  # 0 -> 1 -> 0: there and back, smooth at the turns
+        q = 0.5 - 0.5 * np.cos(t + np.pi / 2)
+        a = az0 + daz.min() + (daz.max() - daz.min()) * s
+        r = dist.min() + (dist.max() - dist.min()) * q
+        z = rel[:, 2].min() + np.ptp(rel[:, 2]) * (1 - q)
+        eye = target + np.array([r * np.cos(a), r * np.sin(a), z])
+        out.append(PinholeCamera(K, look_at(eye, target), w, h))
+    return out
+
+
+def render_path(
+    path: Sequence[PinholeCamera],
+    render: Callable[[PinholeCamera, np.ndarray], np.ndarray],
+    facade_mask: Callable[[PinholeCamera], np.ndarray],
+    progress: Callable[[int], None] | None = None,
+) -> list[np.ndarray]:
+    """uint8 frames [H, W, 3]: ``render(camera, facade_mask)`` -> RGB in [0, 1] for each camera."""
+    frames = []
+    for cam in path:
+        rgb = render(cam, facade_mask(cam))
+        frames.append((np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+        if progress is not None:
+            progress(1)
+    return frames
+
+
+def merge_films(per_variant: Sequence[Sequence[np.ndarray]], gap_px: int = 4) -> list[np.ndarray]:
+    """One frame per time step with the variants' frames left to right (even width kept)."""
+    out = []
+    for frames in zip(*per_variant, strict=True):
+        h = frames[0].shape[0]
+        gap = np.zeros((h, gap_px, 3), np.uint8)
+        row = np.concatenate([x for f in frames for x in (f, gap)][:-1], axis=1)
+        if row.shape[1] % 2:
+            row = np.concatenate([row, np.zeros((h, 1, 3), np.uint8)], axis=1)
+        out.append(row)
+    return out
+
+
+def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: int) -> None:
+    """H.264 MP4 (yuv420p, playable in browsers), written atomically."""
+    import imageio_ffmpeg
+
+    h, w = frames[0].shape[:2]
+    with atomic_path(path) as tmp:
+        writer = imageio_ffmpeg.write_frames(
+            str(tmp), (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p", macro_block_size=1,
+            output_params=["-crf", "20"], ffmpeg_log_level="error",
+        )  # fmt: skip
+        writer.send(None)
+        for f in frames:
+            writer.send(np.ascontiguousarray(f))
+        writer.close()
+
+
+def read_mp4(path: str | Path) -> list[np.ndarray]:
+    """The frames of an MP4 as uint8 [H, W, 3] (for checks)."""
+    import imageio_ffmpeg
+
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    w, h = meta["size"]
+    return [np.frombuffer(b, np.uint8).reshape(h, w, 3) for b in reader]
+
+
+def write_clip(path: str | Path, frames: Sequence[np.ndarray], n: int, width_px: int, fps: int) -> None:
+    """A looping animated WebP of ``n`` frames taken evenly from ``frames``, at most ``width_px`` wide."""
+    from PIL import Image
+
+    pick = np.linspace(0, len(frames), num=min(n, len(frames)), endpoint=False).astype(int)
+    h, w = frames[0].shape[:2]
+    size = (w, h) if w <= width_px else (width_px, max(1, round(h * width_px / w)))
+    images = [Image.fromarray(frames[i]).resize(size, Image.Resampling.LANCZOS) for i in pick]
+    step_ms = round(1000 * len(frames) / (fps * len(pick)))
+    with atomic_path(path) as tmp:
+        images[0].save(tmp, format="WEBP", save_all=True, append_images=images[1:], duration=step_ms, loop=0,
+                       quality=80)  # fmt: skip
