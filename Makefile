@@ -20,8 +20,9 @@ $(STAMP): pyproject.toml scripts/ensure_system_deps.sh
 run: $(STAMP)
 	$(BIN)/doit building=$(BUILDING)
 
-## the test suite
+## the test suite (the viewer's browser test needs chromium: installed here where apt allows)
 test: $(STAMP)
+	bash scripts/ensure_browser.sh
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)

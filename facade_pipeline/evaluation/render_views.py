@@ -224,6 +224,13 @@ def render_trained(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndar
     return RenderedView(r.rgb.clamp(0, 1).cpu().numpy(), r.normal.cpu().numpy(), r.alpha.cpu().numpy())
 
 
+@torch.no_grad()
+def render_maps(tm: TrainedModel, camera: PinholeCamera, facade_mask: np.ndarray | None) -> Render:
+    """The whole view with every map behind its colour (diffuse, specular, reflectivity, normals, depth):
+    ``render_trained`` before it keeps the colour alone."""
+    return _render(tm, _torch_camera(tm, camera), _spec_mask(tm, facade_mask))
+
+
 @dataclass(frozen=True)
 class AlignedView:
     """A view aligned to a model (``align_trained``): its fitted camera, the fit (gain per channel and what

@@ -1,5 +1,6 @@
 """Shared fixtures of the evaluation tests: the LPIPS weights (skipped where absent), example images and a
-tiny random LPIPS network with the real layout (for tests that must not depend on the weights)."""
+tiny random LPIPS network with the real layout (for tests that must not depend on the weights), and a tiny
+trained run of synthetic64 (for the report, the video and the viewer)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,13 @@ import pytest
 import torch
 
 from facade_pipeline.evaluation.lpips import LAYERS, LpipsUnavailable, _Conv, find_lpips_weights
+from facade_pipeline.io.images import write_mask
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.training.render import splatting_rasterizer
+from facade_pipeline.training.trainer import build_trainer, train
+from stages import load_stage
+from stages._runner import execute, load_params
+from tests.training.conftest import gt_train_data, small_params
 
 #: tolerances keyed on dtype (STYLE 11)
 TOL = {np.float64: 1e-10, torch.float64: 1e-10, torch.float32: 1e-5}
@@ -57,3 +65,21 @@ def tiny_state_dict(net: str, seed: int = 0, width: int = 4) -> dict[str, torch.
     for i, c in enumerate(taps):
         sd[f"lin{i}.weight"] = torch.rand(1, c, 1, 1, generator=g)
     return sd
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory):
+    """synthetic64 imported, five views (0 and 4 held out), 10 training steps of a small MLP model."""
+    torch.set_num_threads(1)
+    layout = BuildingLayout(tmp_path_factory.mktemp("data"), "synthetic64")
+    for name in ("synthesize", "import_photogrammetry"):
+        s = load_stage(name)
+        execute(s, layout, load_params(s, "synthetic64"))
+    data = gt_train_data(layout, test_every=4, max_views=5)
+    p = small_params(iterations=10)
+    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend), "cpu")
+    train(tr)
+    for v in data.views:  # the gt masks stand in for bake_normals' masks
+        write_mask(layout.path("bake_facade_mask", stem=v.stem), v.facade_mask)
+        write_mask(layout.path("bake_glass_mask", stem=v.stem), v.glass_mask)
+    return layout, data, tr

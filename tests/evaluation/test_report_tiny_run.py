@@ -12,7 +12,6 @@ import re
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 from tqdm import tqdm
 
@@ -28,34 +27,11 @@ from facade_pipeline.evaluation.render_views import (
     save_variant,
     variant_from_dir,
 )
-from facade_pipeline.io.images import read_mask, write_mask
-from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.io.images import read_mask
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
-from facade_pipeline.training.render import splatting_rasterizer
-from facade_pipeline.training.trainer import build_trainer, train
 from stages import evaluate as stage
-from stages import load_stage
-from stages._runner import execute, load_params
-from tests.training.conftest import gt_train_data, small_params
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """synthetic64 imported, five views (0 and 4 held out), 10 training steps of a small MLP model."""
-    torch.set_num_threads(1)
-    layout = BuildingLayout(tmp_path_factory.mktemp("data"), "synthetic64")
-    for name in ("synthesize", "import_photogrammetry"):
-        s = load_stage(name)
-        execute(s, layout, load_params(s, "synthetic64"))
-    data = gt_train_data(layout, test_every=4, max_views=5)
-    p = small_params(iterations=10)
-    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend), "cpu")
-    train(tr)
-    for v in data.views:  # the gt masks stand in for bake_normals' masks
-        write_mask(layout.path("bake_facade_mask", stem=v.stem), v.facade_mask)
-        write_mask(layout.path("bake_glass_mask", stem=v.stem), v.glass_mask)
-    return layout, data, tr
+from stages._runner import load_params
 
 
 def test_saved_variant_renders_like_the_trainer(tiny):

@@ -16,7 +16,7 @@ from facade_pipeline.training.densify import (
 )
 from facade_pipeline.training.init import initial_model, sample_mesh
 from facade_pipeline.training.model import GaussianModel, quat_from_normal, quat_to_rotmat
-from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
+from facade_pipeline.training.ply import model_columns, model_from_ply, read_ply, write_ply
 from facade_pipeline.training.trainer import _gaussian_optimizer
 from tests.training.conftest import small_params
 
@@ -201,3 +201,17 @@ def test_split_holds_out_every_eighth_view():
     assert test == (0, 8, 16) and set(train) | set(test) == set(range(20)) and not set(train) & set(test)
     assert split_views(1, 8) == ((0,), ())
     assert split_views(5, 0) == (tuple(range(5)), ())
+
+
+def test_ply_loads_in_the_reader_3dgs_viewers_use_exactly_as_written(tmp_path):
+    """plyfile (the reader of the 3DGS reference code and most viewers' converters) sees the same
+    properties, in the same order, with the same float32 values, as model_columns wrote."""
+    plyfile = pytest.importorskip("plyfile", reason="plyfile is a dev dependency (pip install -e '.[dev]')")
+    m = _model(9)
+    write_ply(tmp_path / "g.ply", m)
+    vertex = plyfile.PlyData.read(str(tmp_path / "g.ply"))["vertex"]
+    cols = model_columns(m)
+    assert [p.name for p in vertex.properties] == list(cols)
+    assert all(p.val_dtype == "f4" for p in vertex.properties) and vertex.count == 9
+    for name, values in cols.items():
+        assert np.array_equal(np.asarray(vertex[name]), values), name

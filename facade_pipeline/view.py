@@ -1,0 +1,360 @@
+"""Fly around a trained facade in the browser, reflections included.
+
+    python -m facade_pipeline.view --building demo [--variant NAME] [--port 8080] [--data-root DIR]
+
+A viser server (the web viewer nerfstudio and gsplat use) shows the model rendered by this project's own
+renderer and shading: each browser's camera is rendered on the server and sent as the scene's background,
+at a lower resolution while the camera moves and at full resolution once it stops. The sidebar switches
+between the final colour and the maps behind it (diffuse, specular, reflectivity, the splats' normals, the
+baked prior's normals, depth); the training and held-out cameras are frustums (click one to look through
+it, its photo beside the render); the corrected mesh and the 3D panels are overlays. The specular term is
+limited to the facade as in training: each frame's facade mask is cast from the corrected mesh.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from facade_pipeline.errors import PipelineError
+from facade_pipeline.evaluation.render_views import TrainedModel, render_maps
+from facade_pipeline.geometry.bake import bake_view
+from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
+from facade_pipeline.geometry.raycast import MeshRaycaster
+
+MODES = ("final", "diffuse", "specular", "reflectivity", "normals (splats)", "normals (prior)", "depth")
+MOVING_SECONDS = 0.25
+"""a camera updated more recently than this is moving: it is rendered at the lower resolution"""
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """A training or held-out camera shown as a frustum, with its photo."""
+
+    stem: str
+    split: str  # "train" or "test"
+    camera: PinholeCamera
+    photo: np.ndarray | None = None  # [H, W, 3] uint8
+
+
+@dataclass
+class Scene:
+    """What the viewer shows: a trained model, its cameras, and the corrected mesh with its labels."""
+
+    model: TrainedModel
+    cameras: list[ViewCamera]
+    mesh: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    """(vertices [V, 3], triangles [F, 3], labels [F]) of the corrected mesh: the facade masks and overlay"""
+    panels: np.ndarray | None = None
+    """[P, 4, 3] corners of the 3D panels (the overlay)"""
+    _caster: MeshRaycaster | None = field(default=None, repr=False)
+
+    def facade_mask(self, camera: PinholeCamera) -> np.ndarray | None:
+        if self.mesh is None:
+            return None
+        if self._caster is None:
+            self._caster = MeshRaycaster(self.mesh[0], self.mesh[1])
+        return bake_view(self._caster, camera, 1 << 18, None, self.mesh[2]).label >= 1
+
+    def prior_normals(self, camera: PinholeCamera) -> np.ndarray:
+        if self.mesh is None:
+            return np.zeros((camera.height, camera.width, 3), np.float32)
+        if self._caster is None:
+            self._caster = MeshRaycaster(self.mesh[0], self.mesh[1])
+        return bake_view(self._caster, camera, 1 << 18, None, self.mesh[2]).normal
+
+
+def viser_camera(position, wxyz, fov_y: float, aspect: float, width: int) -> PinholeCamera:
+    """The pinhole camera of a viser camera (OpenCV axes: +z forward, +y down; ``fov_y`` vertical, rad)
+    rendered ``width`` pixels wide."""
+    h = max(2, round(width / aspect))
+    fy = 0.5 * h / np.tan(0.5 * fov_y)
+    w, x, y, z = (float(v) for v in wxyz)
+    R = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )  # world_from_cam rotation
+    T = np.eye(4)
+    T[:3, :3] = R.T
+    T[:3, 3] = -R.T @ np.asarray(position, float)
+    return PinholeCamera(intrinsics(fy, fy, width / 2, h / 2), T, width, h)
+
+
+def pose_of(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """(wxyz, position) of ``camera`` in viser's convention (world_from_cam, OpenCV axes)."""
+    R = camera.cam_from_world[:3, :3].T
+    q = _quat_from_matrix(R)
+    return q, camera.center
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) of a rotation matrix (Shepperd's method)."""
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * np.sqrt(t + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0, 0.0, 0.0, 0.0]
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    q = np.array(q)
+    return q / np.linalg.norm(q) * (1 if q[0] >= 0 else -1)
+
+
+def render_image(scene: Scene, camera: PinholeCamera, mode: str) -> np.ndarray:
+    """uint8 [H, W, 3] of ``camera`` in one of ``MODES``."""
+    if mode == "normals (prior)":
+        return _unit_to_u8(scene.prior_normals(camera))
+    r = render_maps(scene.model, camera, scene.facade_mask(camera))
+    if mode == "final":
+        x = r.rgb
+    elif mode == "diffuse":
+        x = r.diffuse
+    elif mode == "specular":
+        x = r.specular
+    elif mode == "reflectivity":
+        x = r.refl[..., None].expand(*r.refl.shape, 3)
+    elif mode == "normals (splats)":
+        return _unit_to_u8(r.normal.cpu().numpy())
+    elif mode == "depth":
+        d = r.depth.cpu().numpy()
+        ok = (r.alpha.cpu().numpy() > 0.5) & (d > 0)
+        lo, hi = (np.percentile(d[ok], (2, 98)) if ok.any() else (0.0, 1.0))
+        u = np.clip((d - lo) / max(hi - lo, 1e-6), 0, 1)
+        img = cv2.applyColorMap((u * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+        img[~ok] = 0
+        return np.ascontiguousarray(img)
+    else:
+        raise ValueError(f"mode {mode!r} not one of {MODES}")
+    return (x.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def _unit_to_u8(n: np.ndarray) -> np.ndarray:
+    return (np.clip(0.5 * np.asarray(n, np.float32) + 0.5, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+class Viewer:
+    """The viser server of one scene: per browser a thread renders the camera when it changes."""
+
+    def __init__(self, scene: Scene, port: int = 8080, host: str = "127.0.0.1", width_px: int = 512):
+        import viser
+
+        self.scene = scene
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.port = self.server.get_port()
+        gui = self.server.gui
+        self.mode = gui.add_dropdown("show", MODES, initial_value="final")
+        self.width = gui.add_slider("width (px)", min=64, max=1920, step=32, initial_value=width_px)
+        self.moving_factor = gui.add_slider("while moving", min=0.125, max=1.0, step=0.125, initial_value=0.5)
+        self.fps = gui.add_number("frames per second", initial_value=0.0, disabled=True)
+        self.show_cameras = gui.add_checkbox("cameras", initial_value=True)
+        self.show_mesh = gui.add_checkbox("corrected mesh", initial_value=False)
+        self.show_panels = gui.add_checkbox("3D panels", initial_value=True)
+        self._photo: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # client -> (photo, its camera centre)
+        self._dirty: dict[int, float] = {}
+        self.last_image: dict[int, np.ndarray] = {}
+        """per client, the last image sent (what its browser shows behind the overlays)"""
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._add_overlays()
+        for handle in (self.mode, self.width, self.moving_factor):
+            handle.on_update(lambda _: self._touch_all())
+        self.server.on_client_connect(self._connect)
+
+    # --- scene overlays ---
+    def _add_overlays(self) -> None:
+        s, scene = self.server.scene, self.scene
+        s.set_up_direction("+z")
+        self._frustums = []
+        for vc in scene.cameras:
+            cam = vc.camera
+            fov = 2 * np.arctan(0.5 * cam.height / cam.K[1, 1])
+            wxyz, pos = pose_of(cam)
+            colour = (40, 160, 255) if vc.split == "train" else (255, 140, 0)
+            f = s.add_camera_frustum(f"/cameras/{vc.split}/{vc.stem}", fov=float(fov),
+                                     aspect=cam.width / cam.height, scale=self._frustum_scale(),
+                                     color=colour, wxyz=wxyz, position=pos)  # fmt: skip
+            f.on_click(lambda event, vc=vc: self._look_through(event.client, vc))
+            self._frustums.append(f)
+        self.show_cameras.on_update(lambda _: [setattr(f, "visible", self.show_cameras.value)
+                                               for f in self._frustums])  # fmt: skip
+        if scene.mesh is not None:
+            v, t, labels = scene.mesh
+            self._mesh = s.add_mesh_simple("/corrected_mesh", v.astype(np.float32), t.astype(np.uint32),
+                                           color=(180, 180, 190), opacity=0.4, visible=False)  # fmt: skip
+            self.show_mesh.on_update(lambda _: setattr(self._mesh, "visible", self.show_mesh.value))
+        if scene.panels is not None and len(scene.panels):
+            p = scene.panels
+            segs = np.stack([p, np.roll(p, -1, axis=1)], axis=2).reshape(-1, 2, 3).astype(np.float32)
+            self._panels = s.add_line_segments("/panels", segs, colors=(60, 220, 90), line_width=2.0)
+            self.show_panels.on_update(lambda _: setattr(self._panels, "visible", self.show_panels.value))
+
+    def _frustum_scale(self) -> float:
+        centres = np.array([vc.camera.center for vc in self.scene.cameras]) if self.scene.cameras else None
+        if centres is None or len(centres) < 2:
+            return 0.3
+        return float(0.05 * np.linalg.norm(np.ptp(centres, axis=0)))
+
+    # --- clients ---
+    def _connect(self, client) -> None:
+        if self.scene.cameras:
+            train = [vc for vc in self.scene.cameras if vc.split == "train"] or self.scene.cameras
+            vc = train[len(train) // 2]
+            self._set_pose(client, vc.camera)
+        client.camera.on_update(lambda _: self._touch(client.client_id))
+        self._touch(client.client_id)
+        threading.Thread(target=self._render_loop, args=(client,), daemon=True).start()
+
+    def _set_pose(self, client, camera: PinholeCamera) -> None:
+        wxyz, pos = pose_of(camera)
+        with client.atomic():
+            client.camera.fov = float(2 * np.arctan(0.5 * camera.height / camera.K[1, 1]))
+            client.camera.wxyz = wxyz
+            client.camera.position = pos
+
+    def _look_through(self, client, vc: ViewCamera) -> None:
+        with self._lock:
+            if vc.photo is not None:
+                self._photo[client.client_id] = (vc.photo, vc.camera.center)
+        self._set_pose(client, vc.camera)
+        self._touch(client.client_id)
+
+    def _touch(self, client_id: int) -> None:
+        with self._lock:
+            self._dirty[client_id] = time.monotonic()
+
+    def _touch_all(self) -> None:
+        with self._lock:
+            for k in self._dirty:
+                self._dirty[k] = time.monotonic()
+
+    def _render_loop(self, client) -> None:
+        """Render while the camera moves (low resolution), then once at full resolution when it stops."""
+        cid, full_done_for = client.client_id, None
+        while not self._stop.is_set():
+            with self._lock:
+                stamp = self._dirty.get(cid)
+            if stamp is None:
+                return  # disconnected
+            moving = time.monotonic() - stamp < MOVING_SECONDS
+            if not moving and full_done_for == stamp:
+                time.sleep(0.02)
+                continue
+            factor = self.moving_factor.value if moving else 1.0
+            try:
+                cam = client.camera
+                pinhole = viser_camera(cam.position, cam.wxyz, cam.fov, cam.aspect,
+                                       max(32, int(self.width.value * factor)))  # fmt: skip
+                t0 = time.perf_counter()
+                img = render_image(self.scene, pinhole, self.mode.value)
+                self.fps.value = round(1.0 / max(time.perf_counter() - t0, 1e-6), 2)
+                photo = self._photo.get(cid)
+                if photo is not None and np.allclose(cam.position, photo[1], atol=1e-4):
+                    img = _beside(photo[0], img)  # looking through a camera: its photo beside
+                elif photo is not None:
+                    self._photo.pop(cid, None)  # moved away from it
+                client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+                self.last_image[cid] = img
+            except Exception as e:  # a client that disconnects mid-render
+                if "disconnect" in str(e).lower():
+                    return
+                raise
+            if not moving:
+                full_done_for = stamp
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.server.stop()
+
+
+def _beside(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
+    """The photo (left) and the render (right) at the render's height."""
+    h = render.shape[0]
+    w = max(1, round(photo.shape[1] * h / photo.shape[0]))
+    left = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
+    return np.concatenate([left, np.zeros((h, 4, 3), np.uint8), render], axis=1)
+
+
+def load_scene(building: str, data_root: str | None, variant: str | None, device: str = "cpu") -> Scene:
+    """The trained model of ``building`` (07_train, or ``variants/<variant>``), its cameras and photos,
+    the corrected mesh and the 3D panels."""
+    from facade_pipeline.evaluation.render_views import TrainedVariant, load_trained, variant_from_dir
+    from facade_pipeline.io.images import read_image
+    from facade_pipeline.io.meshes import read_mesh
+    from facade_pipeline.layout import BuildingLayout
+    from facade_pipeline.manifest import read_manifest
+    from facade_pipeline.meshing.correct import read_labels
+    from facade_pipeline.panels import PanelSet
+    from facade_pipeline.scene import ImportedScene
+
+    layout = BuildingLayout.for_building(building, data_root)
+    if variant:
+        tv = variant_from_dir(layout.path("variant_dir", variant=variant))
+    else:
+        man = read_manifest(layout, "train_gs")
+        tv = TrainedVariant("07_train", layout.path("train_ply"), layout.path("train_reflection"),
+                            layout.path("train_split"), man.params)  # fmt: skip
+    model = load_trained(tv, device)
+    split = tv.split_stems()
+    scene = ImportedScene.load(layout)
+    cams = []
+    for v in scene.uav_views:
+        which = "test" if v.stem in split["test"] else "train"
+        cams.append(ViewCamera(v.stem, which, v.camera, read_image(layout.root / v.image)))
+    mesh = read_mesh(layout.path("correct_mesh"))
+    tri = np.asarray(mesh.triangles)
+    labels = read_labels(layout.path("correct_mesh_labels"), len(tri))
+    panels_path = layout.path("regularize_panels")
+    panels = None
+    if panels_path.is_file():
+        ps = PanelSet.load(panels_path)
+        panels = np.array([p.corners for p in ps.panels]) if ps.panels else None
+    return Scene(model, cams, (np.asarray(mesh.vertices), tri, labels), panels)
+
+
+def main(argv: list[str] | None = None, ready: Callable[[Viewer], None] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m facade_pipeline.view", description=__doc__.splitlines()[0])
+    ap.add_argument("--building", default="demo")
+    ap.add_argument("--variant", default=None, help="a model under variants/ (default: 07_train)")
+    ap.add_argument("--data-root", default=None)
+    ap.add_argument("--port", type=int, default=8080)
+    ap.add_argument("--host", default="127.0.0.1", help="0.0.0.0 to let other machines connect")
+    ap.add_argument("--width", type=int, default=512, help="render width while the camera is still (px)")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    args = ap.parse_args(argv)
+    try:
+        scene = load_scene(args.building, args.data_root, args.variant, args.device)
+    except PipelineError as e:
+        print(f"view: {e}", file=sys.stderr)
+        return 2
+    viewer = Viewer(scene, args.port, args.host, args.width)
+    print(f"view: {args.building} at http://{args.host}:{viewer.port} (Ctrl-C to stop)", flush=True)
+    if ready is not None:
+        ready(viewer)
+    try:
+        while not viewer._stop.is_set():
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    viewer.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
