@@ -14,11 +14,19 @@ limited to the facade as in training: each frame's facade mask is cast from the 
 from __future__ import annotations
 
 import argparse
+import base64
+import json
+import shutil
+import socket
+import subprocess
 import sys
+import tempfile
 import threading
 import time
+import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -135,7 +143,7 @@ def render_image(scene: Scene, camera: PinholeCamera, mode: str) -> np.ndarray:
     elif mode == "depth":
         d = r.depth.cpu().numpy()
         ok = (r.alpha.cpu().numpy() > 0.5) & (d > 0)
-        lo, hi = (np.percentile(d[ok], (2, 98)) if ok.any() else (0.0, 1.0))
+        lo, hi = np.percentile(d[ok], (2, 98)) if ok.any() else (0.0, 1.0)
         u = np.clip((d - lo) / max(hi - lo, 1e-6), 0, 1)
         img = cv2.applyColorMap((u * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
         img[~ok] = 0
@@ -172,10 +180,12 @@ class Viewer:
         """per client, the last image sent (what its browser shows behind the overlays)"""
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
         self._add_overlays()
         for handle in (self.mode, self.width, self.moving_factor):
             handle.on_update(lambda _: self._touch_all())
         self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
 
     # --- scene overlays ---
     def _add_overlays(self) -> None:
@@ -219,7 +229,14 @@ class Viewer:
             self._set_pose(client, vc.camera)
         client.camera.on_update(lambda _: self._touch(client.client_id))
         self._touch(client.client_id)
-        threading.Thread(target=self._render_loop, args=(client,), daemon=True).start()
+        thread = threading.Thread(target=self._render_loop, args=(client,), daemon=True)
+        self._threads.append(thread)
+        thread.start()
+
+    def _disconnect(self, client) -> None:
+        with self._lock:
+            self._dirty.pop(client.client_id, None)  # its render loop ends
+            self._photo.pop(client.client_id, None)
 
     def _set_pose(self, client, camera: PinholeCamera) -> None:
         wxyz, pos = pose_of(camera)
@@ -269,6 +286,8 @@ class Viewer:
                     img = _beside(photo[0], img)  # looking through a camera: its photo beside
                 elif photo is not None:
                     self._photo.pop(cid, None)  # moved away from it
+                if client.client_id not in self.server.get_clients():
+                    return  # left while this frame was rendered
                 client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
                 self.last_image[cid] = img
             except Exception as e:  # a client that disconnects mid-render
@@ -279,7 +298,11 @@ class Viewer:
                 full_done_for = stamp
 
     def stop(self) -> None:
+        """Stop rendering (a render under way finishes: native thread pools must not be torn down under
+        it at exit), then the server."""
         self._stop.set()
+        for thread in self._threads:
+            thread.join(timeout=60)
         self.server.stop()
 
 
@@ -289,6 +312,70 @@ def _beside(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
     w = max(1, round(photo.shape[1] * h / photo.shape[0]))
     left = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
     return np.concatenate([left, np.zeros((h, 4, 3), np.uint8), render], axis=1)
+
+
+def browser_screenshot(
+    browser: str,
+    url: str,
+    ready: Callable[[], bool],
+    workdir: Path,
+    timeout: float = 90.0,
+    size: tuple[int, int] = (800, 600),
+) -> bytes:
+    """PNG of ``url`` in headless Chromium (``browser``: its executable), taken through the DevTools
+    protocol once ``ready()`` is true (the server has sent its render) and the page had a moment to draw it;
+    Chromium's profile goes in ``workdir``."""
+    from websockets.sync.client import connect
+
+    port = _free_port()
+    proc = subprocess.Popen(
+        [browser, "--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-angle=swiftshader",
+         "--enable-unsafe-swiftshader", f"--window-size={size[0]},{size[1]}",
+         f"--remote-debugging-port={port}",
+         f"--user-data-dir={Path(workdir) / 'chromium'}", "about:blank"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.time() + timeout
+        while True:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=5) as r:
+                    pages = [t for t in json.loads(r.read()) if t["type"] == "page"]
+                if pages:
+                    break
+            except OSError:
+                pass
+            assert time.time() < deadline, "Chromium did not start"
+            time.sleep(0.2)
+        with connect(pages[0]["webSocketDebuggerUrl"], max_size=None) as ws:
+            ids = iter(range(1, 1000))
+
+            def call(method, **params):
+                i = next(ids)
+                ws.send(json.dumps({"id": i, "method": method, "params": params}))
+                while True:
+                    msg = json.loads(ws.recv(timeout=max(1.0, deadline - time.time())))
+                    if msg.get("id") == i:
+                        return msg.get("result", {})
+
+            call("Page.navigate", url=url)
+            while not ready():
+                assert time.time() < deadline, "the viewer sent no render to the browser"
+                time.sleep(0.2)
+            time.sleep(3.0)  # the image travels and is drawn (software WebGL)
+            png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
+            call("Page.navigate", url="about:blank")  # leave the viewer cleanly before Chromium goes
+            time.sleep(0.5)
+            return png
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def load_scene(building: str, data_root: str | None, variant: str | None, device: str = "cpu") -> Scene:
@@ -337,14 +424,19 @@ def main(argv: list[str] | None = None, ready: Callable[[Viewer], None] | None =
     ap.add_argument("--host", default="127.0.0.1", help="0.0.0.0 to let other machines connect")
     ap.add_argument("--width", type=int, default=512, help="render width while the camera is still (px)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--screenshot", default=None, metavar="PNG",
+                    help="open the viewer in headless Chromium, save what it shows and stop")  # fmt: skip
     args = ap.parse_args(argv)
     try:
         scene = load_scene(args.building, args.data_root, args.variant, args.device)
     except PipelineError as e:
         print(f"view: {e}", file=sys.stderr)
         return 2
-    viewer = Viewer(scene, args.port, args.host, args.width)
-    print(f"view: {args.building} at http://{args.host}:{viewer.port} (Ctrl-C to stop)", flush=True)
+    viewer = Viewer(scene, _free_port() if args.screenshot else args.port, args.host, args.width)
+    url = f"http://{args.host}:{viewer.port}"
+    if args.screenshot:
+        return _save_screenshot(viewer, url, Path(args.screenshot))
+    print(f"view: {args.building} at {url} (Ctrl-C to stop)", flush=True)
     if ready is not None:
         ready(viewer)
     try:
@@ -354,6 +446,23 @@ def main(argv: list[str] | None = None, ready: Callable[[Viewer], None] | None =
         pass
     viewer.stop()
     return 0
+
+
+def _save_screenshot(viewer: Viewer, url: str, out: Path) -> int:
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        print("view: --screenshot needs Chromium (Debian: apt-get install chromium)", file=sys.stderr)
+        viewer.stop()
+        return 2
+    try:
+        with tempfile.TemporaryDirectory(prefix="facade-view-") as tmp:
+            png = browser_screenshot(browser, url, lambda: len(viewer.last_image) > 0, Path(tmp))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(png)
+        print(f"view: {out}")
+        return 0
+    finally:
+        viewer.stop()
 
 
 if __name__ == "__main__":

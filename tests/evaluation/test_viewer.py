@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import base64
-import json
 import shutil
 import socket
 import subprocess
@@ -16,7 +14,16 @@ import pytest
 from PIL import Image
 
 from facade_pipeline.evaluation.render_views import from_trainer, render_trained
-from facade_pipeline.view import MODES, Scene, ViewCamera, Viewer, pose_of, render_image, viser_camera
+from facade_pipeline.view import (
+    MODES,
+    Scene,
+    ViewCamera,
+    Viewer,
+    browser_screenshot,
+    pose_of,
+    render_image,
+    viser_camera,
+)
 
 
 @pytest.fixture(scope="module")
@@ -60,52 +67,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _screenshot(browser: str, url: str, ready, tmp_path, timeout: float = 90.0) -> bytes:
-    """PNG of ``url`` in headless Chromium, taken through the DevTools protocol once ``ready()`` is true
-    (the server has sent its render) and the page had a moment to draw it."""
-    from websockets.sync.client import connect
-
-    port = _free_port()
-    proc = subprocess.Popen(
-        [browser, "--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-angle=swiftshader",
-         "--enable-unsafe-swiftshader", "--window-size=800,600", f"--remote-debugging-port={port}",
-         f"--user-data-dir={tmp_path / 'chromium'}", "about:blank"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    try:
-        deadline = time.time() + timeout
-        while True:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=5) as r:
-                    pages = [t for t in json.loads(r.read()) if t["type"] == "page"]
-                if pages:
-                    break
-            except OSError:
-                pass
-            assert time.time() < deadline, "Chromium did not start"
-            time.sleep(0.2)
-        with connect(pages[0]["webSocketDebuggerUrl"], max_size=None) as ws:
-            ids = iter(range(1, 1000))
-
-            def call(method, **params):
-                i = next(ids)
-                ws.send(json.dumps({"id": i, "method": method, "params": params}))
-                while True:
-                    msg = json.loads(ws.recv(timeout=max(1.0, deadline - time.time())))
-                    if msg.get("id") == i:
-                        return msg.get("result", {})
-
-            call("Page.navigate", url=url)
-            while not ready():
-                assert time.time() < deadline, "the viewer sent no render to the browser"
-                time.sleep(0.2)
-            time.sleep(3.0)  # the image travels and is drawn (software WebGL)
-            return base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
-    finally:
-        proc.kill()
-        proc.wait()
-
-
 def test_a_browser_shows_the_facade(scene, tmp_path):
     """The viewer serves its page; headless Chromium opens it, the server renders the browser's camera
     (a training camera on connect) and the screenshot shows the facade's colours, not a blank canvas."""
@@ -125,7 +86,7 @@ def test_a_browser_shows_the_facade(scene, tmp_path):
         if browser is None:
             pytest.skip("no Chromium: `make test` installs Debian's chromium package where apt can")
         shot = tmp_path / "shot.png"
-        shot.write_bytes(_screenshot(browser, url, lambda: len(viewer.last_image) > 0, tmp_path))
+        shot.write_bytes(browser_screenshot(browser, url, lambda: len(viewer.last_image) > 0, tmp_path))
         img = np.asarray(Image.open(shot).convert("RGB")).astype(float)
         assert img.std() > 5.0, "a blank screenshot"
         # the canvas shows what the server rendered for this browser: compare brightness patterns where no
