@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from _common import append_results, machine  # noqa: E402
 
-from facade_pipeline.geometry.bake import bake_view  # noqa: E402
+from facade_pipeline.bake.maps import bake_view  # noqa: E402
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at  # noqa: E402
 from facade_pipeline.geometry.raycast import MeshRaycaster  # noqa: E402
 from facade_pipeline.io.meshes import read_mesh  # noqa: E402

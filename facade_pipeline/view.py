@@ -32,9 +32,9 @@ import cv2
 import numpy as np
 import torch
 
+from facade_pipeline.bake.maps import bake_view
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.evaluation.render_views import TrainedModel, render_maps
-from facade_pipeline.geometry.bake import bake_view
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
 from facade_pipeline.geometry.raycast import MeshRaycaster
 
@@ -387,7 +387,7 @@ def load_scene(building: str, data_root: str | None, variant: str | None, device
     from facade_pipeline.layout import BuildingLayout
     from facade_pipeline.manifest import read_manifest
     from facade_pipeline.meshing.correct import read_labels
-    from facade_pipeline.panels import PanelSet
+    from facade_pipeline.panels3d.model import PanelSet
     from facade_pipeline.scene import ImportedScene
 
     layout = BuildingLayout.for_building(building, data_root)

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.bake.maps import bake_view
 from facade_pipeline.config import PosInt
 from facade_pipeline.errors import InputError
-from facade_pipeline.geometry.bake import bake_view
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.exr import read_exr, write_exr
 from facade_pipeline.io.images import read_mask, write_mask

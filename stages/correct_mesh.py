@@ -28,7 +28,7 @@ from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, LABEL_NAMES, correct_mesh, label_triangles, write_labels
 from facade_pipeline.meshing.metrics import surface_errors
 from facade_pipeline.meshing.overlay import scaled_camera, shaded_render, side_by_side, upscale_factor
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene
 from stages._runner import StageReport, main
 

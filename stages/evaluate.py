@@ -23,6 +23,7 @@ from typing import Any, Literal
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.bake.maps import bake_view
 from facade_pipeline.config import Count, Fraction, PosInt, Positive
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.geometry_eval import (
@@ -64,7 +65,6 @@ from facade_pipeline.evaluation.video import (
     write_clip,
     write_mp4,
 )
-from facade_pipeline.geometry.bake import bake_view
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.images import read_image, read_mask, write_image
@@ -72,7 +72,7 @@ from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, read_labels
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY

@@ -26,7 +26,7 @@ from facade_pipeline.geometry.frames import (
     local_from_model,
     transform_points,
 )
-from facade_pipeline.geometry.scene_checks import SceneCheck, check_scene, units_hint
+from facade_pipeline.importing.checks import SceneCheck, check_scene, units_hint
 from facade_pipeline.io import colmap
 from facade_pipeline.io.images import image_size, read_image, write_image
 from facade_pipeline.io.meshes import make_points, read_mesh, read_points, write_mesh, write_points

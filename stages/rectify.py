@@ -3,8 +3,8 @@ surface (paper, 3.1.1, extended from curved facades to all), so that segmentatio
 
 For each frontal view of ``01_import``: crop the coarse point cloud to the points that project into the
 image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a plane or cylinder robustly
-(``geometry.cylinder``), and sample the surface on a regular (arc length, height) grid of ``metres_per_px``
-(``geometry.rectification``: a homography for a plane, the unrolled cylinder otherwise). A view whose
+(``rectification.cylinder``, ``rectification.views``), and sample the surface on a regular (arc length, height) grid of ``metres_per_px``
+(``rectification.surface_map``: a homography for a plane, the unrolled cylinder otherwise). A view whose
 points cannot define a surface is left unrectified, with the coarse mesh's scale at its centre; a view
 whose surface is nearly edge-on or whose rectified image would be too large is skipped with a warning.
 Both are listed in the manifest with the reason. Writes into ``02_rectify/``: the rectified image (none
@@ -20,32 +20,25 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.config import Positive, Range
 from facade_pipeline.errors import UpstreamMissingError
-from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.cylinder import (
-    SurfaceFit,
-    SurfaceFitError,
-    SurfaceFitParams,
-    fit_surface,
-    implausible,
-)
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.geometry.rectification import (
+from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.images import read_image, write_image
+from facade_pipeline.io.meshes import read_mesh, read_points
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.rectification.cylinder import SurfaceFitParams
+from facade_pipeline.rectification.surface_map import (
     RectifyParams,
     ViewRectification,
     mesh_scale_m,
     rectify_view,
     warp_image,
 )
-from facade_pipeline.io.atomic import write_json
-from facade_pipeline.io.images import read_image, write_image
-from facade_pipeline.io.meshes import read_mesh, read_points
-from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.rectification.views import fit_view, overlay_image
 from facade_pipeline.scene import ImportedScene, View
 from stages._runner import StageReport, main
 
@@ -84,83 +77,15 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
     return []  # per-view outputs are only known once the import ran; the manifest lists them
 
 
-def view_points(
-    points: np.ndarray,
-    camera: PinholeCamera,
-    hidden_by: MeshRaycaster | None = None,
-    margin_m: float = np.inf,
-) -> np.ndarray:
-    """The points [N, 3] that project inside the image in front of the camera (Eq. 6). With ``hidden_by``,
-    less those it hides: the line of sight meets the mesh more than ``margin_m`` before the point. A dense
-    cloud holds the ground all around the facade; seen through the facade, it outnumbers the facade's own
-    points and takes the plane fit (benchmarks/RESULTS.md, "rectify: the ground before the facade")."""
-    uv, z = camera.project(points)
-    x, y = uv[:, 0], uv[:, 1]
-    inside = (z > 0) & (x >= 0) & (x <= camera.width) & (y >= 0) & (y <= camera.height)
-    p = points[inside]
-    if hidden_by is None or hidden_by.empty or not np.isfinite(margin_m) or len(p) == 0:
-        return p
-    d = p - camera.center
-    dist = np.linalg.norm(d, axis=1)
-    ok = dist > 0
-    p, d, dist = p[ok], d[ok], dist[ok]
-    t = hidden_by.cast(np.broadcast_to(camera.center, p.shape), d / dist[:, None]).t
-    return p[~(t < dist - margin_m)]
-
-
-def _fit(
-    points: np.ndarray, view: View, params: Params, source: Path, mesh: MeshRaycaster
-) -> tuple[SurfaceFit | None, str]:
-    try:
-        seen = view_points(points, view.camera, mesh, params.occlusion_margin_m)
-        fit = fit_surface(
-            seen,
-            view.camera.center,
-            params.fit,
-            source,
-            -view.camera.forward,
-            curved=params.surface == "auto",
-        )
-        cam = view.camera
-        depth = abs(float((fit.surface.origin - cam.center) @ cam.forward))
-        why = implausible(fit, depth * cam.width / cam.K[0, 0], params.fit)
-        if why is not None:
-            return None, f"no surface: implausible fit, {why}"
-        return fit, "fitted"
-    except SurfaceFitError as e:
-        return None, f"no surface: {e}"
-
-
-def _overlay(image: np.ndarray, rectified: np.ndarray, rect: ViewRectification, scale: float) -> np.ndarray:
-    """Original (left) with the images of straight rectified grid lines, rectified image (right, at the
-    original's height) with them."""
-    H, W = image.shape[:2]
-    size = (max(1, round(W * scale)), max(1, round(H * scale)))
-    left = cv2.resize(image, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_NEAREST)
-    k = size[1] / rect.height  # the rectified image drawn at the original's height
-    right = cv2.resize(rectified, (max(1, round(rect.width * k)), size[1]), interpolation=cv2.INTER_AREA)
-    for frac in np.linspace(0.1, 0.9, 5):
-        for line in (
-            np.stack([np.full(50, frac * rect.width), np.linspace(0, rect.height, 50)], 1),
-            np.stack([np.linspace(0, rect.width, 50), np.full(50, frac * rect.height)], 1),
-        ):
-            cv2.polylines(right, [np.int32(line * k)], False, (255, 255, 0), 1)
-            back = rect.to_original(line)
-            back = back[np.isfinite(back).all(axis=1)]
-            cv2.polylines(left, [np.int32(back * scale)], False, (255, 255, 0), 1)
-    out = np.zeros((size[1], left.shape[1] + right.shape[1] + 4, 3), np.uint8)
-    out[:, : left.shape[1]] = left
-    out[:, left.shape[1] + 4 :] = right
-    return out
-
-
 def rectify_one(
     layout: BuildingLayout, view: View, points: np.ndarray, params: Params, mesh: MeshRaycaster
 ) -> tuple[list[Path], dict]:
     """Fit, rectify and write one view (``mesh``: the coarse mesh, which hides points and gives the scale
     of a view without a surface); returns its outputs and its metrics."""
     t0 = time.perf_counter()
-    fit, status = _fit(points, view, params, layout.import_coarse_points, mesh)
+    source = layout.import_coarse_points
+    margin = params.occlusion_margin_m
+    fit, status = fit_view(points, view.camera, params.fit, params.surface, margin, mesh, source)
     cam = view.camera
     if fit is None:
         scale = mesh_scale_m(cam, lambda o, d: mesh.cast(o, d).t)
@@ -183,7 +108,7 @@ def rectify_one(
         rectified = warp_image(image, rect)
         outs += [layout.path("rectify_image", stem=view.stem), layout.path("rectify_overlay", stem=view.stem)]
         write_image(outs[2], rectified)
-        write_image(outs[3], _overlay(image, rectified, rect, params.overlay_scale))
+        write_image(outs[3], overlay_image(image, rectified, rect, params.overlay_scale))
     poly = rect.polynomial
     metrics = {
         "kind": rect.kind,

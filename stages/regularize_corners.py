@@ -20,16 +20,16 @@ from tqdm import tqdm
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.frames import invert_rigid, transform_points
-from facade_pipeline.geometry.panel_grid import build_panel_set
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.geometry.regularize import RegularizeConfig
-from facade_pipeline.geometry.segment_obs import read_view_corners, reconcile_with_mask
 from facade_pipeline.io.images import image_size, read_image, read_mask, write_image
 from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.metrics import corner_errors
 from facade_pipeline.meshing.overlay import panels_over_view, upscale_factor
+from facade_pipeline.panels3d.grid import build_panel_set
+from facade_pipeline.panels3d.observations import read_view_corners, reconcile_with_mask
+from facade_pipeline.panels3d.regularize import RegularizeConfig
 from facade_pipeline.scene import ImportedScene
 from stages import PIPELINE
 from stages._runner import StageReport, main

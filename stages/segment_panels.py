@@ -23,12 +23,12 @@ from tqdm import tqdm
 from facade_pipeline.config import Positive
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.geometry.rectification import ViewRectification, facade_support, valid_region
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.images import read_image, write_image, write_mask
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
+from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.segmentation.panels import (
     Panel,

@@ -24,7 +24,7 @@ from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.meshing.metrics import corner_errors, surface_errors
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.panels3d.model import PanelSet
 
 
 @dataclass(frozen=True)

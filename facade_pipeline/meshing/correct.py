@@ -4,7 +4,7 @@ Each 3D panel is shrunk in its surface about its centre; the coarse mesh inside 
 shrunk footprint, extended by a half-depth either way along the normal) is removed and the shrunk panel
 is put in its place, triangulated with its front facing outward, so the frames around it stay. On a
 cylindrical part the footprint and the panel follow the cylinder (the cuboid bends with the surface).
-Frames: local (01_import), metres; surface coordinates (s, z, h) as in ``facade_pipeline.panels``.
+Frames: local (01_import), metres; surface coordinates (s, z, h) as in ``facade_pipeline.panels3d.model``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_bytes
-from facade_pipeline.panels import Panel, PanelSet, PartSurface, part_outline
+from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface, part_outline
 
 RemovalRule = Literal["any_vertex", "centroid", "all_vertices"]
 OTHER, FRAME, GLASS = 0, 1, 2  # triangle labels of the corrected mesh (05_correct_mesh/triangle_labels.npy)

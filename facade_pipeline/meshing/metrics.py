@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.panels3d.model import PanelSet
 
 
 def sample_surface(

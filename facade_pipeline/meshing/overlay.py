@@ -9,10 +9,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from facade_pipeline.geometry.bake import bake_view
+from facade_pipeline.bake.maps import bake_view
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.panels3d.model import PanelSet
 
 QUAD_RGB = (230, 40, 40)  # segmented quads (03_segment)
 PANEL_RGB = (40, 220, 60)  # 3D panels projected

@@ -179,8 +179,8 @@ def evaluate_view(
     """Every accuracy figure of one frontal view from the stage outputs and the truth (module docstring)."""
     import json
 
-    from facade_pipeline.geometry.rectification import ViewRectification
     from facade_pipeline.io.images import read_mask
+    from facade_pipeline.rectification.surface_map import ViewRectification
 
     W, H = view.camera.width, view.camera.height
     cam, local_from_world = true_frontal_camera(layout, view), np.eye(4)  # truth and camera in world

@@ -27,7 +27,7 @@ from facade_pipeline.evaluation.report import (
 )
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.panels import Panel, PanelSet
+from facade_pipeline.panels3d.model import Panel, PanelSet
 from tests.evaluation.conftest import weights_or_skip
 
 NO_LPIPS = LpipsSetting(())

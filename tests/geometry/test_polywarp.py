@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from facade_pipeline.geometry.polywarp import PolyWarp, fit_polywarp
-from facade_pipeline.geometry.rectification import image_grid
+from facade_pipeline.rectification.surface_map import image_grid
 
 
 def barrel(xy: np.ndarray, W=64.0, H=64.0, k=0.05) -> np.ndarray:

@@ -6,10 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from facade_pipeline.bake.maps import bake_view, panel_masks
 from facade_pipeline.errors import InputError
-from facade_pipeline.geometry.bake import bake_view, panel_masks
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
-from facade_pipeline.geometry.panel_grid import build_panel_set, true_corners
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.meshing.correct import (
     FRAME,
@@ -21,6 +20,7 @@ from facade_pipeline.meshing.correct import (
     write_labels,
 )
 from facade_pipeline.meshing.overlay import panels_over_view, scaled_camera, shaded_render, upscale_factor
+from facade_pipeline.panels3d.grid import build_panel_set, true_corners
 from tests.meshing.conftest import params_of
 from tests.meshing.test_panels_geometry import DEPTH, cfg, facade
 
@@ -155,8 +155,8 @@ def test_check_images(corrected):
 
 
 def test_a_panel_placed_by_two_parts_is_kept_once_where_the_glass_is():
-    from facade_pipeline.geometry.panel_grid import dedupe_across_parts
-    from facade_pipeline.panels import Panel, PartSurface
+    from facade_pipeline.panels3d.grid import dedupe_across_parts
+    from facade_pipeline.panels3d.model import Panel, PartSurface
 
     near = PartSurface("planar", [0, 0, 0], [0, -1, 0])
     far = PartSurface("planar", [0, 0.3, 0], [0, -1, 0])  # a second part's surface, 30 cm behind

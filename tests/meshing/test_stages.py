@@ -16,7 +16,7 @@ from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
-from facade_pipeline.panels import PanelSet
+from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene
 from tests.meshing.conftest import run_stage
 

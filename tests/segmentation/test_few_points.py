@@ -14,9 +14,9 @@ from facade_pipeline.io.images import read_image, read_mask
 from facade_pipeline.io.meshes import make_points, read_points, write_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
+from facade_pipeline.rectification.views import view_points
 from facade_pipeline.scene import ImportedScene
 from stages._runner import main
-from stages.rectify import view_points
 
 BUILDING = "synthetic64_curved"
 

@@ -8,7 +8,7 @@ import pytest
 
 from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
-from facade_pipeline.geometry.rectification import ViewRectification
+from facade_pipeline.rectification.surface_map import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
 from facade_pipeline.segmentation.panels import inside_quads, segment_image
 from stages import segment_panels

@@ -12,8 +12,8 @@ import pytest
 
 from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
-from facade_pipeline.geometry.cylinder import Surface
-from facade_pipeline.geometry.rectification import (
+from facade_pipeline.rectification.cylinder import Surface
+from facade_pipeline.rectification.surface_map import (
     Chart,
     ViewRectification,
     rectify_view,
@@ -143,7 +143,7 @@ def test_facade_support_marks_where_the_coarse_mesh_lies_on_the_surface():
     """A coarse mesh covering only the left half of the plane seen (x < 0): the support is the left half of
     the canvas (the facade runs left to right seen from outside, which is -x here)."""
     from facade_pipeline.geometry.raycast import MeshRaycaster
-    from facade_pipeline.geometry.rectification import facade_support
+    from facade_pipeline.rectification.surface_map import facade_support
 
     cam = camera()
     rect = rectify_view(cam, plane(), PARAMS)

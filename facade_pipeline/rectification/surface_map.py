@@ -40,9 +40,9 @@ import numpy as np
 from facade_pipeline.config import PosInt, Positive, Range
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.cylinder import Surface
 from facade_pipeline.geometry.polywarp import PolyWarp, fit_polywarp
 from facade_pipeline.io.atomic import write_json
+from facade_pipeline.rectification.cylinder import Surface
 
 Kind = Literal["plane", "cylinder", "unrectified", "skipped"]
 WORLD_UP = np.array([0.0, 0.0, 1.0])

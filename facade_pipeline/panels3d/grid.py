@@ -1,6 +1,6 @@
 """The panel grid of each facade part and the regularised 3D panels (the paper, section 3.1.2, end):
 rows of corners share one height, columns of corners one position along the surface (a ruling on
-cylinders). See ``facade_pipeline.geometry.regularize`` for the steps before. Local frame, metres."""
+cylinders). See ``facade_pipeline.panels3d.regularize`` for the steps before. Local frame, metres."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import numpy as np
 
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.geometry.regularize import (
+from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface
+from facade_pipeline.panels3d.regularize import (
     GHOST,
     OK,
     STATUS_NAMES,
@@ -25,7 +26,6 @@ from facade_pipeline.geometry.regularize import (
     quad_frames,
     robust_inliers,
 )
-from facade_pipeline.panels import Panel, PanelSet, PartSurface
 
 
 def surface_corners(surface: PartSurface, rays: CornerRays, sel: np.ndarray) -> np.ndarray:

@@ -8,13 +8,13 @@ import pytest
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
-from facade_pipeline.geometry.panel_grid import build_panel_set
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.geometry.segment_obs import Quad, quad_mask, reconcile_with_mask
 from facade_pipeline.meshing.correct import correct_mesh
-from facade_pipeline.panels import PanelSet, PartSurface
+from facade_pipeline.panels3d.grid import build_panel_set
+from facade_pipeline.panels3d.model import PanelSet, PartSurface
+from facade_pipeline.panels3d.observations import Quad, quad_mask, reconcile_with_mask
+from tests.bake.test_raycast_bake import grid_plane
 from tests.meshing.conftest import params_of
-from tests.meshing.test_raycast_bake import grid_plane
 
 SURFACES = [
     PartSurface("planar", [1.0, 2.0, 0.0], [0.6, 0.8, 0.0]),

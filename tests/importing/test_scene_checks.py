@@ -23,7 +23,7 @@ from stages import import_photogrammetry as imp
 from stages._runner import execute
 from tests.helpers import tree_digest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PARAMS = default_params("import_photogrammetry", imp.Params)
 
 

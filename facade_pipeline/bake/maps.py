@@ -18,7 +18,7 @@ import open3d as o3d
 
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.panels import PanelSet, PartSurface, part_outline
+from facade_pipeline.panels3d.model import PanelSet, PartSurface, part_outline
 
 POLY_SHIFT = 4  # cv2 fixed-point bits: polygons are filled at 1/16 px
 POLY_LIMIT_PX = 1 << 20  # projected polygon coordinates are clamped here (cv2 int32 fixed point)

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facade_pipeline.geometry.bake import bake_view, panel_masks
+from facade_pipeline.bake.maps import bake_view, panel_masks
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
 from facade_pipeline.geometry.raycast import MeshRaycaster, grazing
 from facade_pipeline.io.exr import read_exr, write_exr
-from facade_pipeline.panels import Panel, PanelSet, PartSurface
+from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface
 
 
 def grid_plane(n: int = 8, size: float = 4.0, y: float = 0.0):

@@ -13,7 +13,7 @@
    and columns by clustering their centres; per row of corners the height is averaged, per column the
    position along the surface (s, a ruling on cylinders), both robustly (outliers by the grid's regularity).
 
-Frames: local (01_import), metres. Surface coordinates (s, z, h): see ``facade_pipeline.panels``.
+Frames: local (01_import), metres. Surface coordinates (s, z, h): see ``facade_pipeline.panels3d.model``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 from facade_pipeline.config import Count, Degrees, Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster, grazing
-from facade_pipeline.panels import PartSurface
+from facade_pipeline.panels3d.model import PartSurface
 
 OK, MISS, GRAZING, GHOST = 0, 1, 2, 3
 STATUS_NAMES = {MISS: "missed", GRAZING: "grazing", GHOST: "ghost"}

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from facade_pipeline.config import default_params
-from facade_pipeline.geometry.cylinder import (
+from facade_pipeline.rectification.cylinder import (
     Surface,
     SurfaceFitError,
     _stable_distance,

@@ -11,8 +11,9 @@ import pytest
 
 from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.cylinder import SurfaceFitError, facing_points, fit_surface
 from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.rectification.cylinder import SurfaceFitError, facing_points, fit_surface
+from facade_pipeline.rectification.views import view_points
 from stages import rectify
 
 PARAMS = default_params("rectify", rectify.Params)
@@ -43,13 +44,13 @@ def test_points_hidden_by_the_coarse_mesh_are_left_out():
     cam = looking_at_facade([0.0, 12.0, 9.0])
     mesh = MeshRaycaster(v, f)
     pts = np.vstack([facade, ground])
-    everything = rectify.view_points(pts, cam)
-    seen = rectify.view_points(pts, cam, mesh, PARAMS.occlusion_margin_m)
+    everything = view_points(pts, cam)
+    seen = view_points(pts, cam, mesh, PARAMS.occlusion_margin_m)
     assert (everything[:, 1] < -1).sum() > 5000  # the ground behind the facade projects into the view
     assert len(seen) > 1000 and np.all(seen[:, 1] > -1.0)  # none of it is kept, the facade's points are
     assert len(seen) == int((np.abs(everything[:, 1]) < 1).sum())
     # without a mesh, or with an infinite margin, nothing is left out
-    assert len(rectify.view_points(pts, cam, mesh, np.inf)) == len(everything)
+    assert len(view_points(pts, cam, mesh, np.inf)) == len(everything)
 
 
 @pytest.mark.parametrize("height", [4.6, 13.4])
@@ -57,7 +58,7 @@ def test_the_facade_is_fitted_with_the_hidden_ground_left_out(height):
     v, f, facade, ground = scene()
     cam = looking_at_facade([-7.0, 12.0, height])
     mesh = MeshRaycaster(v, f)
-    pts = rectify.view_points(np.vstack([facade, ground]), cam, mesh, PARAMS.occlusion_margin_m)
+    pts = view_points(np.vstack([facade, ground]), cam, mesh, PARAMS.occlusion_margin_m)
     fit = fit_surface(pts, cam.center, PARAMS.fit)
     assert abs(fit.surface.normal @ [0.0, 1.0, 0.0]) > np.cos(np.radians(1.0))  # the facade's plane
     assert abs(fit.surface.radius_m) > 500 and fit.rms_m < 0.05
@@ -77,7 +78,7 @@ def curved_facade_with_ground_before(seed=0):
 def test_the_ground_before_the_facade_is_left_out_of_the_fit_from_a_low_camera(height):
     facade, ground = curved_facade_with_ground_before()
     cam = looking_at_facade([0.0, 12.0, height])
-    pts = rectify.view_points(np.vstack([facade, ground]), cam)
+    pts = view_points(np.vstack([facade, ground]), cam)
     assert (pts[:, 2] < 0.01).sum() > len(pts) / 3  # the ground takes a third of the view's points or more
     fit = fit_surface(pts, cam.center, PARAMS.fit, toward_camera=-cam.forward)
     assert fit.surface.radius_m == pytest.approx(15.0, rel=0.01) and fit.rms_m < 0.03
@@ -102,6 +103,6 @@ def test_facing_points_keeps_the_facade_and_drops_level_ground():
 def test_a_view_of_level_ground_alone_is_refused_with_what_was_found():
     _, ground = curved_facade_with_ground_before()
     cam = looking_at_facade([0.0, 12.0, 1.5])
-    pts = rectify.view_points(ground, cam)
+    pts = view_points(ground, cam)
     with pytest.raises(SurfaceFitError, match=r"faces the camera.*found 0 of"):
         fit_surface(pts, cam.center, PARAMS.fit, "coarse_points.ply", toward_camera=-cam.forward)
