@@ -224,7 +224,7 @@ def facing_points(points: np.ndarray, toward_camera: np.ndarray, knn: int,
     point's ``knn`` nearest points (open3d's PCA estimate, either sign) within ``max_angle_deg`` of the
     unit ``toward_camera`` (minus the optical axis). The ground before a facade is level, the facade faces
     a frontal view: seen from a low camera the ground's points outnumber the facade's, and a plane fit
-    takes the ground (benchmarks/RESULTS.md, 2026-11-24)."""
+    takes the ground (tests/rectification/test_rectify_hidden.py builds that case)."""
     n = len(points)
     if knn <= 0 or n < 3:
         return np.ones(n, bool)

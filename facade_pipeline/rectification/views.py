@@ -29,7 +29,7 @@ def view_points(
     """The points [N, 3] that project inside the image in front of the camera (Eq. 6). With ``hidden_by``,
     less those it hides: the line of sight meets the mesh more than ``margin_m`` before the point. A dense
     cloud holds the ground all around the facade; seen through the facade, it outnumbers the facade's own
-    points and takes the plane fit (benchmarks/RESULTS.md, "rectify: the ground before the facade")."""
+    points and takes the plane fit (tests/rectification/test_rectify_hidden.py builds that case)."""
     uv, z = camera.project(points)
     x, y = uv[:, 0], uv[:, 1]
     inside = (z > 0) & (x >= 0) & (x <= camera.width) & (y >= 0) & (y <= camera.height)

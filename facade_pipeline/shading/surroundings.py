@@ -22,7 +22,7 @@ seen from the eye, the facade's centre on the ground (the lower half of the maps
 highest block's, ``top``), and the sky at the ray's own azimuth and elevation (the upper half). The floor
 maps are read where the ray meets the ground, out to ``reach_m`` and clamped beyond. On demo, for the
 reflected rays of the glass pixels of every fourth view, 89 % of those that meet a true tree or building
-meet a block and 96 % of those that meet the true ground meet the floor (benchmarks/RESULTS.md, session 19).
+meet a block and 96 % of those that meet the true ground meet the floor.
 
 The heights are a buffer of the module, so they are saved with the proxy's weights (``reflection.pt``,
 checkpoints) and a loaded model casts against the same surface without the points. The casts run on the
