@@ -20,9 +20,7 @@ A reflected ray from X_r along w_r ends at its first hit on the blocks or on the
 neither, it goes to the sky. On the proxy's wall maps a block hit is read at its azimuth and elevation as
 seen from the eye, the facade's centre on the ground (the lower half of the maps, elevations 0 to the
 highest block's, ``top``), and the sky at the ray's own azimuth and elevation (the upper half). The floor
-maps are read where the ray meets the ground, out to ``reach_m`` and clamped beyond. On demo, for the
-reflected rays of the glass pixels of every fourth view, 89 % of those that meet a true tree or building
-meet a block and 96 % of those that meet the true ground meet the floor.
+maps are read where the ray meets the ground, out to ``reach_m`` and clamped beyond.
 
 The heights are a buffer of the module, so they are saved with the proxy's weights (``reflection.pt``,
 checkpoints) and a loaded model casts against the same surface without the points. The casts run on the
