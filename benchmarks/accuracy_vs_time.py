@@ -34,7 +34,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _common import append_results, machine  # noqa: E402
+from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.config import load_building_config, to_dict  # noqa: E402
 from facade_pipeline.evaluation.image_eval import LpipsSetting, mean_metrics, region_masks, view_metrics  # noqa: E402
@@ -357,7 +357,7 @@ def main() -> None:
     Path(a.out + ".json").write_text(json.dumps(rows, indent=1) + "\n")
     print(text)
     if a.append:
-        append_results(text)
+        record_results(text)
 
 
 if __name__ == "__main__":

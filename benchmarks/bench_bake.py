@@ -18,7 +18,6 @@ import resource
 import subprocess
 import sys
 import time
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _common import append_results, machine  # noqa: E402
+from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.bake.maps import bake_view  # noqa: E402
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at  # noqa: E402
@@ -150,7 +149,7 @@ def main() -> None:
     speed = [run_child(4, a.data_root) for _ in range(a.repeat)]
     mem = {n: run_child(n, a.data_root) for n in (1, 4, 16)}
     lines = [
-        f"\n## bake_normals, {datetime.now():%Y-%m-%d %H:%M}\n",
+        "\n## bake_normals speed\n",
         f"{machine()} Load average at the start {', '.join(f'{x:.1f}' for x in load_start)}: the best of "
         "the repeats is reported; rays per CPU-second counts the time the bake's threads really ran, so two "
         "idle cores give about twice it.\n",
@@ -188,7 +187,7 @@ def main() -> None:
         ]
     text = "\n".join(lines) + "\n"
     print(text)
-    append_results(text)
+    record_results(text)
 
 
 if __name__ == "__main__":

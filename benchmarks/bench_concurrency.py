@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import append_results, machine
+from _common import machine, record_results
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,18 +87,16 @@ def main() -> None:
                 f"| {cpu1:.1f} | {pair_wall:.1f} | {pair_cpu:.1f} | {pair_wall / (2 * wall1):.2f} |"
             )
             print(rows[-1], flush=True)
-    commit = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
-                            text=True).stdout.strip()  # fmt: skip
     text = (
         f"\n## Two runs at once: train_gs on {args.building}, alone and in pairs\n\n"
-        f"{machine()} Commit {commit}. Command: `python benchmarks/bench_concurrency.py`. Target: the pair's "
+        f"{machine()} Command: `python benchmarks/bench_concurrency.py`. Target: the pair's "
         "wall time within 1.2x of twice the lone run's.\n\n"
         "| thread policy | alone: wall s | alone: CPU s | pair: wall s (slower) | pair: CPU s (both) "
         "| pair wall / (2 x alone) |\n| --- | --- | --- | --- | --- | --- |\n" + "\n".join(rows) + "\n"
     )
     print(text)
     if not args.no_record:
-        append_results(text)
+        record_results(text)
 
 
 if __name__ == "__main__":

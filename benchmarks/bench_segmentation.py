@@ -10,7 +10,6 @@ section to benchmarks/RESULTS.md.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import subprocess
@@ -22,7 +21,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _common import append_results, machine  # noqa: E402
+from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
@@ -121,7 +120,7 @@ def main() -> None:
         rows.append(row(b, BuildingLayout(Path(args.data_root), b)))
     text = "\n".join(
         [
-            f"\n## rectify + segment_panels, {datetime.datetime.now():%Y-%m-%d %H:%M}\n",
+            "\n## rectify + segment_panels\n",
             f"{machine()}\n",
             "Against gt/ (reflections on). Corner errors: predicted corners off the image border "
             "against the nearest "
@@ -157,7 +156,7 @@ def main() -> None:
             "",
         ])
     )
-    append_results(text)
+    record_results(text)
     print(text)
 
 

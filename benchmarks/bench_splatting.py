@@ -14,14 +14,13 @@ ratio to the compiled backend is printed.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
-from _common import append_results, machine
+from _common import machine, record_results
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -172,8 +171,7 @@ def main() -> None:
         table = gpu_table(args.repeats)
         print(table)
         if not args.no_record:
-            stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-            append_results(f"\n## bench_splatting on a GPU ({stamp})\n\n{machine()}\n\n{table}\n")
+            record_results(f"\n## Splatting speed on a GPU\n\n{machine()}\n\n{table}\n")
         return
     lines = ["| splats | image | target s | cpp best s (median) | cpp peak RSS MB | torch best s | "
              "dense ref best s | torch / cpp | dense / cpp | mean alpha | ok |",
@@ -193,11 +191,10 @@ def main() -> None:
     table = "\n".join(lines)
     print(table)
     if not args.no_record:
-        stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
         note = ("Forward + backward of `render_2dgs` (loss on all six maps), best of several runs in a fresh "
                 "process per cell; other jobs shared the 2 cores, so medians are noisy. Peak RSS includes "
                 "the interpreter and torch (~300 MB).")
-        append_results(f"\n## bench_splatting ({stamp})\n\n{machine()}\n\n{note}\n\n{table}\n")
+        record_results(f"\n## Splatting speed\n\n{machine()}\n\n{note}\n\n{table}\n")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ a table and appends a dated section with the machine to benchmarks/RESULTS.md.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import subprocess
@@ -21,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _common import append_results, machine
+from _common import machine, record_results
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -93,8 +92,7 @@ def main() -> int:
     print(text)
     print(note)
     if not args.no_record:
-        stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-        append_results(f"\n## synthesize, {stamp}\n\n{machine()}\n\n{text}\n\n{note}\n")
+        record_results(f"\n## synthesize\n\n{machine()}\n\n{text}\n\n{note}\n")
     failed = [label for label, r, target in rows if target is not None and r["wall_s"] > target]
     return 1 if failed else 0
 

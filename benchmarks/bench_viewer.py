@@ -10,13 +10,12 @@ The building must have run through train_gs (``make run`` for demo).
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import torch
-from _common import append_results, machine
+from _common import machine, record_results
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,10 +46,8 @@ def main() -> None:
         dt = (time.perf_counter() - t0) / len(path)
         rows.append(f"| {path[0].width} x {path[0].height} | {len(path)} | {1000 * dt:.0f} | {1 / dt:.2f} |")
         print(rows[-1], flush=True)
-    commit = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
-                            text=True).stdout.strip()  # fmt: skip
     text = (
-        f"\n## Viewer frame rate on {args.building} (CPU)\n\n{machine()} Commit {commit}. Command: "
+        f"\n## Viewer frame rate on {args.building} (CPU)\n\n{machine()} Command: "
         f"`python benchmarks/bench_viewer.py --building {args.building}`. Mode \"final\" (reflection model "
         "and facade mask cast per frame), frames along the fly-through orbit.\n\n"
         "| size | frames | ms per frame | frames per second |\n| --- | --- | --- | --- |\n"
@@ -59,7 +56,7 @@ def main() -> None:
     )
     print(text)
     if not args.no_record:
-        append_results(text)
+        record_results(text)
 
 
 if __name__ == "__main__":

@@ -3,8 +3,9 @@ surface (paper, 3.1.1, extended from curved facades to all), so that segmentatio
 
 For each frontal view of ``01_import``: crop the coarse point cloud to the points that project into the
 image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a plane or cylinder robustly
-(``rectification.cylinder``, ``rectification.views``), and sample the surface on a regular (arc length, height) grid of ``metres_per_px``
-(``rectification.surface_map``: a homography for a plane, the unrolled cylinder otherwise). A view whose
+(``rectification.views``, ``rectification.cylinder``), and sample the surface on a regular (arc length,
+height) grid of ``metres_per_px`` (``rectification.surface_map``: a homography for a plane, the unrolled
+cylinder otherwise). A view whose
 points cannot define a surface is left unrectified, with the coarse mesh's scale at its centre; a view
 whose surface is nearly edge-on or whose rectified image would be too large is skipped with a warning.
 Both are listed in the manifest with the reason. Writes into ``02_rectify/``: the rectified image (none
