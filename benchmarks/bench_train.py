@@ -22,7 +22,6 @@ import argparse
 import dataclasses
 import sys
 import time
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _common import append_results, machine  # noqa: E402
+from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.config import load_building_config  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
@@ -228,7 +227,7 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         else "the cylinder room"
     )
     lines = [
-        f"\n## train_gs accuracy, {datetime.now():%Y-%m-%d %H:%M}\n",
+        "\n## train_gs accuracy\n",
         f"{where}\n",
         f"Building `{a.building}`: {len(data.train_idx)} training and {len(data.test_idx)} held-out views "
         f"({data.views[0].camera.width} x {data.views[0].camera.height} px); prior and masks: {prior}.",
@@ -287,7 +286,7 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
     text = "\n".join(lines) + "\n"
     print(text)
     if not a.no_write:
-        append_results(text)
+        record_results(text)
 
 
 def _fmt(x: float | None) -> str:
