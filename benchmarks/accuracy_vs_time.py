@@ -37,14 +37,16 @@ sys.path.insert(0, str(REPO))
 from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.config import load_building_config, to_dict  # noqa: E402
-from facade_pipeline.evaluation.image_eval import LpipsSetting, mean_metrics, region_masks, view_metrics  # noqa: E402
-from facade_pipeline.evaluation.render_views import from_trainer, render_trained, save_variant  # noqa: E402
+from facade_pipeline.evaluation.core import evaluate_views, views_of  # noqa: E402
+from facade_pipeline.evaluation.image_eval import LpipsSetting  # noqa: E402
+from facade_pipeline.evaluation.render_views import from_trainer  # noqa: E402
 from facade_pipeline.evaluation.report import pareto_front, svg_scatter  # noqa: E402
 from facade_pipeline.geometry.camera import PinholeCamera  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.training.data import TrainData, TrainView  # noqa: E402
 from facade_pipeline.training.params import TrainParams  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
+from facade_pipeline.training.trained import TrainedModelFiles  # noqa: E402
 from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
 from stages import PIPELINE, load_stage  # noqa: E402
 from stages._runner import execute, load_params  # noqa: E402
@@ -158,23 +160,16 @@ def child(
     train(tr)
     t_train = time.perf_counter() - t0
     tm = from_trainer(tr, label)
-    setting = LpipsSetting((LPIPS_CONVENTION,))
     t0 = time.perf_counter()
-    per_view = []
-    for i in full.test_idx:
-        v = full.views[i]
-        r = render_trained(tm, v.camera, v.facade_mask)
-        masks = region_masks(v.facade_mask, v.glass_mask)
-        per_view.append({"view": v.stem, "metrics": view_metrics(r.rgb, v.image, masks, setting)})
+    mean = evaluate_views(tm, views_of(full, full.test_idx), LpipsSetting((LPIPS_CONVENTION,)))["mean"]
     t_eval = time.perf_counter() - t0
-    mean = mean_metrics(per_view, setting.conventions)
     if save:
         split = {
             k: [full.views[i].stem for i in idx]
             for k, idx in (("train", full.train_idx), ("test", full.test_idx))
         }
-        folder = layout.path("variant_dir", variant=slug(label))
-        save_variant(folder, tr.model, tr.reflection, p.reflection(), data.bounds, split, to_dict(p))
+        files = TrainedModelFiles.variant(layout.path("variant_dir", variant=slug(label)), to_dict(p))
+        files.save(tr.model, tr.reflection, p.reflection(), data.bounds, split)
     return {
         "label": label,
         "changes": changes,

@@ -32,6 +32,9 @@ sys.path.insert(0, str(REPO))
 from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.config import load_building_config  # noqa: E402
+from facade_pipeline.evaluation.core import evaluate_views, headline, views_of  # noqa: E402
+from facade_pipeline.evaluation.image_eval import INTERIOR_MARGIN_PX, LpipsSetting  # noqa: E402
+from facade_pipeline.evaluation.render_views import from_trainer  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX  # noqa: E402
 from facade_pipeline.training.corrections import AlignParams  # noqa: E402
@@ -45,13 +48,7 @@ from facade_pipeline.training.data import (  # noqa: E402
 )
 from facade_pipeline.training.params import TrainParams  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
-from facade_pipeline.training.trainer import (  # noqa: E402
-    INTERIOR_MARGIN_PX,
-    build_trainer,
-    evaluate,
-    resolve_device,
-    train,
-)
+from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
 
 # The building's files are read with the I/O stack (open3d, OpenEXR, pycolmap), imported where they are read
 # so that `--bundle` runs on a machine with torch alone.
@@ -188,8 +185,7 @@ def main() -> None:
         tr = build_trainer(p, data, raster, device)
         train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
         wall = time.perf_counter() - t0
-        ev = evaluate(tr, data.test_idx)
-        ev_aligned = evaluate(tr, data.test_idx, align) if align.steps > 0 else None
+        ev, ev_aligned = measure(tr, name, data, align)
         rows.append((name, ev, ev_aligned, wall, tr.model.n))
         print(
             f"\n{name}: glass PSNR {ev['psnr_glass']:.2f} dB, facade PSNR {ev['psnr']:.2f} dB, "
@@ -198,6 +194,16 @@ def main() -> None:
             flush=True,
         )
     report(a, base, align, prior, data, rows, device)
+
+
+def measure(tr, name: str, data: TrainData, align: AlignParams) -> tuple[dict, dict | None]:
+    """The held-out views' headline figures as imported and, when ``align`` has steps, aligned (the
+    evaluation core, as train_gs and the evaluate stage measure them; no LPIPS)."""
+    tm = from_trainer(tr, name)
+    views = views_of(data, data.test_idx, tr.params.mask_by_facade)
+    ev = headline(evaluate_views(tm, views, LpipsSetting(())))
+    aligned = headline(evaluate_views(tm, views, LpipsSetting(()), align)) if align.steps > 0 else None
+    return ev, aligned
 
 
 def building_data(a, base: TrainParams) -> tuple[TrainData, str]:

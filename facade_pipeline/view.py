@@ -381,22 +381,20 @@ def _free_port() -> int:
 def load_scene(building: str, data_root: str | None, variant: str | None, device: str = "cpu") -> Scene:
     """The trained model of ``building`` (07_train, or ``variants/<variant>``), its cameras and photos,
     the corrected mesh and the 3D panels."""
-    from facade_pipeline.evaluation.render_views import TrainedVariant, load_trained, variant_from_dir
+    from facade_pipeline.evaluation.render_views import load_trained
     from facade_pipeline.io.images import read_image
     from facade_pipeline.io.meshes import read_mesh
     from facade_pipeline.layout import BuildingLayout
-    from facade_pipeline.manifest import read_manifest
     from facade_pipeline.meshing.correct import read_labels
     from facade_pipeline.panels3d.model import PanelSet
     from facade_pipeline.scene import ImportedScene
+    from facade_pipeline.training.trained import TrainedModelFiles
 
     layout = BuildingLayout.for_building(building, data_root)
     if variant:
-        tv = variant_from_dir(layout.path("variant_dir", variant=variant))
+        tv = TrainedModelFiles.from_dir(layout.path("variant_dir", variant=variant))
     else:
-        man = read_manifest(layout, "train_gs")
-        tv = TrainedVariant("07_train", layout.path("train_ply"), layout.path("train_reflection"),
-                            layout.path("train_split"), man.params)  # fmt: skip
+        tv = TrainedModelFiles.pipeline(layout)
     model = load_trained(tv, device)
     split = tv.split_stems()
     scene = ImportedScene.load(layout)

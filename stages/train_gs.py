@@ -17,9 +17,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import result_dict
+from facade_pipeline.config import result_dict, to_dict
 from facade_pipeline.errors import InputError
-from facade_pipeline.io.atomic import write_json, write_text
+from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
+from facade_pipeline.evaluation.image_eval import LpipsSetting
+from facade_pipeline.evaluation.render_views import from_trainer
+from facade_pipeline.io.atomic import write_text
 from facade_pipeline.io.exr import read_exr
 from facade_pipeline.io.images import read_image, read_mask
 from facade_pipeline.io.meshes import read_mesh, read_points
@@ -27,20 +30,17 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.shading.reflection import reflection_record
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.params import TrainParams
-from facade_pipeline.training.ply import write_ply
 from facade_pipeline.training.render import splatting_rasterizer
+from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
 from facade_pipeline.training.trainer import (
     Trainer,
     build_trainer,
-    evaluate,
     exposure_gains,
     load_checkpoint,
     resolve_device,
-    save_torch,
     train,
 )
 from stages._runner import PACKAGE_DIR, StageReport, main
@@ -151,12 +151,7 @@ def fingerprint(layout: BuildingLayout, params: Params) -> str:
     return h.hexdigest()
 
 
-def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Path]:
-    write_ply(layout.path("train_ply"), tr.model)
-    refl = reflection_record(tr.params.reflection(), tr.data.bounds, tr.reflection)
-    save_torch(layout.path("train_reflection"), refl)
-    lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": metrics})]
-    write_text(layout.path("train_log"), "\n".join(lines) + "\n")
+def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list[Path]:
     views = tr.data.views
     split = {
         "train": [views[i].stem for i in tr.data.train_idx],
@@ -165,8 +160,19 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Pa
     gains = exposure_gains(tr)
     if gains:
         split["exposure_gain"] = gains
-    write_json(layout.path("train_split"), split)
+    files = TrainedModelFiles.pipeline(layout, to_dict(tr.params))
+    files.save(tr.model, tr.reflection, tr.params.reflection(), tr.data.bounds, split)
+    lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": evaluation})]
+    write_text(layout.path("train_log"), "\n".join(lines) + "\n")
     return targets(layout, tr.params)
+
+
+def held_out_evaluation(tr: Trainer) -> dict:
+    """The held-out views measured by the evaluation core (no LPIPS): the headline means and a row per
+    view."""
+    views = views_of(tr.data, tr.data.test_idx, tr.params.mask_by_facade)
+    result = evaluate_views(from_trainer(tr, PIPELINE_MODEL), views, LpipsSetting(()))
+    return {**headline(result), "views": result["views"]}
 
 
 def run(layout: BuildingLayout, params: Params) -> StageReport:
@@ -187,7 +193,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", n=out["n"], refresh=False)
 
         train(tr, ckpt, fp, progress)
-    metrics = evaluate(tr, data.test_idx)
+    metrics = held_out_evaluation(tr)
     outputs = _save_outputs(layout, tr, metrics)
     last = tr.log[-1] if tr.log else {}
     surroundings = getattr(getattr(tr.reflection, "proxy", None), "surroundings", None)
@@ -209,6 +215,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "test_psnr": metrics["psnr"],
             "test_ssim": metrics["ssim"],
             "test_psnr_glass": metrics["psnr_glass"],
+            "test_psnr_glass_interior": metrics["psnr_glass_interior"],
             "test_normal_error_glass_deg": metrics["normal_error_glass_deg"],
             "test_views": metrics["views"],
             "proxy_surroundings_cells": cells,

@@ -1,7 +1,9 @@
 """Image metrics of one rendered view against its photo, per region, and the error heat map.
 
-Regions (bool masks [H, W]): ``facade`` (the baked facade mask), ``glass`` (facade and glass) and ``frames``
-(facade but not glass). Each region gets PSNR, SSIM (``metrics.py``: 11x11 Gaussian window, sigma 1.5,
+Regions (bool masks [H, W]): ``facade`` (the baked facade mask), ``glass`` (facade and glass),
+``glass_interior`` (the glass pixels at least ``INTERIOR_MARGIN_PX`` from the glass region's edge and from
+the image border: the frames' edges, where a pixel mixes glass and frame, left out) and ``frames`` (facade
+but not glass). Each region gets PSNR, SSIM (``metrics.py``: 11x11 Gaussian window, sigma 1.5,
 statistics renormalised over the mask) and LPIPS (``lpips.py``) under every configured convention. A
 region without a pixel gets ``None`` (JSON null), never a number; LPIPS without weights is the string
 ``"unavailable"``.
@@ -20,7 +22,9 @@ import torch
 from facade_pipeline.evaluation.lpips import LpipsConvention, LpipsUnavailable, lpips_score
 from facade_pipeline.evaluation.metrics import psnr, ssim
 
-REGIONS = ("facade", "glass", "frames")
+REGIONS = ("facade", "glass", "glass_interior", "frames")
+#: pixels nearer than this to the edge of a view's glass region are left out of ``glass_interior``
+INTERIOR_MARGIN_PX = 2
 UNAVAILABLE = "unavailable"
 #: anchors of the heat-map colour ramp (black -> purple -> orange -> yellow), evenly spaced in [0, 1]
 _RAMP = np.array([[0, 0, 4], [87, 16, 110], [188, 55, 84], [249, 142, 9], [252, 255, 164]], np.float64) / 255
@@ -35,9 +39,30 @@ class LpipsSetting:
 
 
 def region_masks(facade: np.ndarray, glass: np.ndarray) -> dict[str, np.ndarray]:
-    """The three evaluation regions from the facade and glass masks [H, W] bool."""
+    """The evaluation regions (``REGIONS``) from the facade and glass masks [H, W] bool."""
     facade, glass = np.asarray(facade, bool), np.asarray(glass, bool)
-    return {"facade": facade, "glass": facade & glass, "frames": facade & ~glass}
+    on_glass = facade & glass
+    return {
+        "facade": facade,
+        "glass": on_glass,
+        "glass_interior": erode(on_glass, INTERIOR_MARGIN_PX),
+        "frames": facade & ~glass,
+    }
+
+
+def erode(mask: np.ndarray, px: int) -> np.ndarray:  # [H, W] bool -> [H, W] bool
+    """``mask`` without the pixels within ``px`` (Chebyshev distance) of a pixel outside it or of the
+    image border."""
+    mask = np.asarray(mask, bool)
+    if px <= 0:
+        return mask
+    h, w = mask.shape
+    padded = np.pad(mask, px, constant_values=False)  # off the image counts as outside the mask
+    out = mask.copy()
+    for dy in range(2 * px + 1):
+        for dx in range(2 * px + 1):
+            out &= padded[dy : dy + h, dx : dx + w]
+    return out
 
 
 def _finite(x: float) -> float | str:
@@ -77,7 +102,8 @@ def view_metrics(
 
 def mean_metrics(per_view: list[dict[str, Any]], conventions: tuple[str, ...]) -> dict[str, Any]:
     """Means over views per region. PSNR is averaged in dB (as 3DGS-family papers do); an infinite PSNR
-    (a perfect view) is left out of the mean. LPIPS is "unavailable" when any view lacks it."""
+    (a perfect view) is left out of the mean. LPIPS is "unavailable" when any view lacks it. Where the rows
+    carry ``normal_error_glass_deg``, its mean over the views that have one (None: none has)."""
     out: dict[str, Any] = {}
     for region in REGIONS:
         rows = [v["metrics"][region] for v in per_view if v["metrics"].get(region)]
@@ -95,6 +121,9 @@ def mean_metrics(per_view: list[dict[str, Any]], conventions: tuple[str, ...]) -
             "ssim": round(float(np.mean([r["ssim"] for r in rows])), 6),
             "lpips": lp,
         }
+    if any("normal_error_glass_deg" in v for v in per_view):
+        errs = [v["normal_error_glass_deg"] for v in per_view if v.get("normal_error_glass_deg") is not None]
+        out["normal_error_glass_deg"] = float(np.mean(errs)) if errs else None
     return out
 
 

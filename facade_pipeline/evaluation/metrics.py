@@ -1,6 +1,7 @@
 """Image metrics over a mask (PSNR, SSIM) and geometry metrics (surface distance, normal angle, corner error).
 
-Everything is computed in float64 numpy; torch tensors are accepted and copied to the CPU.
+Everything is computed in float64 (numpy; PSNR through the training package's ``losses.psnr``, the one
+PSNR of the project); torch tensors are accepted and copied to the CPU.
 
 Images are ``[H, W]`` or ``[H, W, C]`` arrays with values in ``[0, data_range]`` (``data_range`` is 1 for our
 renders). A mask is a bool array ``[H, W]`` (True = the pixel counts), the same for every channel; ``None``
@@ -52,8 +53,10 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+import torch
 
 from facade_pipeline.evaluation.errors import EmptyMaskError, MetricInputError
+from facade_pipeline.training import losses
 
 SSIM_WINDOW_PX = 11
 SSIM_SIGMA_PX = 1.5
@@ -68,7 +71,7 @@ SsimBorder = Literal["valid", "renormalize"]
 
 def _as_f64(a: Any, name: str) -> np.ndarray:
     """A float64 numpy copy of an array or torch tensor."""
-    if hasattr(a, "detach"):  # torch tensor, without importing torch here
+    if hasattr(a, "detach"):  # a torch tensor
         a = a.detach().cpu().numpy()
     arr = np.asarray(a)
     if arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
@@ -123,11 +126,9 @@ def psnr(img0: Any, img1: Any, mask: Any = None, *, data_range: float = 1.0) -> 
     the mask; ``EmptyMaskError`` for an empty mask."""
     x, y, m = _image_pair(img0, img1, mask)
     r = _check_data_range(data_range)
-    n = int(m.sum())
-    if n == 0:
+    if not m.any():
         raise EmptyMaskError("a mask with at least one pixel for PSNR", "an empty mask")
-    mse = float(((x[m] - y[m]) ** 2).sum()) / (n * x.shape[2])
-    return math.inf if mse == 0.0 else 10.0 * math.log10(r * r / mse)
+    return losses.psnr(torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(m), r)
 
 
 # --------------------------------------------------------------------------------------------------- SSIM

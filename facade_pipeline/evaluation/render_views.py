@@ -2,16 +2,12 @@
 views with it, on top of the training package's public API (``read_ply``/``model_from_ply``,
 ``build_reflection_module``, ``render_view``, ``splatting_rasterizer``).
 
-A *trained variant* is one such model and what produced it: the files and the ``train_gs`` parameters
-(``to_dict`` form, as the manifest records them). The pipeline's own model is ``07_train/``; more variants
-(a baseline, an ablation) may be saved under ``variants/<name>/`` with ``save_variant`` and are evaluated
-beside it.
+Where a trained model lies and what produced it is ``training.trained.TrainedModelFiles`` (the pipeline's
+``07_train/`` or a variant under ``variants/<name>/``); ``load_trained`` reads it into a ``TrainedModel``.
 """
 
 from __future__ import annotations
 
-import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,23 +16,20 @@ import numpy as np
 import torch
 from torch import nn
 
-from facade_pipeline.config import to_dict
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.io.atomic import write_bytes, write_json
 from facade_pipeline.shading.reflection import (
     EnvMap,
     ReflectionMLP,
     ReflectionModel,
     SHOnly,
     build_reflection_module,
-    reflection_record,
 )
 from facade_pipeline.shading.self_hits import MESH_FIELDS
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
-from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
+from facade_pipeline.training.ply import model_from_ply, read_ply
 from facade_pipeline.training.render import (
     Camera,
     Render,
@@ -44,36 +37,12 @@ from facade_pipeline.training.render import (
     render_view,
     splatting_rasterizer,
 )
+from facade_pipeline.training.schedule import active_sh_degree
+from facade_pipeline.training.trained import TrainedModelFiles
 from facade_pipeline.training.trainer import Trainer
 
 #: reflective pixels shaded per call of the reflection module (bounds memory on large views)
 RENDER_CHUNK = 65536
-VARIANT_FILES = ("gaussians.ply", "reflection.pt", "split.json", "params.json")
-
-
-@dataclass(frozen=True)
-class TrainedVariant:
-    """Where a trained model lies and the ``train_gs`` parameters (plain dict) it was trained with."""
-
-    name: str
-    ply: Path
-    reflection: Path
-    split: Path
-    params: dict[str, Any]
-
-    @property
-    def files(self) -> list[Path]:
-        return [self.ply, self.reflection, self.split]
-
-    def split_stems(self) -> dict[str, list[str]]:
-        """``{"train": [...], "test": [...]}``: the view stems of the split it was trained on."""
-        try:
-            d = json.loads(self.split.read_text())
-            return {"train": list(d["train"]), "test": list(d["test"])}
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise InputError(
-                self.split, "a JSON split {train: [...], test: [...]}", f"{type(e).__name__}: {e}"
-            ) from None
 
 
 @dataclass
@@ -119,13 +88,7 @@ def reflection_from_config(name: str, config: dict[str, Any], path: Path | None 
     raise InputError(path, "a reflection model 'sh', 'envmap' or 'mlp'", repr(name))
 
 
-def active_sh_degree(params: dict[str, Any]) -> int:
-    """The SH degree in use at the end of training (one band more every ``sh_degree_interval``)."""
-    degree, interval = int(params["sh_degree"]), int(params["sh_degree_interval"])
-    return degree if interval <= 0 else min(degree, int(params["iterations"]) // interval)
-
-
-def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") -> TrainedModel:
+def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu") -> TrainedModel:
     """Read a variant's PLY and reflection weights. A damaged file raises ``InputError`` naming it."""
     device = torch.device(device)
     model = model_from_ply(read_ply(variant.ply), device)
@@ -158,7 +121,7 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
         module,
         strategy,
         shading,
-        active_sh_degree(p),
+        active_sh_degree(int(p["sh_degree"]), int(p["sh_degree_interval"]), int(p["iterations"])),
         float(p["near_m"]),
         backend,
         lowpass,
@@ -176,7 +139,7 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
         tr.reflection,
         p.reflection(),
         tr.shading,
-        active_sh_degree(to_dict(p) | {"iterations": tr.iteration}),
+        active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration),
         p.near_m,
         p.raster_backend,
         p.lowpass_sigma_px,
@@ -258,39 +221,9 @@ def align_trained(
         frozen=frozen,
     )
     aligned = PinholeCamera(camera.K, fit.cam_from_world.double().cpu().numpy(), camera.width, camera.height)
-    r = render_trained(tm, aligned, facade_mask)
-    rgb = np.clip(r.rgb * fit.gain.cpu().numpy(), 0.0, 1.0).astype(r.rgb.dtype)
-    return AlignedView(aligned, fit, RenderedView(rgb, r.normal, r.alpha))
-
-
-def variant_from_dir(folder: Path, name: str | None = None) -> TrainedVariant:
-    """A variant saved by ``save_variant`` in ``folder`` (its ``params.json`` holds the parameters)."""
-    files = [folder / f for f in VARIANT_FILES]
-    for f in files:
-        if not f.is_file():
-            raise InputError(f, "a file of a saved trained variant", "no file")
-    try:
-        params = json.loads(files[3].read_text())
-    except ValueError as e:
-        raise InputError(files[3], "train_gs parameters as JSON", str(e)) from None
-    return TrainedVariant(name or folder.name, files[0], files[1], files[2], params)
-
-
-def save_variant(
-    folder: Path,
-    model: GaussianModel,
-    reflection: nn.Module | None,
-    strategy: ReflectionModel,
-    bounds: tuple[np.ndarray, np.ndarray],
-    split: dict[str, list[str]],
-    params: dict[str, Any],
-) -> None:
-    """Write a trained model in the ``train_gs`` formats (PLY, reflection weights, split) plus its
-    parameters, atomically, so that ``variant_from_dir`` and the evaluate stage find it."""
-    folder.mkdir(parents=True, exist_ok=True)
-    write_ply(folder / VARIANT_FILES[0], model)
-    buf = io.BytesIO()
-    torch.save(reflection_record(strategy, bounds, reflection), buf)
-    write_bytes(folder / VARIANT_FILES[1], buf.getvalue())
-    write_json(folder / VARIANT_FILES[2], split)
-    write_json(folder / VARIANT_FILES[3], params)
+    with torch.no_grad():
+        r = _render(tm, _torch_camera(tm, aligned), spec)
+    # the gain scales the render before it is clipped to [0, 1], as an exposure scales light on a sensor
+    rgb = (r.rgb * fit.gain).clamp(0, 1)
+    maps = (t.cpu().numpy() for t in (rgb, r.normal, r.alpha))
+    return AlignedView(aligned, fit, RenderedView(*maps))

@@ -1,3 +1,5 @@
 """Reflection-aware 2D Gaussian Splatting training (the paper's section 3.2): the Gaussian model, its
-initialisation, losses and schedules, densification, the trainer (build / step / evaluate / checkpoint) and
-the PLY export. The rasterizer is ``facade_pipeline.splatting``; shading is ``facade_pipeline.shading``."""
+initialisation, losses and schedules, densification, the trainer (build / step / checkpoint), the PLY
+export and the trained model's files (``trained.py``, the train_gs hand-off). Measuring a trained model
+belongs to the evaluation package, which builds on this one. The rasterizer is ``facade_pipeline.splatting``;
+shading is ``facade_pipeline.shading``."""

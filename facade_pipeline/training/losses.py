@@ -3,6 +3,8 @@ bool. Every mean is over the pixels of its mask and returns 0 (not NaN) on an em
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -101,9 +103,12 @@ def normal_consistency_loss(normal: Tensor, surf_normal: Tensor, mask: Tensor) -
     return masked_mean(1.0 - (normal * surf_normal).sum(-1), mask & border)
 
 
-def psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
-    """PSNR (dB, peak 1) over the masked pixels; inf for a perfect match, nan for an empty mask."""
+def psnr(pred: Tensor, gt: Tensor, mask: Tensor, data_range: float = 1.0) -> float:
+    """PSNR (dB) over the masked pixels and all channels, 10 log10(R^2 / MSE) with MSE in float64: the one
+    PSNR of the project (training logs, ``evaluation.metrics.psnr`` through its input checks). pred, gt:
+    [H, W, C]; mask: [H, W] bool. +inf for a perfect match, NaN for an empty mask."""
     if not bool(mask.any()):
         return float("nan")
-    mse = float(masked_mean((pred - gt) ** 2, mask))
-    return float("inf") if mse == 0.0 else -10.0 * float(torch.log10(torch.tensor(mse)))
+    d = pred.detach().double() - gt.detach().double()
+    mse = float(masked_mean(d * d, mask))
+    return math.inf if mse == 0.0 else 10.0 * math.log10(data_range * data_range / mse)

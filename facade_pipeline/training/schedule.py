@@ -30,3 +30,11 @@ def exp_decay(init: float, final: float, iteration: int, iterations: int) -> flo
         return init if iteration == 0 else final
     t = min(max(iteration / max(iterations, 1), 0.0), 1.0)
     return math.exp((1.0 - t) * math.log(init) + t * math.log(final))
+
+
+def active_sh_degree(sh_degree: int, interval: int, iteration: int) -> int:
+    """The SH degree in use at ``iteration``: one more band every ``interval`` iterations (3DGS), up to
+    ``sh_degree``; ``interval`` <= 0 uses every band from the start."""
+    if interval <= 0:
+        return sh_degree
+    return min(sh_degree, iteration // interval)

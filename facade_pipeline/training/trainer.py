@@ -1,4 +1,4 @@
-"""The trainer: ``build_trainer``, ``step``, ``evaluate``, ``save_checkpoint`` / ``load_checkpoint`` and
+"""The trainer: ``build_trainer``, ``step``, ``save_checkpoint`` / ``load_checkpoint`` and
 ``train`` (the loop that ties them together with checkpoints and a progress callback).
 
 Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf (+ lambda_d L_d), with L_c = 0.8 L1
@@ -24,16 +24,10 @@ import torch
 from torch import Tensor, nn
 
 from facade_pipeline.errors import PipelineError
-from facade_pipeline.evaluation import metrics
-from facade_pipeline.evaluation.errors import EmptyMaskError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
 from facade_pipeline.training import losses
-from facade_pipeline.training.corrections import (
-    AlignParams,
-    ViewCorrections,
-    align_view,
-)
+from facade_pipeline.training.corrections import ViewCorrections
 from facade_pipeline.training.data import TrainData, TrainView
 from facade_pipeline.training.densify import (
     DensifyStats,
@@ -55,13 +49,10 @@ from facade_pipeline.training.render import (
     random_subset,
     render_view,
 )
-from facade_pipeline.training.schedule import at_fraction, exp_decay, step_schedule
+from facade_pipeline.training.schedule import active_sh_degree, at_fraction, exp_decay, step_schedule
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 2
-EVAL_CHUNK = 65536
-#: Pixels nearer than this to the edge of a view's glass mask are left out of ``psnr_glass_interior``.
-INTERIOR_MARGIN_PX = 2
 
 
 class TrainingDivergedError(PipelineError):
@@ -279,13 +270,6 @@ def build_trainer(
     )
 
 
-def active_sh_degree(p: TrainParams, iteration: int) -> int:
-    """The SH degree in use: one more band every ``sh_degree_interval`` iterations (3DGS), up to the max."""
-    if p.sh_degree_interval <= 0:
-        return p.sh_degree
-    return min(p.sh_degree, iteration // p.sh_degree_interval)
-
-
 def _randint(gen: torch.Generator, high: int) -> int:
     return int(torch.randint(high, (1,), generator=gen))
 
@@ -446,7 +430,7 @@ def render_window(
         window,
         tr.rasterize,
         tr.params.near_m,
-        active_sh_degree(tr.params, tr.iteration),
+        active_sh_degree(tr.params.sh_degree, tr.params.sh_degree_interval, tr.iteration),
         tr.shading,
         spec_mask=vt.mask,
         select=select,
@@ -512,100 +496,6 @@ def _densify_if_due(tr: Trainer) -> None:
         log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.model.n)
     if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
         reset_opacity(tr.model, tr.opt, d.opacity_reset_value)
-
-
-@torch.no_grad()
-def evaluate(
-    tr: Trainer, indices: tuple[int, ...] | list[int], align: AlignParams | None = None
-) -> dict[str, Any]:
-    """Render whole views and measure them: PSNR and SSIM over the facade mask, PSNR over glass and over
-    its interior (``INTERIOR_MARGIN_PX`` from the mask's edge: the frames' edges left out), and the
-    rendered normals' angle error (deg) on glass against the view's normal prior. Means over the views
-    (a view without glass pixels is left out of the glass means). With ``align`` (and steps), each view
-    is first aligned to the frozen model (``corrections.align_view``, over its facade mask) and measured
-    as aligned; each view's entry then says what the alignment changed."""
-    per_view = []
-    for i in indices:
-        cam = camera(tr, i)
-        fit = None
-        if align is None or align.steps <= 0:
-            r, vt = render_window(tr, i, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK)
-        else:
-            full = (0, 0, cam.width, cam.height)  # the view's data alone: the fit renders it
-            vt = view_tensors(tr.data.views[i], full, tr.params.mask_by_facade, tr.device)
-            fit = align_view(
-                lambda M, i=i, cam=cam: _render_posed(tr, i, cam, M).rgb,
-                cam.cam_from_world,
-                vt.image,
-                vt.mask,
-                align,
-                frozen=[*tr.model.params().values(), *_module_params(tr.reflection)],
-            )
-            r = _render_posed(tr, i, cam, fit.cam_from_world)
-            r = dataclasses.replace(r, rgb=r.rgb * fit.gain)
-        rgb = r.rgb.clamp(0, 1)
-        glass = vt.glass & vt.mask
-        n = torch.nn.functional.normalize(r.normal, dim=-1)
-        cos = (n * vt.prior).sum(-1).clamp(-1, 1)
-        ok = glass & vt.prior_valid
-        ang = torch.rad2deg(torch.arccos(cos[ok])) if bool(ok.any()) else None
-        row = {
-            "view": tr.data.views[i].stem,
-            "psnr": losses.psnr(rgb, vt.image, vt.mask),
-            "ssim": _masked_ssim(rgb, vt.image, vt.mask),
-            "psnr_glass": losses.psnr(rgb, vt.image, glass),
-            "psnr_glass_interior": _psnr_or_none(rgb, vt.image, erode(glass, INTERIOR_MARGIN_PX)),
-            "normal_error_glass_deg": None if ang is None else float(ang.mean()),
-        }
-        if fit is not None:
-            row |= fit.summary()
-        per_view.append(row)
-    return {"views": per_view, **_means(per_view)}
-
-
-def _render_posed(tr: Trainer, index: int, cam: Camera, cam_from_world: Tensor) -> Render:
-    """View ``index`` whole, seen from ``cam_from_world`` instead of its pose."""
-    posed = Camera(cam.K, cam_from_world, cam.width, cam.height)
-    return render_window(tr, index, (0, 0, cam.width, cam.height), chunk=EVAL_CHUNK, cam=posed)[0]
-
-
-def _module_params(module: nn.Module | None) -> list[Tensor]:
-    return [] if module is None else list(module.parameters())
-
-
-def _psnr_or_none(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
-    """PSNR over ``mask``, None where it is empty (JSON has no NaN)."""
-    return losses.psnr(rgb, image, mask) if bool(mask.any()) else None
-
-
-def erode(mask: Tensor, px: int) -> Tensor:  # [H, W] bool -> [H, W] bool
-    """``mask`` without the pixels within ``px`` (Chebyshev distance) of a pixel outside it or of the
-    image border."""
-    if px <= 0:
-        return mask
-    k = 2 * px + 1
-    outside = (~mask).float()[None, None]
-    near = torch.nn.functional.max_pool2d(outside, k, stride=1, padding=px)[0, 0] > 0
-    border = torch.ones_like(mask)
-    border[px:-px, px:-px] = False
-    return mask & ~near & ~border
-
-
-def _masked_ssim(rgb: Tensor, image: Tensor, mask: Tensor) -> float | None:
-    """SSIM over the facade mask exactly as the evaluate stage reports it (statistics renormalised over
-    the mask, so nothing outside it counts); None for a view with no facade pixel."""
-    try:
-        return metrics.ssim(rgb.cpu().numpy(), image.cpu().numpy(), mask.cpu().numpy(), border="renormalize")
-    except EmptyMaskError:
-        return None
-
-
-def _means(per_view: list[dict[str, Any]]) -> dict[str, float | None]:
-    out: dict[str, float | None] = {}
-    for key in ("psnr", "ssim", "psnr_glass", "psnr_glass_interior", "normal_error_glass_deg"):
-        vals = [v[key] for v in per_view if v[key] is not None and math.isfinite(v[key])]
-        out[key] = float(np.mean(vals)) if vals else None
-    return out
 
 
 def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:

@@ -48,6 +48,7 @@ def test_regions_partition_the_facade():
     _, _, m = _pair()
     assert not (m["glass"] & m["frames"]).any()
     assert ((m["glass"] | m["frames"]) == m["facade"]).all()
+    assert m["glass_interior"].any() and not (m["glass_interior"] & ~m["glass"]).any()
 
 
 def test_metrics_ignore_pixels_outside_each_region():
@@ -217,7 +218,7 @@ def test_table3_only_for_an_mlp_ablation():
     longer = {**_variant("mlp", 35.0, {**arch, "mlp_depth": 6}), "ablation_group": "other"}
     three = {name: {**v, "ablation_group": "g"} for name, v in two.items()} | {"longer": longer}
     assert [r[2] for r in table3_rows(_metrics(three))] == ["29.00", "30.00"]
-    from stages.evaluate import ablation_group
+    from facade_pipeline.evaluation.building import ablation_group
 
     base = {"iterations": 10, "seed": 0, "device": "cpu", **arch}
     assert ablation_group(base) == ablation_group({**base, "mlp_width": 64, "device": "cuda"})

@@ -13,23 +13,16 @@ import re
 import numpy as np
 import pytest
 from PIL import Image
-from tqdm import tqdm
 
 from facade_pipeline.config import to_dict
 from facade_pipeline.errors import InputError
-from facade_pipeline.evaluation.image_eval import LpipsSetting
+from facade_pipeline.evaluation.building import evaluate_split, metrics_header, write_reports
 from facade_pipeline.evaluation.metrics import psnr, ssim
-from facade_pipeline.evaluation.render_views import (
-    align_trained,
-    from_trainer,
-    load_trained,
-    render_trained,
-    save_variant,
-    variant_from_dir,
-)
+from facade_pipeline.evaluation.render_views import align_trained, from_trainer, load_trained, render_trained
 from facade_pipeline.io.images import read_mask
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
+from facade_pipeline.training.trained import TrainedModelFiles
 from stages import evaluate as stage
 from stages._runner import load_params
 
@@ -42,10 +35,13 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     }
     folder = layout.path("variant_dir", variant="tiny")
 
-    save_variant(
-        folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, to_dict(tr.params)
-    )
-    variant = variant_from_dir(folder)
+    def save(params):
+        TrainedModelFiles.variant(folder, params).save(
+            tr.model, tr.reflection, tr.params.reflection(), data.bounds, split
+        )
+
+    save(to_dict(tr.params))
+    variant = TrainedModelFiles.from_dir(folder)
     assert variant.name == "tiny" and variant.split_stems() == split
     loaded = load_trained(variant)
     live = from_trainer(tr, "live")
@@ -56,43 +52,40 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)  # PLY stores activated values: float32 round trip
     # a variant trained with supersampling is rendered with it
     params = to_dict(tr.params) | {"supersample": 2}
-    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, params)
-    ss = load_trained(variant_from_dir(folder))
+    save(params)
+    ss = load_trained(TrainedModelFiles.from_dir(folder))
     assert ss.shading.supersample == 2
     live2 = dataclasses.replace(live, shading=dataclasses.replace(live.shading, supersample=2))
     c = render_trained(ss, v.camera, v.facade_mask)
     np.testing.assert_allclose(c.rgb, render_trained(live2, v.camera, v.facade_mask).rgb, atol=1e-5)
     assert float(np.abs(c.rgb - a.rgb).max()) > 1e-3  # and that is not the one-sample render
     # ... and one trained with another low-pass sigma with that sigma; one saved before the key, with 2DGS's
-    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split,
-                 to_dict(tr.params) | {"lowpass_sigma_px": 0.4})
-    lp = load_trained(variant_from_dir(folder))
+    save(to_dict(tr.params) | {"lowpass_sigma_px": 0.4})
+    lp = load_trained(TrainedModelFiles.from_dir(folder))
     assert lp.lowpass_sigma_px == 0.4
     d = render_trained(lp, v.camera, v.facade_mask)
     live3 = dataclasses.replace(live, lowpass_sigma_px=0.4)
     np.testing.assert_allclose(d.rgb, render_trained(live3, v.camera, v.facade_mask).rgb, atol=1e-5)
     assert float(np.abs(d.rgb - a.rgb).max()) > 1e-3
     old = {k: v for k, v in to_dict(tr.params).items() if k != "lowpass_sigma_px"}
-    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, old)
-    assert load_trained(variant_from_dir(folder)).lowpass_sigma_px == LOWPASS_SIGMA_PX
+    save(old)
+    assert load_trained(TrainedModelFiles.from_dir(folder)).lowpass_sigma_px == LOWPASS_SIGMA_PX
     (folder / "params.json").write_text("{not json")
     with pytest.raises(InputError, match="params.json"):
-        variant_from_dir(folder)
+        TrainedModelFiles.from_dir(folder)
 
 
 def test_report_builds_from_a_tiny_run(tiny):
     layout, data, tr = tiny
     params = load_params(stage, "synthetic64")
-    setting = LpipsSetting(params.lpips_conventions, params.lpips_weights_dir or None)
     scene_views = {v.stem: v for v in ImportedScene.load(layout).uav_views}
     views = [scene_views[data.views[i].stem] for i in data.test_idx]
     tm = from_trainer(tr, "tiny_run")
-    with tqdm(total=len(views), disable=True) as bar:
-        measured, written = stage.evaluate_split(layout, params, tm, views, "test", setting, bar)
+    measured, written = evaluate_split(layout, params, tm, views, "test")
     result, aligned = measured["test"], measured["test_aligned"]
-    metrics = stage.metrics_header(layout, params, 4)
+    metrics = metrics_header(layout, params, 4)
     metrics["variants"]["tiny_run"] = {"reflection_model": "mlp", "architecture": None, **measured}
-    outputs = stage.write_reports(layout, params, metrics)
+    outputs = write_reports(layout, params, metrics)
     assert all(p.is_file() for p in outputs + written)
 
     # the figures are those of the render against the photo over the (gt) facade mask

@@ -200,8 +200,9 @@ def test_mlp_gets_the_hits_and_ignores_the_proxy_where_a_ray_hits():
 
 
 def test_saved_model_with_self_hits_renders_the_same(tmp_path):
-    from facade_pipeline.evaluation.render_views import load_trained, variant_from_dir
+    from facade_pipeline.evaluation.render_views import load_trained
     from facade_pipeline.shading.reflection import reflection_record
+    from facade_pipeline.training.trained import TrainedModelFiles
 
     cfg = _mlp_cfg()
     torch.manual_seed(1)
@@ -220,7 +221,7 @@ def test_saved_model_with_self_hits_renders_the_same(tmp_path):
     (tmp_path / "split.json").write_text('{"train": [], "test": []}')
     params = {"refl_threshold": 0.01, "sh_degree": 1, "sh_degree_interval": 0, "iterations": 1, "near_m": 0.1}
     (tmp_path / "params.json").write_text(json.dumps(params))
-    tm = load_trained(variant_from_dir(tmp_path))
+    tm = load_trained(TrainedModelFiles.from_dir(tmp_path))
     x = _norm(torch.tensor([[0.5, 0.0, 1.0], [0.5, 0.0, 1.0]]))
     w = torch.tensor([_unit(1.0, 0.1, 0.0), _unit(0.0, 1.0, -0.2)])
     assert torch.equal(tm.reflection(x, w), m(x, w))
@@ -230,7 +231,7 @@ def test_saved_model_with_self_hits_renders_the_same(tmp_path):
     from facade_pipeline.errors import InputError
 
     with pytest.raises(InputError, match="reflection.pt"):
-        load_trained(variant_from_dir(tmp_path))
+        load_trained(TrainedModelFiles.from_dir(tmp_path))
 
 
 def test_ray_from_just_behind_the_glass_goes_through_it():
@@ -269,10 +270,9 @@ def test_training_with_self_hits_saves_and_renders_back(data64, tmp_path):
         from_trainer,
         load_trained,
         render_trained,
-        save_variant,
-        variant_from_dir,
     )
     from facade_pipeline.training.render import splatting_rasterizer
+    from facade_pipeline.training.trained import TrainedModelFiles
     from facade_pipeline.training.trainer import build_trainer, train
     from tests.training.conftest import small_params
 
@@ -288,8 +288,9 @@ def test_training_with_self_hits_saves_and_renders_back(data64, tmp_path):
     assert flags.numel() > 0 and 0.0 < float(flags.mean()) < 1.0  # the frames are met by some rays only
     assert all(torch.isfinite(q).all() for q in tr.reflection.parameters())
     split = {"train": [], "test": []}
-    save_variant(tmp_path, tr.model, tr.reflection, p.reflection(), data64.bounds, split, to_dict(p))
-    loaded = load_trained(variant_from_dir(tmp_path))
+    files = TrainedModelFiles.variant(tmp_path, to_dict(p))
+    files.save(tr.model, tr.reflection, p.reflection(), data64.bounds, split)
+    loaded = load_trained(TrainedModelFiles.from_dir(tmp_path))
     assert loaded.reflection.self_hits is not None
     v = data64.views[data64.test_idx[0]]
     a = render_trained(loaded, v.camera, v.facade_mask)

@@ -180,10 +180,9 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
         from_trainer,
         load_trained,
         render_trained,
-        save_variant,
-        variant_from_dir,
     )
     from facade_pipeline.training.render import splatting_rasterizer
+    from facade_pipeline.training.trained import TrainedModelFiles
     from facade_pipeline.training.trainer import build_trainer, train
     from tests.training.conftest import small_params
 
@@ -201,8 +200,9 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
     assert on_floor.numel() > 0 and bool(on_wall.any())
     assert all(torch.isfinite(q).all() for q in tr.reflection.parameters())
     split = {"train": [], "test": []}
-    save_variant(tmp_path, tr.model, tr.reflection, p.reflection(), data64.bounds, split, to_dict(p))
-    loaded = load_trained(variant_from_dir(tmp_path))
+    files = TrainedModelFiles.variant(tmp_path, to_dict(p))
+    files.save(tr.model, tr.reflection, p.reflection(), data64.bounds, split)
+    loaded = load_trained(TrainedModelFiles.from_dir(tmp_path))
     assert torch.equal(loaded.reflection.proxy.surroundings.heights, sur.heights)
     v = data64.views[data64.test_idx[0]]
     a = render_trained(loaded, v.camera, v.facade_mask)

@@ -1,0 +1,333 @@
+"""Evaluating a building's trained models (what the ``evaluate`` stage runs): its parameters, which models
+there are (``07_train`` and the saved variants), the views they are measured on, the measurement of each
+split through the evaluation core (``core.evaluate_views``) with its renders and comparison images, the
+geometry against gt/ on synthetic buildings, and ``metrics.json`` with the report.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from facade_pipeline.bake.maps import bake_view
+from facade_pipeline.config import Count, Fraction, PosInt, Positive
+from facade_pipeline.errors import ConfigError, InputError
+from facade_pipeline.evaluation.core import EvalView, MeasuredView, evaluate_views
+from facade_pipeline.evaluation.geometry_eval import Truth, mesh_errors, panel_corner_errors, point_errors
+from facade_pipeline.evaluation.image_eval import LpipsSetting, error_heatmap, side_by_side
+from facade_pipeline.evaluation.lpips import (
+    UNAVAILABLE_TEXT,
+    LpipsConvention,
+    LpipsUnavailable,
+    convention_spec,
+    find_lpips_weights,
+)
+from facade_pipeline.evaluation.render_views import TrainedModel, render_trained
+from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
+from facade_pipeline.evaluation.video import VideoParams, merge_films, write_clip, write_mp4
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.io.atomic import write_json, write_text
+from facade_pipeline.io.images import read_image, read_mask, write_image
+from facade_pipeline.io.meshes import read_mesh
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
+from facade_pipeline.meshing.correct import FRAME, read_labels
+from facade_pipeline.panels3d.model import PanelSet
+from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.training.corrections import AlignParams
+from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
+from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
+
+
+@dataclass(frozen=True)
+class EvaluateParams:
+    """``[evaluate]``: what is rendered and measured, and how the report shows it."""
+
+    device: Literal["cpu", "cuda", "auto"]
+    render_training_views: bool
+    """also render and measure the training views"""
+    include_saved_variants: bool
+    """evaluate the variants saved under variants/<name>/ beside 07_train"""
+    lpips_conventions: tuple[LpipsConvention, ...]
+    """LPIPS figures to compute; the first is the one the tables show"""
+    lpips_weights_dir: str
+    """folder or file of the LPIPS weights; "" searches $FACADE_LPIPS_DIR, then ../shared/lpips"""
+    heatmap_max_error: Positive
+    """absolute error (0-1, mean over RGB) at the top of the heat-map colour ramp"""
+    report_views: Count
+    """comparison images per variant embedded in the report"""
+    geometry_samples: PosInt
+    """points sampled by area on each mesh for the geometry metrics"""
+    geometry_max_match_m: Positive
+    """samples farther than this (m) from both true glass and frames are left out"""
+    gaussian_min_opacity: Fraction
+    """Gaussians less opaque than this are left out of the geometry metrics"""
+    align: AlignParams
+    """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
+    against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
+    video: VideoParams
+    """``[evaluate.video]``: the fly-through of each model (frames = 0: none)"""
+
+    def __post_init__(self) -> None:
+        if not self.lpips_conventions:
+            raise ConfigError(None, "at least one convention in evaluate.lpips_conventions", "none")
+        for c in self.lpips_conventions:
+            convention_spec(c)
+
+    @property
+    def splits(self) -> tuple[str, ...]:
+        """The splits measured: the held-out views, and the training views when asked."""
+        return ("test", "train") if self.render_training_views else ("test",)
+
+    @property
+    def lpips(self) -> LpipsSetting:
+        return LpipsSetting(self.lpips_conventions, self.lpips_weights_dir or None)
+
+
+def truth_files(layout: BuildingLayout) -> list[Path]:
+    """The gt/ files the geometry metrics read."""
+    return [layout.gt("glass_mesh"), layout.gt("frame_mesh"), layout.gt("panels")]
+
+
+def is_synthetic(layout: BuildingLayout) -> bool:
+    """Whether gt/ holds the truth the geometry metrics need."""
+    return all(p.is_file() for p in truth_files(layout))
+
+
+def trained_models(layout: BuildingLayout, params: EvaluateParams) -> list[TrainedModelFiles]:
+    """``07_train`` (with the parameters its manifest records) and, if asked, every saved variant."""
+    found = [TrainedModelFiles.pipeline(layout)]
+    root = layout.path("variant_dir", variant="x").parent
+    if params.include_saved_variants and root.is_dir():
+        found += [TrainedModelFiles.from_dir(d) for d in sorted(root.iterdir()) if d.is_dir()]
+    if sum(v.name == PIPELINE_MODEL for v in found) > 1:
+        raise InputError(
+            root / PIPELINE_MODEL, "a saved variant named other than the pipeline's model", "its name"
+        )
+    return found
+
+
+def split_views(
+    layout: BuildingLayout, variant: TrainedModelFiles, scene: ImportedScene, split: str
+) -> list[View]:
+    """The imported views of ``split`` of the split ``variant`` was trained on."""
+    by_stem = {v.stem: v for v in scene.uav_views}
+    stems = variant.split_stems()[split]
+    missing = [s for s in stems if s not in by_stem]
+    if missing:
+        raise InputError(
+            variant.split, f"views of {layout.import_scene.name}", f"unknown stems {missing[:3]}"
+        )
+    return [by_stem[s] for s in stems]
+
+
+def view_files(layout: BuildingLayout, view: View) -> list[Path]:
+    """What a view is measured from: its photo and its baked facade and glass masks."""
+    return [
+        layout.root / view.image,
+        layout.path("bake_facade_mask", stem=view.stem),
+        layout.path("bake_glass_mask", stem=view.stem),
+    ]
+
+
+def load_eval_view(layout: BuildingLayout, view: View) -> EvalView:
+    """A view's photo (in [0, 1]) and baked masks, checked to be of one size."""
+    truth = read_image(layout.root / view.image).astype(np.float64) / 255.0
+    facade = read_mask(layout.path("bake_facade_mask", stem=view.stem))
+    glass = read_mask(layout.path("bake_glass_mask", stem=view.stem))
+    if truth.shape[:2] != facade.shape:
+        raise InputError(
+            layout.root / view.image, f"an image of {facade.shape} px (its masks)", f"{truth.shape[:2]}"
+        )
+    return EvalView(view.stem, view.camera, truth, np.asarray(facade, bool), np.asarray(glass, bool))
+
+
+def lpips_status(params: EvaluateParams) -> dict[str, str]:
+    """Per convention, where its weights are or that LPIPS is unavailable (a bad explicit path raises)."""
+    out = {}
+    for c in params.lpips_conventions:
+        found = find_lpips_weights(convention_spec(c).net, params.lpips_weights_dir or None)
+        out[c] = UNAVAILABLE_TEXT if isinstance(found, LpipsUnavailable) else f"weights {found.name}"
+    return out
+
+
+def evaluate_split(
+    layout: BuildingLayout,
+    params: EvaluateParams,
+    tm: TrainedModel,
+    views: list[View],
+    split: str,
+    advance: Callable[[int], Any] = lambda n: None,
+) -> tuple[dict[str, dict[str, Any]], list[Path]]:
+    """Render and measure ``views`` (``core.evaluate_views``); writes each render and its comparison image.
+    Returns ``{split: {"views", "mean"}}`` and, when ``params.align`` has steps, ``{split}_aligned`` with the
+    views measured after alignment (each with what the alignment changed); and the files written.
+    ``advance(1)`` is called after each view as imported."""
+    eval_views = [load_eval_view(layout, v) for v in views]
+    written: list[Path] = []
+
+    def write(view: EvalView, m: MeasuredView) -> None:
+        names = {"variant": tm.name, "split": split, "stem": view.stem}
+        render_path, comp_path = layout.path("eval_render", **names), layout.path("eval_comparison", **names)
+        write_image(render_path, np.round(m.rgb * 255).astype(np.uint8))
+        heat = error_heatmap(m.rgb, view.image, view.facade_mask, params.heatmap_max_error)
+        write_image(comp_path, side_by_side(view.image, m.rgb, heat))
+        written.extend((render_path, comp_path))
+        advance(1)
+
+    out = {split: evaluate_views(tm, eval_views, params.lpips, on_view=write)}
+    if params.align.steps > 0:
+        out[f"{split}_aligned"] = evaluate_views(tm, eval_views, params.lpips, params.align)
+    return out, written
+
+
+def gaussian_geometry(tm: TrainedModel, truth: Truth, params: EvaluateParams) -> dict[str, Any]:
+    """Geometry of a variant's Gaussians (centres and normals of those at least ``gaussian_min_opacity``)."""
+    keep = (tm.model.opacities() >= params.gaussian_min_opacity).detach().cpu().numpy()
+    pts = tm.model.means.detach().cpu().numpy()[keep]
+    nrm = tm.model.normals().detach().cpu().numpy()[keep]
+    out = point_errors(pts, nrm, truth, params.geometry_max_match_m) if len(pts) else {}
+    return {**out, "gaussians": int(keep.size), "gaussians_measured": int(keep.sum())}
+
+
+def scene_geometry(
+    layout: BuildingLayout, params: EvaluateParams, scene: ImportedScene, truth: Truth
+) -> dict[str, Any]:
+    """Coarse and corrected mesh against the truth; the panel corner error (m, and px in the UAV views)."""
+    out: dict[str, Any] = {}
+    for key, path in (
+        ("coarse_mesh", layout.import_coarse_mesh),
+        ("corrected_mesh", layout.path("correct_mesh")),
+    ):
+        m = read_mesh(path)
+        out[key] = mesh_errors(
+            np.asarray(m.vertices),
+            np.asarray(m.triangles),
+            truth,
+            params.geometry_samples,
+            params.geometry_max_match_m,
+        )
+    panels = PanelSet.load(layout.path("regularize_panels"))
+    out["panel_corners"] = panel_corner_errors(panels, truth, [v.camera for v in scene.uav_views])
+    return out
+
+
+def ablation_group(params: dict[str, Any]) -> str:
+    """A digest of the training parameters other than the MLP architecture: variants with the same one
+    differ only in L, depth, width, skip, the environment proxy and the self hits, and form a Table 3
+    ablation."""
+    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + TRAINING_RUN_ONLY}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def variant_entry(v: TrainedModelFiles, tm: TrainedModel) -> dict[str, Any]:
+    """What metrics.json says of a variant before its figures: model, architecture, ablation group, files."""
+    p = v.params
+    arch = {k: p[k] for k in ARCHITECTURE_KEYS if k in p} if p["reflection_model"] == "mlp" else None
+    return {
+        "reflection_model": p["reflection_model"],
+        "architecture": arch,
+        "ablation_group": ablation_group(p),
+        "iterations": p["iterations"],
+        "n_gaussians": tm.model.n,
+        "files": [str(f) for f in v.files],
+    }
+
+
+def metrics_header(layout: BuildingLayout, params: EvaluateParams, test_every: int) -> dict[str, Any]:
+    """What ``metrics.json`` says before any variant: the building, the split rule, the LPIPS conventions
+    and whether their weights were found, the heat-map scale; ``variants`` is filled in by the stage."""
+    try:
+        note = read_manifest(layout, "correct_mesh").metrics.get("note")
+    except InputError:  # a model trained outside the DAG
+        note = None
+    return {
+        "building": layout.building,
+        "test_every": test_every,
+        "lpips": {"conventions": list(params.lpips_conventions), "status": lpips_status(params)},
+        "heatmap_max_error": params.heatmap_max_error,
+        # what the reader must know before the figures (e.g. that no panels corrected the mesh)
+        "notes": [note] if note else [],
+        "variants": {},
+    }
+
+
+def facade_masker(layout: BuildingLayout) -> Callable[[PinholeCamera], np.ndarray]:
+    """camera -> its facade mask [H, W] bool, cast from the corrected mesh as bake_normals casts it."""
+    mesh = read_mesh(layout.path("correct_mesh"))
+    rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
+    return lambda cam: bake_view(rc, cam, 1 << 18, None, labels).label >= FRAME
+
+
+def renderer(tm: TrainedModel) -> Callable[[PinholeCamera, np.ndarray | None], np.ndarray]:
+    """(camera, facade mask) -> the model's colour [H, W, 3] in [0, 1] (for the fly-through)."""
+    return lambda camera, facade_mask: render_trained(tm, camera, facade_mask).rgb
+
+
+def write_fly_through(
+    layout: BuildingLayout, vp: VideoParams, films: list[list[np.ndarray]], names: list[str]
+) -> dict[str, Any]:
+    """The fly-through of every variant side by side (``names``, one film each) as MP4 and a looping clip;
+    returns what metrics.json says of it."""
+    frames = merge_films(films) if len(films) > 1 else films[0]
+    write_mp4(layout.path("eval_video"), frames, vp.fps)
+    write_clip(layout.path("eval_clip"), frames, vp.clip_frames, vp.clip_width_px, vp.fps)
+    return {
+        "variants": names,
+        "frames": len(frames),
+        "size_px": [int(frames[0].shape[1]), int(frames[0].shape[0])],
+        "fps": vp.fps,
+        "file": layout.path("eval_video").name,
+        "clip": layout.path("eval_clip").name,
+    }
+
+
+def _report_images(layout: BuildingLayout, metrics: dict[str, Any], n: int) -> list[tuple[str, Path]]:
+    out = []
+    for name, v in metrics["variants"].items():
+        for row in v["test"]["views"][:n]:
+            facade = row["metrics"]["facade"]
+            psnr = "-" if facade is None else facade["psnr"]
+            caption = f"{name}, held-out view {row['view']} (facade PSNR {psnr} dB)"
+            out.append(
+                (caption, layout.path("eval_comparison", variant=name, split="test", stem=row["view"]))
+            )
+    return out
+
+
+def write_reports(layout: BuildingLayout, params: EvaluateParams, metrics: dict[str, Any]) -> list[Path]:
+    """``metrics.json`` and the report (Markdown linking the comparison images, HTML embedding them)."""
+    images = _report_images(layout, metrics, params.report_views)
+    report_dir = layout.path("eval_report_md").parent
+    write_json(layout.path("eval_metrics"), metrics)
+    write_text(
+        layout.path("eval_report_md"),
+        build_markdown(metrics, [(c, p.relative_to(report_dir).as_posix()) for c, p in images]),
+    )
+    write_text(layout.path("eval_report_html"), build_html(metrics, images, layout.path("eval_clip")))
+    return [layout.path(k) for k in ("eval_metrics", "eval_report_md", "eval_report_html")]
+
+
+def summary(metrics: dict[str, Any]) -> dict[str, Any]:
+    """The manifest's metrics: held-out facade PSNR/SSIM/LPIPS and glass-interior PSNR per variant (the
+    full set is metrics.json)."""
+    conv = metrics["lpips"]["conventions"][0]
+    out: dict[str, Any] = {"variants": len(metrics["variants"]), "lpips_convention": conv}
+    for name, v in metrics["variants"].items():
+        mean = v["test"]["mean"]
+        f = mean["facade"] or {}
+        out[f"{name}_test_psnr"] = f.get("psnr")
+        out[f"{name}_test_ssim"] = f.get("ssim")
+        out[f"{name}_test_lpips"] = (f.get("lpips") or {}).get(conv)
+        out[f"{name}_test_psnr_glass_interior"] = (mean.get("glass_interior") or {}).get("psnr")
+        if "test_aligned" in v:
+            out[f"{name}_test_aligned_psnr"] = (v["test_aligned"]["mean"]["facade"] or {}).get("psnr")
+    return out
