@@ -64,10 +64,10 @@ from facade_pipeline.evaluation.video import (
     write_clip,
     write_mp4,
 )
-from facade_pipeline.geometry.bake import bake_view
+from facade_pipeline.geometry.bake import BakedPrior, bake_view
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json, write_text
-from facade_pipeline.io.images import read_image, read_mask, write_image
+from facade_pipeline.io.images import read_image, write_image
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
@@ -168,11 +168,8 @@ def _views_of(
 
 
 def _view_files(layout: BuildingLayout, view: View) -> list[Path]:
-    return [
-        layout.root / view.image,
-        layout.path("bake_facade_mask", stem=view.stem),
-        layout.path("bake_glass_mask", stem=view.stem),
-    ]
+    masks = BakedPrior.paths(layout, view.stem, ("facade_mask", "glass_mask"))
+    return [layout.root / view.image, *masks.values()]
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -232,10 +229,8 @@ def evaluate_split(
     per_view, aligned, written = [], [], []
     for view in views:
         truth = read_image(layout.root / view.image).astype(np.float64) / 255.0
-        masks = region_masks(
-            read_mask(layout.path("bake_facade_mask", stem=view.stem)),
-            read_mask(layout.path("bake_glass_mask", stem=view.stem)),
-        )
+        prior = BakedPrior.load(layout, view.stem, None, ("facade_mask", "glass_mask"))
+        masks = region_masks(prior.facade, prior.glass)
         if truth.shape[:2] != masks["facade"].shape:
             raise InputError(
                 layout.root / view.image,

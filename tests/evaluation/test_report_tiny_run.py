@@ -27,7 +27,7 @@ from facade_pipeline.evaluation.render_views import (
     save_variant,
     variant_from_dir,
 )
-from facade_pipeline.io.images import read_mask
+from facade_pipeline.geometry.bake import BakedPrior
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from stages import evaluate as stage
@@ -99,7 +99,7 @@ def test_report_builds_from_a_tiny_run(tiny):
     row = result["views"][0]
     v = data.views[data.test_idx[0]]
     r = render_trained(tm, v.camera, v.facade_mask)
-    mask = read_mask(layout.path("bake_facade_mask", stem=v.stem))
+    mask = BakedPrior.load(layout, v.stem, None, ("facade_mask",)).facade
     assert row["metrics"]["facade"]["psnr"] == pytest.approx(psnr(r.rgb, v.image, mask), abs=1e-3)
     assert row["metrics"]["facade"]["ssim"] == pytest.approx(
         ssim(r.rgb, v.image, mask, border="renormalize"), abs=1e-5
