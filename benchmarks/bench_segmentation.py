@@ -10,7 +10,6 @@ section to benchmarks/RESULTS.md.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from _common import machine, record_results  # noqa: E402
 
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
+from facade_pipeline.panels3d.model import PanelSet  # noqa: E402
 from facade_pipeline.scene import ImportedScene  # noqa: E402
 from facade_pipeline.segmentation.accuracy import evaluate_view  # noqa: E402
 from facade_pipeline.segmentation.real_truth import (  # noqa: E402
@@ -32,16 +32,14 @@ from facade_pipeline.segmentation.real_truth import (  # noqa: E402
     grid_corner_errors_m,
     summary,
 )
+from facade_pipeline.synthetic.truth import SyntheticTruth  # noqa: E402
 from scripts.make_gcw_building import WORLD_FROM_WALL  # noqa: E402
 
 
 def row(building: str, layout: BuildingLayout) -> str:
     scene = ImportedScene.load(layout)
-    panels, gt_scene = (json.loads(layout.gt(k).read_text()) for k in ("panels", "scene"))
-    r = [
-        evaluate_view(layout, v, panels, gt_scene, 4)
-        for v in scene.frontal_views
-    ]
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
+    r = [evaluate_view(layout, v, truth, 4) for v in scene.frontal_views]
     err = np.concatenate([v["corner_errors_px"] for v in r])
     iou_c = np.concatenate([v["iou_complete"] for v in r])
     iou_x = np.concatenate([v["iou_cut"] for v in r])
@@ -69,8 +67,8 @@ def real_row(src: Path, building: str, data_root: Path, env: dict) -> str:
     _doit("regularize_corners", building, data_root, env)
     layout = BuildingLayout(data_root, building)
     s = summary(evaluate_building(layout, src))
-    panels = json.loads(layout.path("regularize_panels").read_text())["panels"]
-    c = np.array([p["corners"] for p in panels], float).reshape(-1, 3)
+    panels = PanelSet.load(layout.path("regularize_panels")).panels
+    c = np.array([p.corners for p in panels], float).reshape(-1, 3)
     wall = c @ WORLD_FROM_WALL[:3, :3]  # world -> wall frame (a rotation)
     e3 = grid_corner_errors_m(wall, (0.1032, 0.1532), (0.0932, 0.1432)) * 1000
     scene = ImportedScene.load(layout)

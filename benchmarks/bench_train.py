@@ -67,33 +67,30 @@ def ensure_building(layout: BuildingLayout) -> None:
 
 def gt_data(layout: BuildingLayout, test_every: int) -> TrainData:
     """Views with the true normals and masks as prior (when bake_normals has not run)."""
-    from facade_pipeline.io.exr import read_exr
-    from facade_pipeline.io.images import read_image, read_mask
-    from facade_pipeline.io.meshes import read_mesh, read_points
+    from facade_pipeline.io.images import read_image
+    from facade_pipeline.io.meshes import read_points
     from facade_pipeline.scene import ImportedScene
+    from facade_pipeline.synthetic.truth import SyntheticTruth
 
     scene = ImportedScene.load(layout)
-    local_from_georef = np.linalg.inv(scene.georef_from_local)
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
     views = []
     for v in scene.uav_views:
-        n = read_exr(layout.gt("normal_map", v.stem))
+        normals, valid = truth.normal_map(v.stem)
         views.append(
             TrainView(
                 v.stem,
                 v.camera,
                 read_image(layout.root / v.image).astype(np.float32) / 255.0,
-                read_mask(layout.gt("facade_mask", v.stem)),
-                read_mask(layout.gt("glass_mask", v.stem)),
-                (n["N"] @ local_from_georef[:3, :3].T).astype(np.float32),
-                n["valid"] > 0.5,
+                truth.mask("facade", v.stem),
+                truth.mask("glass", v.stem),
+                normals.astype(np.float32),
+                valid,
             )
         )
-    mesh = read_mesh(layout.gt("facade_mesh"))
-    mesh.transform(local_from_georef)
+    vertices, triangles = truth.mesh("facade_mesh")
     pcd = read_points(layout.import_coarse_points)
-    init = InitGeometry(
-        np.asarray(pcd.points), np.asarray(pcd.colors), np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    )
+    init = InitGeometry(np.asarray(pcd.points), np.asarray(pcd.colors), vertices, triangles)
     train_idx, test_idx = split_views(len(views), test_every)
     return TrainData(tuple(views), train_idx, test_idx, init)
 

@@ -19,17 +19,16 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.bake.maps import bake_view
+from facade_pipeline.bake.maps import BakedPrior, bake_view
 from facade_pipeline.config import PosInt
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.exr import read_exr, write_exr
-from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages._runner import StageReport, main
 
 NAME = "bake_normals"
@@ -41,13 +40,6 @@ UPSTREAM: tuple[str, ...] = ("correct_mesh", "import_photogrammetry")
 class Params:
     chunk_rays: PosInt
     """Rays cast per batch; bounds memory (-)."""
-
-
-def _outputs(layout: BuildingLayout, stem: str) -> dict[str, Path]:
-    return {
-        k: layout.path(f"bake_{k}", stem=stem)
-        for k in ("normal_map", "depth_map", "facade_mask", "glass_mask")
-    }
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -62,8 +54,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
 
 
 def _truth(
-    layout: BuildingLayout,
-    local_from_georef: np.ndarray,
+    truth: SyntheticTruth | None,
     view: View,
     normal: np.ndarray,
     valid: np.ndarray,
@@ -72,14 +63,13 @@ def _truth(
 ) -> tuple[np.ndarray, float, float] | None:
     """Normal angle errors (deg) on true glass pixels and the glass- and facade-mask IoU of one view
     (metrics only)."""
-    if not layout.gt("normal_map", view.stem).is_file():
+    if truth is None or not truth.layout.gt("normal_map", view.stem).is_file():
         return None
-    gt_n = read_exr(layout.gt("normal_map", view.stem))
-    gt_glass = read_mask(layout.gt("glass_mask", view.stem))
-    true_n = gt_n["N"] @ local_from_georef[:3, :3].T  # normals turn with the frame
-    sel = gt_glass & valid & (gt_n["valid"] > 0.5)
+    true_n, true_valid = truth.normal_map(view.stem)
+    gt_glass = truth.mask("glass", view.stem)
+    sel = gt_glass & valid & true_valid
     err = np.degrees(np.arccos(np.clip(np.sum(normal[sel] * true_n[sel], axis=1), -1.0, 1.0)))
-    gt_facade = read_mask(layout.gt("facade_mask", view.stem))
+    gt_facade = truth.mask("facade", view.stem)
     iou = (glass & gt_glass).sum() / max(1, (glass | gt_glass).sum())
     iou_f = (facade & gt_facade).sum() / max(1, (facade | gt_facade).sum())
     return err, float(iou), float(iou_f)
@@ -91,7 +81,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
     labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
     views = scene.uav_views
-    local_from_georef = np.linalg.inv(scene.georef_from_local)
+    truth = SyntheticTruth.load(layout, scene.georef_from_local) if layout.gt_dir.is_dir() else None
     outputs: list[Path] = []
     errs, ious, ious_f, n_rays, n_valid, t_cast = [], {}, [], 0, 0, 0.0
     total = sum(v.camera.width * v.camera.height for v in views)
@@ -101,20 +91,14 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             baked = bake_view(rc, v.camera, params.chunk_rays, bar.update, labels)
             t_cast += time.perf_counter() - t0
             glass, facade = baked.label == GLASS, baked.label >= FRAME
-            out = _outputs(layout, v.stem)
-            valid = baked.valid.astype(np.float32)
-            write_exr(out["normal_map"], {"N": baked.normal, "valid": valid})
-            write_exr(out["depth_map"], {"depth": baked.depth, "valid": valid})
-            write_mask(out["facade_mask"], facade)
-            write_mask(out["glass_mask"], glass)
-            outputs += list(out.values())
+            outputs += BakedPrior(v.stem, baked.normal, baked.valid, baked.depth, facade, glass).save(layout)
             n_rays += baked.valid.size
             n_valid += int(baked.valid.sum())
-            truth = _truth(layout, local_from_georef, v, baked.normal, baked.valid, glass, facade)
-            if truth is not None:
-                errs.append(truth[0])
-                ious[v.stem] = round(truth[1], 4)
-                ious_f.append(truth[2])
+            against = _truth(truth, v, baked.normal, baked.valid, glass, facade)
+            if against is not None:
+                errs.append(against[0])
+                ious[v.stem] = round(against[1], 4)
+                ious_f.append(against[2])
     if views and n_valid == 0:
         raise InputError(
             layout.path("correct_mesh"),

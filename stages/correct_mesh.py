@@ -19,7 +19,6 @@ from typing import Annotated, Literal
 import numpy as np
 
 from facade_pipeline.config import Degrees, Fraction, NonNeg, PosInt, Positive, Range
-from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import write_image
 from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
@@ -30,6 +29,7 @@ from facade_pipeline.meshing.metrics import surface_errors
 from facade_pipeline.meshing.overlay import scaled_camera, shaded_render, side_by_side, upscale_factor
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages._runner import StageReport, main
 
 NAME = "correct_mesh"
@@ -82,17 +82,10 @@ def truth_metrics(
     panel_width_m: float,
 ) -> dict:
     """Coarse vs corrected against gt/ (synthetic buildings only; metrics, never used to build a mesh)."""
-    if not (layout.gt("glass_mesh").is_file() and layout.gt("frame_mesh").is_file()):
+    if not SyntheticTruth.available(layout, "glass_mesh", "frame_mesh"):
         return {}
-    local_from_georef = invert_rigid(ImportedScene.load(layout).georef_from_local)
-    truth = []
-    for key in ("glass_mesh", "frame_mesh"):
-        m = read_mesh(layout.gt(key))
-        truth.append(
-            MeshRaycaster(
-                transform_points(local_from_georef, np.asarray(m.vertices)), np.asarray(m.triangles)
-            )
-        )
+    gt = SyntheticTruth.load(layout)
+    truth = [gt.raycaster("glass_mesh"), gt.raycaster("frame_mesh")]
     out: dict = {
         name: surface_errors(v, f, *truth, params.metric_samples, params.metric_max_match_m)
         for name, (v, f) in meshes.items()

@@ -11,7 +11,6 @@ buildings the 3D corner error against gt/panels.json is added (gt is read for th
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -19,18 +18,19 @@ import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.errors import InputError
-from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.images import image_size, read_image, read_mask, write_image
+from facade_pipeline.io.images import image_size, read_image, write_image
 from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.metrics import corner_errors
 from facade_pipeline.meshing.overlay import panels_over_view, upscale_factor
 from facade_pipeline.panels3d.grid import build_panel_set
-from facade_pipeline.panels3d.observations import read_view_corners, reconcile_with_mask
+from facade_pipeline.panels3d.observations import Quad, reconcile_with_mask
 from facade_pipeline.panels3d.regularize import RegularizeConfig
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.segmentation.result import ViewSegmentation
+from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages import PIPELINE
 from stages._runner import StageReport, main
 
@@ -83,18 +83,16 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
     quads, complete, view = [], [], []
     counts = {"dropped": 0, "refit": 0, "added": 0}
     views = scene.frontal_views
-    pairs = _segment_files(layout, scene)
-    for i, (v, (cpath, mpath)) in enumerate(
-        tqdm(list(zip(views, pairs, strict=True)), desc="regularize: views", unit="view", file=sys.stderr)
-    ):
-        vc = read_view_corners(cpath, v.camera.width, v.camera.height)
-        mask = read_mask(mpath)
+    _segment_files(layout, scene)  # listed by segment_panels' manifest and present, else it raises
+    for i, v in enumerate(tqdm(views, desc="regularize: views", unit="view", file=sys.stderr)):
+        seg = ViewSegmentation.load(layout, v.stem, v.camera.width, v.camera.height)
+        observed = tuple(Quad(p.corners_px, p.complete) for p in seg.panels) if seg.facade_found else ()
         found, stats = reconcile_with_mask(
-            vc.quads if vc.facade_found else (), mask, params.mask_min_region_px, params.mask_refit_iou
+            observed, seg.mask, params.mask_min_region_px, params.mask_refit_iou
         )
         if stats["merged"]:
             raise InputError(
-                mpath,
+                layout.path("segment_mask", stem=v.stem),
                 "one mask region per panel, the frame bars between panels black (a panel mask)",
                 f"{stats['merged']} region(s) spanning several panels and much more than them (frames "
                 "painted over): paint the bars between panels black, or delete the file to have it made anew",
@@ -110,14 +108,10 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
 
 def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels) -> dict:
     """Corner error against gt/panels.json on synthetic buildings (metrics only)."""
-    if not layout.gt("panels").is_file():
+    if not SyntheticTruth.available(layout, "panels"):
         return {}
-    local_from_georef = invert_rigid(scene.georef_from_local)
-    true = [
-        transform_points(local_from_georef, np.array(p["corners"]))
-        for p in json.loads(layout.gt("panels").read_text())["panels"]
-    ]
-    return {"truth": {**corner_errors(panels, np.array(true)), "true_panels": len(true)}}
+    true = SyntheticTruth.load(layout, scene.georef_from_local).panel_corners()
+    return {"truth": {**corner_errors(panels, true), "true_panels": len(true)}}
 
 
 def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: list, panels) -> list[Path]:

@@ -23,19 +23,14 @@ from tqdm import tqdm
 from facade_pipeline.config import Positive
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.atomic import write_json
-from facade_pipeline.io.images import read_image, write_image, write_mask
+from facade_pipeline.io.images import read_image, write_image
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.segmentation.panels import (
-    Panel,
-    SegmentParams,
-    inside_quads,
-    segment_image,
-)
+from facade_pipeline.segmentation.panels import Panel, SegmentParams, segment_image
+from facade_pipeline.segmentation.result import SegmentedPanel, ViewSegmentation, panel_labels
 from stages._runner import StageReport, main
 
 NAME = "segment_panels"
@@ -82,24 +77,10 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
     return []  # per-view outputs are only known once the import ran; the manifest lists them
 
 
-def _to_view(panel: Panel, rect: ViewRectification, width: int, height: int) -> dict:
-    """The panel as in data_layout.md, corners mapped back to the original view and kept inside it."""
+def _to_view(panel: Panel, rect: ViewRectification, width: int, height: int) -> SegmentedPanel:
+    """The panel with its corners mapped back to the original view and kept inside it."""
     back = np.clip(rect.to_original(panel.corners), [0.0, 0.0], [float(width), float(height)])
-    return {
-        "row": panel.row,
-        "col": panel.col,
-        "corners_px": np.round(back, 3).tolist(),
-        "corners_rectified_px": np.round(panel.corners, 3).tolist(),
-        "complete": panel.complete,
-    }
-
-
-def panel_labels(panels: list[Panel], rect: ViewRectification, width: int, height: int) -> np.ndarray:
-    """Panel index [H, W] of each original pixel (its centre mapped into the rectified image), -1: none."""
-    ys, xs = np.mgrid[0:height, 0:width] + 0.5
-    pts = rect.to_rectified(np.stack([xs.ravel(), ys.ravel()], axis=1))
-    pts = np.where(np.isfinite(pts), pts, -1e9)
-    return inside_quads([p.corners for p in panels], pts[:, 0], pts[:, 1]).reshape(height, width)
+    return SegmentedPanel(panel.row, panel.col, back, panel.corners, panel.complete)
 
 
 def _overlay(image: np.ndarray, panels: list[Panel], rect: ViewRectification, scale: float) -> np.ndarray:
@@ -159,26 +140,24 @@ def segment_one(
         image = read_image(layout.path("rectify_image", stem=view.stem))
         support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
         seg = segment_image(image, params, rect.metres_per_px, valid, centre_xy, support)
-        labels = panel_labels(seg.panels, rect, W, H)
+        labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
         found = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if found else []), seg.metrics
         reason = "" if found else (seg.reason or "no panel inside the view")
-    out = {k: layout.path(k, stem=view.stem) for k in ("segment_corners", "segment_mask", "segment_overlay")}
-    write_json(
-        out["segment_corners"],
-        {
-            "image": view.stem,
-            "width": W,
-            "height": H,
-            "rectified": rect.rectified,
-            "facade_found": found,
-            "reason": reason,
-            "panels": [_to_view(p, rect, W, H) for p in panels],
-        },
+    result = ViewSegmentation(
+        view.stem,
+        W,
+        H,
+        rect.rectified,
+        found,
+        reason,
+        tuple(_to_view(p, rect, W, H) for p in panels),
+        labels >= 0 if found else np.zeros((H, W), bool),
     )
-    write_mask(out["segment_mask"], labels >= 0 if found else np.zeros((H, W), bool))
+    out = result.save(layout)
+    out.append(layout.path("segment_overlay", stem=view.stem))
     original = read_image(layout.import_frontal_image(view.stem))
-    write_image(out["segment_overlay"], _overlay(original, panels, rect, params.overlay_scale))
+    write_image(out[-1], _overlay(original, panels, rect, params.overlay_scale))
     metrics = {
         "facade_found": found,
         "reason": reason,
@@ -189,7 +168,7 @@ def segment_one(
         **{k: round(v, 5) if isinstance(v, float) else v for k, v in metrics.items()},
         "seconds": round(time.perf_counter() - t0, 3),
     }
-    return list(out.values()), metrics
+    return out, metrics
 
 
 def run(layout: BuildingLayout, params: Params) -> StageReport:

@@ -17,14 +17,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.bake.maps import BakedMap, BakedPrior
 from facade_pipeline.config import result_dict, to_dict
 from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
 from facade_pipeline.evaluation.image_eval import LpipsSetting
 from facade_pipeline.evaluation.render_views import from_trainer
 from facade_pipeline.io.atomic import write_text
-from facade_pipeline.io.exr import read_exr
-from facade_pipeline.io.images import read_image, read_mask
+from facade_pipeline.io.images import read_image
 from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
@@ -50,11 +50,11 @@ DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, no
 UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
 Params = TrainParams
 RUN_ONLY = TRAINING_RUN_ONLY  # where it runs and how often it logs or saves: a change reruns nothing
-BAKED = ("normal_map", "facade_mask", "glass_mask")
+BAKED: tuple[BakedMap, ...] = ("normal_map", "facade_mask", "glass_mask")  # no depth: not trained on
 
 
 def _baked(layout: BuildingLayout, stem: str) -> dict[str, Path]:
-    return {k: layout.path(f"bake_{k}", stem=stem) for k in BAKED}
+    return BakedPrior.paths(layout, stem, BAKED)
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -95,17 +95,10 @@ def load_view(layout: BuildingLayout, view: View) -> TrainView:
     """One view's image, masks and normal prior, checked against its camera's size."""
     cam = view.camera
     hw = (cam.height, cam.width)
-    paths = _baked(layout, view.stem)
     img_path = layout.root / view.image
     image = _checked(img_path, read_image(img_path), (*hw, 3)).astype(np.float32) / 255.0
-    nmap = read_exr(paths["normal_map"])
-    if "N" not in nmap or "valid" not in nmap:
-        raise InputError(paths["normal_map"], "channels N.X/Y/Z and valid", f"channels {sorted(nmap)}")
-    normals = _checked(paths["normal_map"], nmap["N"], (*hw, 3))
-    valid = _checked(paths["normal_map"], nmap["valid"], hw) > 0.5
-    facade = _checked(paths["facade_mask"], read_mask(paths["facade_mask"]), hw)
-    glass = _checked(paths["glass_mask"], read_mask(paths["glass_mask"]), hw)
-    return TrainView(view.stem, cam, image, facade, glass, normals.astype(np.float32), valid)
+    prior = BakedPrior.load(layout, view.stem, hw, BAKED)
+    return TrainView(view.stem, cam, image, prior.facade, prior.glass, prior.normal, prior.valid)
 
 
 def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:

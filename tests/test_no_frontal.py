@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from facade_pipeline.bake.maps import BakedPrior
 from facade_pipeline.config import config_dir
 from facade_pipeline.io.images import read_mask
 from facade_pipeline.layout import BuildingLayout
@@ -72,7 +73,7 @@ def test_no_frontal_views_runs_the_whole_dag_without_mesh_correction(survey):
     assert "no mesh correction" in read_manifest(layout, "correct_mesh").metrics["note"]
     # the coarse mesh's pixels are the facade: every UAV view that sees it trains on them
     stems = [v.stem for v in ImportedScene.load(layout).uav_views]
-    covered = [read_mask(layout.path("bake_facade_mask", stem=s)).mean() for s in stems]
+    covered = [BakedPrior.load(layout, s, None, ("facade_mask",)).facade.mean() for s in stems]
     assert min(covered) > 0.05, covered
     train = read_manifest(layout, "train_gs").metrics
     assert train["n_views_without_facade"] == 0

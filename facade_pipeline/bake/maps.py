@@ -1,5 +1,6 @@
 """Baking the geometry prior of one view: world-space normal map and depth map by ray casting the
-corrected mesh, and the facade and glass masks by projecting the 3D panels (the normal prior of Eq. 11).
+corrected mesh, and the facade and glass masks by projecting the 3D panels (the normal prior of Eq. 11);
+and the ``06_bake_normals`` hand-off that holds it (``BakedPrior``: one writer, one reader).
 
 Rays go through pixel centres (i + 0.5, j + 0.5), a chunk of rows at a time, so memory depends on the image
 size and ``chunk_rays`` only. Normals are unit world vectors turned to face the camera (a camera inside or
@@ -11,13 +12,19 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 import open3d as o3d
 
+from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
+from facade_pipeline.io.exr import read_exr, write_exr
+from facade_pipeline.io.images import read_mask, write_mask
+from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.panels3d.model import PanelSet, PartSurface, part_outline
 
 POLY_SHIFT = 4  # cv2 fixed-point bits: polygons are filled at 1/16 px
@@ -146,3 +153,95 @@ def panel_masks(
         for p in own:
             fill_polygon(camera, _outline(surface, surface.coords(p.corners), edge_samples), near_m, glass)
     return facade | glass, glass
+
+
+BakedMap = Literal["normal_map", "depth_map", "facade_mask", "glass_mask"]
+#: the files of one view in 06_bake_normals (layout keys ``bake_<map>``), in the order they are written
+BAKED_MAPS: tuple[BakedMap, ...] = ("normal_map", "depth_map", "facade_mask", "glass_mask")
+
+
+@dataclass(frozen=True, eq=False)
+class BakedPrior:
+    """The ``06_bake_normals`` hand-off of one UAV view (data_layout.md): ``normal`` [H, W, 3] float32
+    (world, unit, facing the camera, zero where not ``valid``), ``valid`` [H, W] bool, ``depth`` [H, W]
+    float32 (m along the camera z axis, zero where not valid), the ``facade`` and ``glass`` masks [H, W]
+    bool. ``save`` is the one writer and ``load`` the one reader; a reader that needs only some maps
+    (the masks, say) loads those, and the others are None, as in a stand-in that writes only some."""
+
+    stem: str
+    normal: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    facade: np.ndarray | None = None
+    glass: np.ndarray | None = None
+
+    @staticmethod
+    def paths(layout: BuildingLayout, stem: str, maps: tuple[BakedMap, ...] = BAKED_MAPS) -> dict[str, Path]:
+        """The files of ``maps`` of view ``stem``, by map name."""
+        return {m: layout.path(f"bake_{m}", stem=stem) for m in maps}
+
+    def save(self, layout: BuildingLayout) -> list[Path]:
+        """Write the maps that are set (atomically, each EXR with its ``valid`` channel); returns their
+        paths."""
+        out = self.paths(layout, self.stem)
+        valid = None if self.valid is None else self.valid.astype(np.float32)
+        written = []
+        for name, channels in (
+            ("normal_map", None if self.normal is None else {"N": self.normal, "valid": valid}),
+            ("depth_map", None if self.depth is None else {"depth": self.depth, "valid": valid}),
+        ):
+            if channels is not None:
+                assert valid is not None, f"{self.stem}: {name} without its valid mask"
+                write_exr(out[name], channels)
+                written.append(out[name])
+        for name, mask in (("facade_mask", self.facade), ("glass_mask", self.glass)):
+            if mask is not None:
+                write_mask(out[name], mask)
+                written.append(out[name])
+        return written
+
+    @classmethod
+    def load(
+        cls,
+        layout: BuildingLayout,
+        stem: str,
+        shape: tuple[int, int] | None,
+        maps: tuple[BakedMap, ...] = BAKED_MAPS,
+    ) -> BakedPrior:
+        """Read ``maps`` of view ``stem``, each checked to be ``shape`` (H, W: the view's camera) unless
+        None; the EXRs must have their channels, and both EXRs the same ``valid``."""
+        paths = cls.paths(layout, stem, maps)
+        got: dict[str, np.ndarray] = {}
+        for name, channel in (("normal_map", "N"), ("depth_map", "depth")):
+            if name not in maps:
+                continue
+            exr = read_exr(paths[name])
+            if channel not in exr or "valid" not in exr:
+                axes = ".X/Y/Z" if channel == "N" else ""
+                raise InputError(
+                    paths[name], f"channels {channel}{axes} and valid", f"channels {sorted(exr)}"
+                )
+            hw = shape or exr["valid"].shape[:2]
+            got[channel] = _checked(paths[name], exr[channel], (*hw, 3) if channel == "N" else hw)
+            valid = _checked(paths[name], exr["valid"], hw) > 0.5
+            if "valid" in got and not np.array_equal(got["valid"], valid):
+                raise InputError(paths[name], f"the valid channel of {paths['normal_map'].name}", "another")
+            got["valid"] = valid
+        for name in ("facade_mask", "glass_mask"):
+            if name in maps:
+                mask = read_mask(paths[name])
+                got[name] = mask if shape is None else _checked(paths[name], mask, shape)
+        return cls(
+            stem,
+            got.get("N"),
+            got.get("valid"),
+            got.get("depth"),
+            got.get("facade_mask"),
+            got.get("glass_mask"),
+        )
+
+
+def _checked(path: Path, arr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    if arr.shape != shape:
+        raise InputError(path, f"a map of shape {shape} (the view's camera)", f"shape {arr.shape}")
+    return arr

@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from facade_pipeline.bake.maps import bake_view
+from facade_pipeline.bake.maps import BakedPrior, bake_view
 from facade_pipeline.config import Count, Fraction, PosInt, Positive
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.core import EvalView, MeasuredView, evaluate_views
@@ -34,7 +34,7 @@ from facade_pipeline.evaluation.video import VideoParams, merge_films, write_cli
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json, write_text
-from facade_pipeline.io.images import read_image, read_mask, write_image
+from facade_pipeline.io.images import read_image, write_image
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
@@ -132,16 +132,15 @@ def view_files(layout: BuildingLayout, view: View) -> list[Path]:
     """What a view is measured from: its photo and its baked facade and glass masks."""
     return [
         layout.root / view.image,
-        layout.path("bake_facade_mask", stem=view.stem),
-        layout.path("bake_glass_mask", stem=view.stem),
+        *BakedPrior.paths(layout, view.stem, ("facade_mask", "glass_mask")).values(),
     ]
 
 
 def load_eval_view(layout: BuildingLayout, view: View) -> EvalView:
     """A view's photo (in [0, 1]) and baked masks, checked to be of one size."""
     truth = read_image(layout.root / view.image).astype(np.float64) / 255.0
-    facade = read_mask(layout.path("bake_facade_mask", stem=view.stem))
-    glass = read_mask(layout.path("bake_glass_mask", stem=view.stem))
+    prior = BakedPrior.load(layout, view.stem, None, ("facade_mask", "glass_mask"))
+    facade, glass = prior.facade, prior.glass
     if truth.shape[:2] != facade.shape:
         raise InputError(
             layout.root / view.image, f"an image of {facade.shape} px (its masks)", f"{truth.shape[:2]}"

@@ -11,20 +11,18 @@ as unmatched. Local frame (01_import), metres.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.frames import invert_rigid, transform_points
+from facade_pipeline.geometry.frames import invert_rigid
 from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.meshing.metrics import corner_errors, surface_errors
 from facade_pipeline.panels3d.model import PanelSet
+from facade_pipeline.synthetic.truth import read_truth_mesh, read_truth_panels
 
 
 @dataclass(frozen=True)
@@ -37,23 +35,12 @@ class Truth:
 
 
 def load_truth(glass_mesh: Path, frame_mesh: Path, panels_json: Path, georef_from_local: np.ndarray) -> Truth:
-    """Read gt/ (world = georeferenced frame) and move it into the pipeline's local frame."""
+    """Read gt/ (world = georeferenced frame) into the pipeline's local frame (``synthetic.truth``)."""
     local_from_georef = invert_rigid(np.asarray(georef_from_local, np.float64))
-    casters = []
-    for path in (glass_mesh, frame_mesh):
-        m = read_mesh(path)
-        v = transform_points(local_from_georef, np.asarray(m.vertices))
-        casters.append(MeshRaycaster(v, np.asarray(m.triangles)))
-    try:
-        panels = json.loads(Path(panels_json).read_text())["panels"]
-        corners = np.array(
-            [transform_points(local_from_georef, np.array(p["corners"], float)) for p in panels]
-        )
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise InputError(
-            panels_json, "gt panels {panels: [{corners: [4 x 3]}]}", f"{type(e).__name__}: {e}"
-        ) from None
-    return Truth(casters[0], casters[1], corners.reshape(-1, 4, 3))
+    glass, frames = (MeshRaycaster(*read_truth_mesh(p, local_from_georef)) for p in (glass_mesh, frame_mesh))
+    panels = read_truth_panels(panels_json, local_from_georef)
+    corners = np.array([p["corners"] for p in panels], np.float64).reshape(-1, 4, 3)
+    return Truth(glass, frames, corners)
 
 
 def point_errors(points: np.ndarray, normals: np.ndarray, truth: Truth, max_match_m: float) -> dict[str, Any]:

@@ -1,12 +1,12 @@
-"""Image metrics over a mask (PSNR, SSIM) and geometry metrics (surface distance, normal angle, corner error).
+"""Image metrics over a mask (PSNR, SSIM).
 
 Everything is computed in float64 (numpy; PSNR through the training package's ``losses.psnr``, the one
 PSNR of the project); torch tensors are accepted and copied to the CPU.
 
 Images are ``[H, W]`` or ``[H, W, C]`` arrays with values in ``[0, data_range]`` (``data_range`` is 1 for our
 renders). A mask is a bool array ``[H, W]`` (True = the pixel counts), the same for every channel; ``None``
-means every pixel. No metric ever returns NaN: when there is nothing to average (an empty mask, no point, no
-corner) it raises ``EmptyMaskError`` (a ``ValueError``). Identical images give PSNR = +inf, as scikit-image.
+means every pixel. No metric ever returns NaN: when there is nothing to average (an empty mask) it
+raises ``EmptyMaskError`` (a ``ValueError``). Identical images give PSNR = +inf, as scikit-image.
 
 PSNR over a mask
     MSE = sum over masked pixels p and channels c of (x_pc - y_pc)^2 / (n_masked * C);
@@ -36,14 +36,6 @@ similarity", Eq. 13 with the Gaussian-weighted statistics of their Sec. III-B)
       the image border; it differs from scikit-image only in those 5 px.
     We never zero-pad the images themselves (as ``conv2d(padding=5)`` SSIM implementations do): that biases
     the border towards black.
-
-Geometry
-    Surface distance: unsigned distance from points (sampled uniformly by area on a source mesh, or given,
-    e.g. Gaussian centres) to the closest point of a target mesh, with open3d's ``RaycastingScene``; mean,
-    95th percentile (linear interpolation, numpy's default) and max, in the meshes' unit (metres).
-    Normal angle error: angle between two normals, atan2(|a x b|, a . b) in degrees (0..180, orientation
-    matters), over a validity mask. Corner error: Euclidean distance between corresponding panel corners in
-    pixels of the rectified facade image, and in metres through its pixel size.
 """
 
 from __future__ import annotations
@@ -208,148 +200,3 @@ def ssim(img0: Any, img1: Any, mask: Any = None, *, data_range: float = 1.0,
         where = " (5 px or more from the image border, border='valid')" if border == "valid" else ""
         raise EmptyMaskError(f"a mask with a pixel that can centre an SSIM window{where}", "none")
     return float(sm.values[sm.counted].sum() / n)
-
-
-# ----------------------------------------------------------------------------------------------- geometry
-
-
-@dataclass(frozen=True)
-class DistanceStats:
-    """Summary of unsigned distances, in the unit of the inputs (metres for our meshes)."""
-
-    mean: float
-    p95: float
-    max: float
-    count: int
-
-
-def distance_stats(distances: Any) -> DistanceStats:
-    """Mean, 95th percentile (linear interpolation) and max of distances [N]; ``EmptyMaskError`` if N = 0."""
-    d = _as_f64(distances, "distances").reshape(-1)
-    if d.size == 0:
-        raise EmptyMaskError("at least one distance", "none")
-    return DistanceStats(float(d.mean()), float(np.percentile(d, 95)), float(d.max()), int(d.size))
-
-
-def _mesh_arrays(mesh: Any) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices [V, 3] float64, triangles [F, 3] int64) of a (vertices, triangles) pair, an open3d
-    ``TriangleMesh`` or any object with ``vertices`` and ``triangles`` arrays."""
-    v, f = mesh if isinstance(mesh, tuple) else (mesh.vertices, mesh.triangles)
-    v, f = _as_f64(v, "mesh vertices"), np.asarray(f)
-    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-        raise MetricInputError("a mesh with vertices [V, 3] and at least one triangle [F, 3]",
-                               f"vertices {v.shape}, triangles {f.shape}")
-    if not np.issubdtype(f.dtype, np.integer) or f.min() < 0 or f.max() >= len(v):
-        found = f"{f.dtype} {f.min()}..{f.max()}"
-        raise MetricInputError(f"integer triangle indices in [0, {len(v)})", found)
-    return v, f.astype(np.int64)
-
-
-def sample_mesh_surface(mesh: Any, n_points: int, seed: int = 0) -> np.ndarray:
-    """Points [n_points, 3] uniform by area on a mesh (triangle drawn by area, then a uniform barycentric
-    point, reflected into the triangle); deterministic for a seed."""
-    v, f = _mesh_arrays(mesh)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]  # [F, 3] each
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # [F]
-    if not area.sum() > 0:
-        raise MetricInputError("a mesh with a non-zero surface area", "only degenerate triangles")
-    rng = np.random.default_rng(seed)
-    tri = rng.choice(len(f), size=n_points, p=area / area.sum())
-    u, w = rng.random(n_points), rng.random(n_points)
-    flip = u + w > 1
-    u[flip], w[flip] = 1 - u[flip], 1 - w[flip]
-    return a[tri] + u[:, None] * (b[tri] - a[tri]) + w[:, None] * (c[tri] - a[tri])
-
-
-def points_to_mesh_distance(points: Any, mesh: Any) -> np.ndarray:
-    """Unsigned distance [N] from points [N, 3] to the closest point of a mesh (open3d RaycastingScene).
-
-    open3d works in float32, so both are first moved by the mesh's bounding-box centre (float64): a
-    georeferenced building (coordinates ~1e6 m) keeps micrometre resolution instead of decimetres."""
-    p = _as_f64(points, "points")
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise MetricInputError("points [N, 3]", f"shape {p.shape}")
-    import open3d as o3d  # here, not at the top: the image metrics (used by training) need no open3d
-
-    v, f = _mesh_arrays(mesh)
-    origin = 0.5 * (v.min(axis=0) + v.max(axis=0))
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((v - origin).astype(np.float32)),
-                        o3d.core.Tensor(f.astype(np.uint32)))
-    if len(p) == 0:
-        return np.zeros(0)
-    d = scene.compute_distance(o3d.core.Tensor((p - origin).astype(np.float32)))
-    return d.numpy().astype(np.float64)
-
-
-def surface_distance(source: Any, target: Any, *, n_points: int = 100_000, seed: int = 0) -> DistanceStats:
-    """One-sided surface distance from ``source`` to ``target`` (meshes): ``n_points`` points sampled
-    uniformly on the source, distances to the target's surface, summarised (mean, p95, max). Run it both
-    ways for accuracy (source = reconstruction) and completeness (source = truth)."""
-    if n_points < 1:
-        raise EmptyMaskError("n_points >= 1", str(n_points))
-    return distance_stats(points_to_mesh_distance(sample_mesh_surface(source, n_points, seed), target))
-
-
-@dataclass(frozen=True)
-class AngleStats:
-    """Summary of angle errors in degrees."""
-
-    mean_deg: float
-    median_deg: float
-    p95_deg: float
-    count: int
-
-
-def normal_angle_map_deg(normals0: Any, normals1: Any, mask: Any = None) -> np.ndarray:
-    """Angle in degrees [...] between normals [..., 3] (maps [H, W, 3] or lists [N, 3]), atan2(|a x b|, a . b)
-    (accurate near 0 and 180 deg, unlike acos; no unit length needed). 0 outside the mask [...]; a masked
-    normal of zero length raises ``MetricInputError``."""
-    a, b = _as_f64(normals0, "normals0"), _as_f64(normals1, "normals1")
-    if a.shape != b.shape or a.ndim < 2 or a.shape[-1] != 3:
-        raise MetricInputError("two normal arrays [..., 3] of the same shape", f"{a.shape} and {b.shape}")
-    m = _as_mask(mask, a.shape[:-1])
-    zero = m & ((np.linalg.norm(a, axis=-1) == 0) | (np.linalg.norm(b, axis=-1) == 0))
-    if zero.any():
-        raise MetricInputError("non-zero normals inside the validity mask", f"{int(zero.sum())} zero normals")
-    ang = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(axis=-1)))
-    return np.where(m, ang, 0.0)
-
-
-def normal_angle_error_deg(normals0: Any, normals1: Any, mask: Any = None) -> AngleStats:
-    """Mean, median and 95th percentile of the normal angle error in degrees over a validity mask."""
-    ang = normal_angle_map_deg(normals0, normals1, mask)
-    m = _as_mask(mask, ang.shape)
-    if not m.any():
-        raise EmptyMaskError("a validity mask with at least one normal", "an empty mask")
-    e = ang[m]
-    return AngleStats(float(e.mean()), float(np.median(e)), float(np.percentile(e, 95)), int(e.size))
-
-
-@dataclass(frozen=True)
-class CornerError:
-    """Panel corner error: mean and max in pixels of the rectified facade image and in metres."""
-
-    mean_px: float
-    max_px: float
-    mean_m: float
-    max_m: float
-    count: int
-
-
-def corner_error(corners_px: Any, true_corners_px: Any,
-                 metres_per_px: float | tuple[float, float]) -> CornerError:
-    """Distances between corresponding corners [N, 2] (x, y pixels of the rectified facade image, row i of
-    one matching row i of the other). ``metres_per_px``: the pixel size, one number or (x, y) for a
-    non-square pixel; the metre error is |(dx sx, dy sy)|."""
-    p, t = _as_f64(corners_px, "corners_px"), _as_f64(true_corners_px, "true_corners_px")
-    if p.shape != t.shape or p.ndim != 2 or p.shape[1] != 2:
-        raise MetricInputError("two corner arrays [N, 2] of the same shape", f"{p.shape} and {t.shape}")
-    if len(p) == 0:
-        raise EmptyMaskError("at least one corner", "none")
-    s = np.broadcast_to(_as_f64(metres_per_px, "metres_per_px"), (2,))
-    if not (s > 0).all():
-        raise MetricInputError("metres_per_px > 0", str(metres_per_px))
-    d_px = np.linalg.norm(p - t, axis=1)
-    d_m = np.linalg.norm((p - t) * s, axis=1)
-    return CornerError(float(d_px.mean()), float(d_px.max()), float(d_m.mean()), float(d_m.max()), len(p))

@@ -1,21 +1,18 @@
-"""The 2D panel observations of the frontal views (``03_segment``), read and reconciled with the panel mask.
+"""The 2D panel observations of the frontal views (``03_segment``, read by
+``facade_pipeline.segmentation.result.ViewSegmentation``) reconciled with the panel mask.
 
-The corners JSON and the mask PNG are specified in data_layout.md ("Hand-off formats"). The mask is
-authoritative: a panel whose quadrilateral disagrees with its mask region is refitted from the region, a
-region with no panel becomes a panel, and a panel with no mask pixel is dropped. Pixels: x right, y down,
-pixel centres at (i + 0.5, j + 0.5); corners bottom-left, bottom-right, top-right, top-left seen from outside.
+The mask is authoritative: a panel whose quadrilateral disagrees with its mask region is refitted from
+the region, a region with no panel becomes a panel, and a panel with no mask pixel is dropped. Pixels:
+x right, y down, pixel centres at (i + 0.5, j + 0.5); corners bottom-left, bottom-right, top-right,
+top-left seen from outside.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
-
-from facade_pipeline.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,52 +23,6 @@ class Quad:
     corners_px: np.ndarray
     complete: bool = True
     source: str = "corners"
-
-
-@dataclass(frozen=True, eq=False)
-class ViewCorners:
-    """The contents of ``03_segment/corners/{stem}.json``."""
-
-    stem: str
-    width: int
-    height: int
-    rectified: bool
-    facade_found: bool
-    quads: tuple[Quad, ...]
-
-
-def read_view_corners(path: str | Path, width: int, height: int) -> ViewCorners:
-    """Read a corners JSON and check it against the view's size (``width`` x ``height`` px)."""
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-        quads = []
-        for i, p in enumerate(d["panels"]):
-            c = np.asarray(p["corners_px"], dtype=np.float64)
-            if c.shape != (4, 2) or not np.isfinite(c).all():
-                raise InputError(
-                    path, f"panel {i} with 4 finite [x, y] corners", f"corners of shape {c.shape}"
-                )
-            quads.append(Quad(c, bool(p.get("complete", True))))
-        vc = ViewCorners(
-            str(d["image"]),
-            int(d["width"]),
-            int(d["height"]),
-            bool(d["rectified"]),
-            bool(d["facade_found"]),
-            tuple(quads),
-        )
-    except FileNotFoundError:
-        raise InputError(path, "a panel corners JSON written by segment_panels", "no file") from None
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise InputError(
-            path, "a panel corners JSON (data_layout.md, Hand-off formats)", f"{type(e).__name__}: {e}"
-        ) from None
-    if (vc.width, vc.height) != (width, height):
-        raise InputError(
-            path, f"width x height {width}x{height} (the frontal view)", f"{vc.width}x{vc.height}"
-        )
-    return vc
 
 
 def quad_mask(corners_px: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -1,5 +1,5 @@
 """Accuracy of a segmentation against a synthetic building's truth (tests and benchmarks only: no stage
-reads gt/). Pure functions over arrays and the parsed ``gt/panels.json``.
+reads gt/). Pure functions over arrays and the true panels (``SyntheticTruth.panels``), local frame.
 
 - corners: each predicted corner that is a true corner (not on the image border, where cut panels are
   closed) against the nearest true panel corner projected into the view (Eq. 6) through the view's true
@@ -15,42 +15,49 @@ reads gt/). Pure functions over arrays and the parsed ``gt/panels.json``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.geometry.frames import transform_points
+from facade_pipeline.rectification.surface_map import ViewRectification
+from facade_pipeline.segmentation.result import SegmentedPanel, ViewSegmentation, panel_labels
+from facade_pipeline.synthetic.truth import SyntheticTruth
 
 
-def true_corners_px(panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray) -> np.ndarray:
-    """[T, 2] pixel positions of every true panel corner in front of ``camera`` (world -> local "
-    "frame first)."""
-    c = np.array([p["corners"] for p in panels_json["panels"]], dtype=np.float64).reshape(-1, 3)
-    uv, z = camera.project(transform_points(local_from_world, c))
+def true_corners_px(panels: list[dict], camera: PinholeCamera) -> np.ndarray:
+    """[T, 2] pixel positions of every true panel corner in front of ``camera``."""
+    c = np.array([p["corners"] for p in panels], dtype=np.float64).reshape(-1, 3)
+    uv, z = camera.project(c)
     return uv[z > 0]
 
 
 def true_edges_px(
-    panels_json: dict, camera: PinholeCamera, local_from_world: np.ndarray, surface_point, samples: int = 9
+    panels: list[dict], camera: PinholeCamera, surface_point, samples: int = 9
 ) -> list[np.ndarray]:
     """Each true panel edge as [samples, 2] pixel positions along the true surface (``surface_point(a, b,
     t) -> [n, 3]`` interpolates between corners a and b on the facade, curved where it is)."""
     out = []
-    for p in panels_json["panels"]:
+    for p in panels:
         c = np.asarray(p["corners"], dtype=np.float64)
         for i in range(4):
             pts = surface_point(c[i], c[(i + 1) % 4], np.linspace(0.0, 1.0, samples))
-            uv, z = camera.project(transform_points(local_from_world, pts))
+            uv, z = camera.project(pts)
             if np.all(z > 0):
                 out.append(uv)
     return out
 
 
 def corner_errors(
-    pred_panels: list[dict], true_px: np.ndarray, width: int, height: int, border_tol_px: float = 0.01
+    pred_panels: Sequence[SegmentedPanel],
+    true_px: np.ndarray,
+    width: int,
+    height: int,
+    border_tol_px: float = 0.01,
 ) -> np.ndarray:
     """Distances [C] (px) from each predicted corner off the image border to the nearest true corner."""
-    c = np.array([q for p in pred_panels for q in p["corners_px"]], dtype=np.float64).reshape(-1, 2)
+    c = np.array([q for p in pred_panels for q in p.corners_px], dtype=np.float64).reshape(-1, 2)
     off = (
         (c[:, 0] > border_tol_px)
         & (c[:, 0] < width - border_tol_px)
@@ -86,14 +93,10 @@ def panel_ious(pred_labels: np.ndarray, glass: np.ndarray, min_area_px: int) -> 
 
 
 def true_panel_labels(
-    panels_json: dict,
-    parts: list[dict],
-    camera: PinholeCamera,
-    local_from_world: np.ndarray,
-    samples: int = 9,
+    panels: list[dict], parts: list[dict], camera: PinholeCamera, samples: int = 9
 ) -> np.ndarray:
-    """Labels [H, W] of the true panels in ``camera`` (index into panels_json["panels"], -1: none): pixel
-    centres inside the projected outline, whose edges follow the true surface (``samples`` per edge)."""
+    """Labels [H, W] of the true panels in ``camera`` (index into ``panels``, -1: none): pixel centres
+    inside the projected outline, whose edges follow the true surface (``samples`` per edge)."""
     from skimage.measure import points_in_poly
 
     W, H = camera.width, camera.height
@@ -101,12 +104,12 @@ def true_panel_labels(
     centres = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
     out = np.full(H * W, -1, dtype=np.int32)
     by_index = {part["index"]: part for part in parts}
-    for k, p in enumerate(panels_json["panels"]):
+    for k, p in enumerate(panels):
         c = np.asarray(p["corners"], dtype=np.float64)
         along = surface_interpolator(by_index[p["part_index"]])
         t = np.linspace(0.0, 1.0, samples)[:-1]
         outline = np.concatenate([along(c[i], c[(i + 1) % 4], t) for i in range(4)])
-        uv, z = camera.project(transform_points(local_from_world, outline))
+        uv, z = camera.project(outline)
         if not np.all(z > 0):
             continue
         lo, hi = uv.min(axis=0), uv.max(axis=0)
@@ -144,8 +147,9 @@ def line_deviation_px(points: np.ndarray) -> float:
 
 
 def surface_interpolator(part: dict):
-    """``f(a, b, t) -> [n, 3]``: points between corners a and b [3] on a part of gt/scene.json, along the
-    cylinder (about ``axis_point``/``axis_direction``) for cylindrical parts, straight for planar ones."""
+    """``f(a, b, t) -> [n, 3]``: points between corners a and b [3] on a part of gt/scene.json
+    (``SyntheticTruth.scene_parts``), along the cylinder (about ``axis_point``/``axis_direction``) for
+    cylindrical parts, straight for planar ones."""
     if part["kind"] != "cylindrical":
         return lambda a, b, t: a[None] + np.asarray(t)[:, None] * (b - a)[None]
     o, u = np.asarray(part["axis_point"], float), np.asarray(part["axis_direction"], float)
@@ -164,47 +168,25 @@ def surface_interpolator(part: dict):
     return f
 
 
-def true_frontal_camera(layout, view) -> PinholeCamera:
-    """The true camera (world frame) of frontal view ``view`` from gt/frontal/sparse/0."""
-    from facade_pipeline.io.colmap import pinhole_camera, read_reconstruction
-
-    rec = read_reconstruction(layout.path("gt_frontal_sparse_dir"))
-    im = next(i for i in rec.images.values() if i.name.rsplit(".", 1)[0] == view.stem)
-    return pinhole_camera(rec.cameras[im.camera_id], im.cam_from_world())
-
-
-def evaluate_view(
-    layout, view, panels_json: dict, scene_json: dict, min_area_px: int
-) -> dict:
-    """Every accuracy figure of one frontal view from the stage outputs and the truth (module docstring)."""
-    import json
-
-    from facade_pipeline.io.images import read_mask
-    from facade_pipeline.rectification.surface_map import ViewRectification
-
+def evaluate_view(layout, view, truth: SyntheticTruth, min_area_px: int) -> dict:
+    """Every accuracy figure of one frontal view from the stage outputs and the truth (module docstring),
+    in the local frame."""
     W, H = view.camera.width, view.camera.height
-    cam, local_from_world = true_frontal_camera(layout, view), np.eye(4)  # truth and camera in world
-    corners = json.loads(layout.path("segment_corners", stem=view.stem).read_text())
+    cam, panels, parts = truth.frontal_camera(view.stem), truth.panels(), truth.scene_parts()
+    seg = ViewSegmentation.load(layout, view.stem, W, H)
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
-    glass = read_mask(layout.gt("glass_mask", view.stem))
-    errors = corner_errors(corners["panels"], true_corners_px(panels_json, cam, local_from_world), W, H)
+    glass = truth.mask("glass", view.stem)
+    errors = corner_errors(seg.panels, true_corners_px(panels, cam), W, H)
     _, kept = glass_components(glass, min_area_px)
-    from facade_pipeline.segmentation.panels import Panel
-    from stages.segment_panels import panel_labels
-
-    panels = [
-        Panel(p["row"], p["col"], np.array(p["corners_rectified_px"]), p["complete"], "")
-        for p in corners["panels"]
-    ]
-    pred = panel_labels(panels, rect, W, H) if panels else None
-    ious = panel_ious(pred, glass, min_area_px) if panels else np.zeros(0)
-    truth = true_panel_labels(panels_json, scene_json["parts"], cam, local_from_world)
-    ious_panel = panel_ious_vs_panels(pred, truth) if panels else np.zeros(0)
-    complete = np.array([p["complete"] for p in corners["panels"]], bool)
+    pred = panel_labels([p.corners_rectified_px for p in seg.panels], rect, W, H) if seg.panels else None
+    ious = panel_ious(pred, glass, min_area_px) if seg.panels else np.zeros(0)
+    truth_labels = true_panel_labels(panels, parts, cam)
+    ious_panel = panel_ious_vs_panels(pred, truth_labels) if seg.panels else np.zeros(0)
+    complete = np.array([p.complete for p in seg.panels], bool)
     straight = []
-    for part in scene_json["parts"]:
-        sel = {"panels": [p for p in panels_json["panels"] if p["part_index"] == part["index"]]}
-        for uv in true_edges_px(sel, cam, local_from_world, surface_interpolator(part)):
+    for part in parts:
+        mine = [p for p in panels if p["part_index"] == part["index"]]
+        for uv in true_edges_px(mine, cam, surface_interpolator(part)):
             if uv.min() >= 0 and uv[:, 0].max() <= W and uv[:, 1].max() <= H:
                 r = rect.to_rectified(uv)
                 r = r[np.isfinite(r).all(axis=1)]  # rays past the fitted surface's silhouette miss it
@@ -213,7 +195,7 @@ def evaluate_view(
     return {
         "corner_errors_px": errors,
         "n_true": len(kept),
-        "n_pred": len(corners["panels"]),
+        "n_pred": len(seg.panels),
         "iou_complete": ious_panel[complete],
         "iou_cut": ious_panel[~complete],
         "iou_visible_glass_complete": ious[complete],

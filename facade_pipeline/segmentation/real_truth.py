@@ -20,9 +20,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facade_pipeline.io.images import read_mask
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.segmentation.panels import inside_quads
+from facade_pipeline.segmentation.result import ViewSegmentation
 
 
 def quad_mask(corners: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -48,13 +48,13 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
-def evaluate_photo(corners_json: dict, mask: np.ndarray, truth_mask: np.ndarray, outlines: list,
+def evaluate_photo(seg: ViewSegmentation, truth_mask: np.ndarray, outlines: list,
                    found_iou: float = 0.7) -> dict:
     """Every figure of one photo (module docstring)."""
     H, W = truth_mask.shape
     truth = truth_mask > 127
-    panels = corners_json["panels"]
-    complete = [np.asarray(p["corners_px"], float) for p in panels if p["complete"]]
+    panels = seg.panels
+    complete = [p.corners_px for p in panels if p.complete]
     masks = [quad_mask(c, W, H) for c in complete]
     found, errors = 0, []
     whole = whole_panes(outlines, W, H)
@@ -67,7 +67,7 @@ def evaluate_photo(corners_json: dict, mask: np.ndarray, truth_mask: np.ndarray,
             errors += [float(np.min(np.linalg.norm(c - q, axis=1))) for q in pane]
     glass_frac = [float(truth[m].mean()) if m.any() else 0.0 for m in masks]
     return {"n_whole": len(whole), "n_found": found, "corner_errors_px": errors,
-            "mask_iou": iou(mask > 127, truth), "glass_fraction_complete": glass_frac,
+            "mask_iou": iou(seg.mask, truth), "glass_fraction_complete": glass_frac,
             "n_panels": len(panels), "n_complete": len(complete)}
 
 
@@ -79,9 +79,8 @@ def evaluate_building(layout, truth_dir: Path) -> dict[str, dict]:
         tm = cv2.imread(str(truth_dir / "masks" / f"{v.stem}.png"), cv2.IMREAD_GRAYSCALE)
         if tm is None or v.stem not in panes:
             continue
-        corners = json.loads(layout.path("segment_corners", stem=v.stem).read_text())
-        mask = read_mask(layout.path("segment_mask", stem=v.stem)).astype(np.uint8) * 255
-        out[v.stem] = evaluate_photo(corners, mask, tm, panes[v.stem])
+        seg = ViewSegmentation.load(layout, v.stem, v.camera.width, v.camera.height)
+        out[v.stem] = evaluate_photo(seg, tm, panes[v.stem])
     return out
 
 

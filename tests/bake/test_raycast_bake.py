@@ -166,3 +166,33 @@ def test_panel_masks_project_the_panels():
     assert not panel_masks(ps, behind, 4, 0.05)[1].any()
     close = camera([0.0, -0.2, 0.0], [0, 5, 0])  # panel partly behind the near plane: clipped, no crash
     assert panel_masks(ps, close, 4, 0.05)[1].dtype == bool
+
+
+def test_baked_prior_round_trip_subsets_and_bad_files(tmp_path):
+    """The 06_bake_normals hand-off: what ``save`` writes ``load`` reads back bit for bit; a reader asks
+    for the maps it needs; wrong channels, sizes or disagreeing valid channels are named."""
+    from facade_pipeline.bake.maps import BakedPrior
+    from facade_pipeline.errors import InputError
+    from facade_pipeline.layout import BuildingLayout
+
+    layout = BuildingLayout(tmp_path, "b")
+    rng = np.random.default_rng(0)
+    valid = rng.random((6, 7)) > 0.3
+    normal = np.where(valid[..., None], rng.normal(size=(6, 7, 3)), 0).astype(np.float32)
+    depth = np.where(valid, rng.uniform(1, 5, (6, 7)), 0).astype(np.float32)
+    prior = BakedPrior("uav_0", normal, valid, depth, valid, valid & (depth > 2))
+    written = prior.save(layout)
+    assert written == list(BakedPrior.paths(layout, "uav_0").values())
+    back = BakedPrior.load(layout, "uav_0", (6, 7))
+    for name in ("normal", "valid", "depth", "facade", "glass"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(prior, name))
+    masks = BakedPrior.load(layout, "uav_0", None, ("facade_mask", "glass_mask"))
+    assert masks.normal is None and masks.depth is None and masks.facade.shape == (6, 7)
+    with pytest.raises(InputError, match=r"uav_0.png: expected a map of shape \(5, 7\)"):
+        BakedPrior.load(layout, "uav_0", (5, 7), ("glass_mask",))
+    write_exr(layout.path("bake_depth_map", stem="uav_0"), {"depth": depth, "valid": np.zeros((6, 7))})
+    with pytest.raises(InputError, match="valid channel of uav_0.exr"):
+        BakedPrior.load(layout, "uav_0", (6, 7))
+    write_exr(layout.path("bake_normal_map", stem="uav_0"), {"normal": normal})
+    with pytest.raises(InputError, match=r"channels N.X/Y/Z and valid, found channels \['normal'\]"):
+        BakedPrior.load(layout, "uav_0", (6, 7), ("normal_map",))

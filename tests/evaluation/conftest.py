@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from facade_pipeline.bake.maps import BakedPrior
 from facade_pipeline.evaluation.lpips import LAYERS, LpipsUnavailable, _Conv, find_lpips_weights
-from facade_pipeline.io.images import write_mask
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.training.render import splatting_rasterizer
 from facade_pipeline.training.trainer import build_trainer, train
@@ -80,6 +80,5 @@ def tiny(tmp_path_factory):
     tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend), "cpu")
     train(tr)
     for v in data.views:  # the gt masks stand in for bake_normals' masks
-        write_mask(layout.path("bake_facade_mask", stem=v.stem), v.facade_mask)
-        write_mask(layout.path("bake_glass_mask", stem=v.stem), v.glass_mask)
+        BakedPrior(v.stem, facade=v.facade_mask, glass=v.glass_mask).save(layout)
     return layout, data, tr

@@ -1,4 +1,4 @@
-"""PSNR, SSIM and geometry metrics: against scikit-image, mask invariance, hand-computed cases, bad input."""
+"""PSNR and SSIM: against scikit-image, mask invariance, hand-computed cases, bad input."""
 
 from __future__ import annotations
 
@@ -12,17 +12,10 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from facade_pipeline.evaluation.errors import EmptyMaskError, MetricInputError
 from facade_pipeline.evaluation.metrics import (
     SSIM_WINDOW_PX,
-    corner_error,
-    distance_stats,
     gaussian_window_1d,
-    normal_angle_error_deg,
-    normal_angle_map_deg,
-    points_to_mesh_distance,
     psnr,
-    sample_mesh_surface,
     ssim,
     ssim_map,
-    surface_distance,
 )
 
 from .conftest import TOL
@@ -154,75 +147,3 @@ def test_empty_masks_raise():
 def test_bad_input(args, kwargs):
     with pytest.raises(MetricInputError):
         ssim(*args, **kwargs)
-
-
-# ---------------------------------------------------------------------------------------------- geometry
-
-SQUARE = (np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float), np.array([[0, 1, 2], [0, 2, 3]]))
-
-
-def test_points_to_mesh_distance_hand_computed():
-    pts = np.array([[0.5, 0.5, 0.3], [0.2, 0.7, -2.0], [2.0, 0.5, 0.0], [2.0, 2.0, 1.0], [0.5, 0.5, 0.0]])
-    want = [0.3, 2.0, 1.0, math.sqrt(3.0), 0.0]
-    np.testing.assert_allclose(points_to_mesh_distance(pts, SQUARE), want, atol=1e-6)  # float32 inside open3d
-
-
-def test_georeferenced_coordinates_keep_precision():
-    offset = np.array([4.5e5, 5.4e6, 300.0])  # UTM-sized: float32 alone would have ~0.5 m steps
-    mesh = (SQUARE[0] + offset, SQUARE[1])
-    d = points_to_mesh_distance(np.array([[0.5, 0.5, 0.01]]) + offset, mesh)
-    assert abs(d[0] - 0.01) < 1e-5
-
-
-def test_surface_distance_parallel_squares():
-    shifted = (SQUARE[0] + [0, 0, 0.25], SQUARE[1])
-    s = surface_distance(shifted, SQUARE, n_points=2000, seed=1)
-    assert s.count == 2000
-    for v in (s.mean, s.p95, s.max):
-        assert abs(v - 0.25) < 1e-6
-    pts = sample_mesh_surface(SQUARE, 5000, seed=0)
-    assert np.allclose(pts[:, 2], 0) and pts[:, :2].min() >= 0 and pts[:, :2].max() <= 1
-    assert abs(pts[:, 0].mean() - 0.5) < 0.02 and abs(pts[:, 1].mean() - 0.5) < 0.02  # uniform by area
-    np.testing.assert_array_equal(pts, sample_mesh_surface(SQUARE, 5000, seed=0))
-
-
-def test_distance_stats_hand_computed_and_empty():
-    s = distance_stats(np.arange(101, dtype=float))
-    assert (s.mean, s.p95, s.max, s.count) == (50.0, 95.0, 100.0, 101)
-    with pytest.raises(EmptyMaskError):
-        distance_stats(np.zeros(0))
-    with pytest.raises(EmptyMaskError):
-        surface_distance(SQUARE, SQUARE, n_points=0)
-    with pytest.raises(MetricInputError):
-        points_to_mesh_distance(np.zeros((3, 3)), (SQUARE[0], np.array([[0, 1, 7]])))
-
-
-def test_normal_angle_error_hand_computed():
-    n0 = np.array([[[0, 0, 1.0], [0, 0, 1.0]], [[1.0, 0, 0], [0, 0, 2.0]]])  # [2, 2, 3]
-    n1 = np.array([[[0, 1.0, 0], [0, 1.0, 1.0]], [[-1.0, 0, 0], [0, 0, 0.0]]])
-    mask = np.array([[True, True], [True, False]])  # the zero normal is outside the validity mask
-    ang = normal_angle_map_deg(n0, n1, mask)
-    np.testing.assert_allclose(ang, [[90, 45], [180, 0]], atol=1e-12)
-    s = normal_angle_error_deg(n0, n1, mask)
-    assert s.count == 3 and abs(s.mean_deg - 105) < 1e-12 and abs(s.median_deg - 90) < 1e-12
-    tiny = 1e-7  # rad: acos(dot) would round this to 0
-    a = normal_angle_map_deg(np.array([[0, 0, 1.0]]), np.array([[math.sin(tiny), 0, math.cos(tiny)]]))
-    assert abs(a[0] - math.degrees(tiny)) < 1e-15
-    with pytest.raises(MetricInputError):
-        normal_angle_error_deg(n0, n1)  # zero normal inside the (full) mask
-    with pytest.raises(EmptyMaskError):
-        normal_angle_error_deg(n0, n1, np.zeros((2, 2), bool))
-
-
-def test_corner_error_hand_computed():
-    true = np.array([[10.0, 10.0], [20.0, 10.0]])
-    pred = true + [[3.0, 4.0], [0.0, 0.0]]
-    e = corner_error(pred, true, 0.02)
-    assert (e.mean_px, e.max_px, e.count) == (2.5, 5.0, 2)
-    assert abs(e.mean_m - 0.05) < 1e-12 and abs(e.max_m - 0.1) < 1e-12
-    e = corner_error(pred, true, (0.01, 0.02))  # non-square pixels: |(3 * 0.01, 4 * 0.02)|
-    assert abs(e.max_m - math.hypot(0.03, 0.08)) < 1e-12
-    with pytest.raises(EmptyMaskError):
-        corner_error(np.zeros((0, 2)), np.zeros((0, 2)), 0.01)
-    with pytest.raises(MetricInputError):
-        corner_error(pred, true, 0.0)

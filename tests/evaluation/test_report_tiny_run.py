@@ -14,12 +14,17 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from facade_pipeline.bake.maps import BakedPrior
 from facade_pipeline.config import to_dict
 from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.building import evaluate_split, metrics_header, write_reports
 from facade_pipeline.evaluation.metrics import psnr, ssim
-from facade_pipeline.evaluation.render_views import align_trained, from_trainer, load_trained, render_trained
-from facade_pipeline.io.images import read_mask
+from facade_pipeline.evaluation.render_views import (
+    align_trained,
+    from_trainer,
+    load_trained,
+    render_trained,
+)
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.trained import TrainedModelFiles
@@ -92,7 +97,7 @@ def test_report_builds_from_a_tiny_run(tiny):
     row = result["views"][0]
     v = data.views[data.test_idx[0]]
     r = render_trained(tm, v.camera, v.facade_mask)
-    mask = read_mask(layout.path("bake_facade_mask", stem=v.stem))
+    mask = BakedPrior.load(layout, v.stem, None, ("facade_mask",)).facade
     assert row["metrics"]["facade"]["psnr"] == pytest.approx(psnr(r.rgb, v.image, mask), abs=1e-3)
     assert row["metrics"]["facade"]["ssim"] == pytest.approx(
         ssim(r.rgb, v.image, mask, border="renormalize"), abs=1e-5

@@ -1,29 +1,18 @@
-"""03_segment files made from a synthetic building's ground truth, in exactly the documented format
-(data_layout.md, "Hand-off formats"), for developing and testing the 3D panel stages independently of
+"""03_segment files made from a synthetic building's ground truth, written by the hand-off's own writer
+(``ViewSegmentation.save``), for developing and testing the 3D panel stages independently of
 `segment_panels`: the true 3D corners of gt/panels.json projected through each frontal camera of
 01_import/scene.json, with Gaussian pixel noise; the mask is gt's glass mask of the view."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
-from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.io.atomic import write_json
-from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import build_manifest
 from facade_pipeline.scene import ImportedScene
-
-
-def true_panels_local(layout: BuildingLayout, scene: ImportedScene) -> list[dict]:
-    """gt/panels.json with corners moved into the local frame of 01_import."""
-    local_from_georef = invert_rigid(scene.georef_from_local)
-    panels = json.loads(layout.gt("panels").read_text())["panels"]
-    for p in panels:
-        p["corners"] = transform_points(local_from_georef, np.array(p["corners"]))
-    return panels
+from facade_pipeline.segmentation.result import SegmentedPanel, ViewSegmentation
+from facade_pipeline.synthetic.truth import SyntheticTruth
 
 
 def write_segment_from_gt(
@@ -31,7 +20,8 @@ def write_segment_from_gt(
 ) -> list[str]:
     """Write 03_segment/corners/{stem}.json and masks/{stem}.png for every frontal view; returns stems."""
     scene = ImportedScene.load(layout)
-    panels = true_panels_local(layout, scene)
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
+    panels = truth.panels()
     rng = np.random.default_rng(seed)
     stems = []
     for v in scene.frontal_views:
@@ -50,27 +40,12 @@ def write_segment_from_gt(
             found.append((p, uv + rng.normal(0.0, noise_px, uv.shape)))
         rows = sorted({p["row"] for p, _ in found})
         cols = sorted({(p["part"], p["col"]) for p, _ in found})
-        write_json(
-            layout.path("segment_corners", stem=v.stem),
-            {
-                "image": v.stem,
-                "width": cam.width,
-                "height": cam.height,
-                "rectified": False,
-                "facade_found": bool(found),
-                "panels": [
-                    {
-                        "row": rows.index(p["row"]),
-                        "col": cols.index((p["part"], p["col"])),
-                        "corners_px": uv.tolist(),
-                        "corners_rectified_px": uv.tolist(),
-                        "complete": True,
-                    }
-                    for p, uv in found
-                ],
-            },
+        seen = tuple(
+            SegmentedPanel(rows.index(p["row"]), cols.index((p["part"], p["col"])), uv, uv, True)
+            for p, uv in found
         )
-        write_mask(layout.path("segment_mask", stem=v.stem), read_mask(layout.gt("glass_mask", v.stem)))
+        mask = truth.mask("glass", v.stem)
+        ViewSegmentation(v.stem, cam.width, cam.height, False, bool(found), "", seen, mask).save(layout)
         stems.append(v.stem)
     _stand_in_manifest(layout, stems)
     return stems

@@ -22,7 +22,7 @@ from facade_pipeline.meshing.correct import (
 from facade_pipeline.meshing.overlay import panels_over_view, scaled_camera, shaded_render, upscale_factor
 from facade_pipeline.panels3d.grid import build_panel_set, true_corners
 from tests.meshing.conftest import params_of
-from tests.meshing.test_panels_geometry import DEPTH, cfg, facade
+from tests.panels3d.test_panels_geometry import DEPTH, cfg, facade
 
 W, H = 200, 150
 

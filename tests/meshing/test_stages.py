@@ -3,21 +3,22 @@ the authoritative mask, and bad inputs named."""
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import shutil
 
 import numpy as np
 import pytest
 
+from facade_pipeline.bake.maps import BakedPrior
 from facade_pipeline.errors import InputError
-from facade_pipeline.io.exr import read_exr
-from facade_pipeline.io.images import read_image, read_mask, write_mask
+from facade_pipeline.io.images import read_image, write_mask
 from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.segmentation.result import ViewSegmentation
 from tests.meshing.conftest import run_stage
 
 
@@ -50,17 +51,17 @@ def test_bake_outputs_are_finite_and_face_the_camera(built64):
     assert m.metrics["n_views"] == len(scene.uav_views) == 4
     assert m.metrics["truth"]["glass_normal_error_mean_deg"] < 1.0
     for v in scene.uav_views:
-        n = read_exr(built64.path("bake_normal_map", stem=v.stem))
-        d = read_exr(built64.path("bake_depth_map", stem=v.stem))
-        assert n["N"].dtype == np.float32 and np.isfinite(n["N"]).all() and np.isfinite(d["depth"]).all()
-        valid = n["valid"] > 0.5
-        assert valid.any() and (d["valid"] == n["valid"]).all()
-        assert np.allclose(np.linalg.norm(n["N"][valid], axis=1), 1.0, atol=1e-5)
-        assert (n["N"][~valid] == 0).all() and (d["depth"][~valid] == 0).all()
+        # the reader checks the channels, the sizes and that both maps have the same valid channel
+        b = BakedPrior.load(built64, v.stem, (v.camera.height, v.camera.width))
+        assert b.normal.dtype == b.depth.dtype == np.float32
+        assert np.isfinite(b.normal).all() and np.isfinite(b.depth).all()
+        valid = b.valid
+        assert valid.any()
+        assert np.allclose(np.linalg.norm(b.normal[valid], axis=1), 1.0, atol=1e-5)
+        assert (b.normal[~valid] == 0).all() and (b.depth[~valid] == 0).all()
         o, dirs = v.camera.all_pixel_rays()
-        assert (np.sum(n["N"].reshape(-1, 3) * dirs, axis=1)[valid.ravel()] < 0).all()
-        glass = read_mask(built64.path("bake_glass_mask", stem=v.stem))
-        facade = read_mask(built64.path("bake_facade_mask", stem=v.stem))
+        assert (np.sum(b.normal.reshape(-1, 3) * dirs, axis=1)[valid.ravel()] < 0).all()
+        glass, facade = b.glass, b.facade
         assert glass.any() and not (glass & ~facade).any() and not (glass & ~valid).any()
     # masks from the same rays as the normals, frames hiding glass: close to the true glass at 64 px
     assert m.metrics["truth"]["glass_mask_iou_min"] > 0.9
@@ -95,23 +96,21 @@ def copy64(built64, tmp_path):
 def test_mask_is_authoritative(copy64):
     """A panel erased from the mask is dropped; a mask region without corners becomes a panel."""
     layout = copy64
-    stem = ImportedScene.load(layout).frontal_views[0].stem
-    cpath = layout.path("segment_corners", stem=stem)
-    d = json.loads(cpath.read_text())
-    removed = d["panels"].pop(0)  # corners gone, mask kept: the mask brings the panel back
-    cpath.write_text(json.dumps(d))
+    view = ImportedScene.load(layout).frontal_views[0]
+    stem = view.stem
+    seg = ViewSegmentation.load(layout, stem, view.camera.width, view.camera.height)
+    removed = seg.panels[0]  # corners gone, mask kept: the mask brings the panel back
+    dataclasses.replace(seg, panels=seg.panels[1:]).save(layout)
     m = run_stage("regularize_corners", layout).get("metrics")
     assert m["mask_panels_added"] >= 1 and m["n_panels"] == 12
-    mpath = layout.path("segment_mask", stem=stem)
-    mask = read_mask(mpath)
-    d["panels"].insert(0, removed)
-    cpath.write_text(json.dumps(d))
-    x, y = np.asarray(removed["corners_px"]).mean(axis=0).astype(int)
+    x, y = removed.corners_px.mean(axis=0).astype(int)
     from scipy import ndimage
 
+    mask = seg.mask.copy()
     lab, _ = ndimage.label(mask)
     mask[lab == lab[y, x]] = False  # the person erased that panel
-    write_mask(mpath, mask)
+    seg.save(layout)
+    write_mask(layout.path("segment_mask", stem=stem), mask)
     m = run_stage("regularize_corners", layout)["metrics"]
     assert m["mask_panels_dropped"] == 1 and m["n_panels"] == 11
 

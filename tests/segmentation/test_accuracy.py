@@ -3,22 +3,22 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.segmentation.accuracy import evaluate_view
+from facade_pipeline.segmentation.result import ViewSegmentation
+from facade_pipeline.synthetic.truth import SyntheticTruth
 
 BUILDINGS = ["synthetic64", "synthetic64_curved"]
 
 
 def evaluate(layout) -> list[dict]:
     scene = ImportedScene.load(layout)
-    panels, gt_scene = (json.loads(layout.gt(k).read_text()) for k in ("panels", "scene"))
-    return [evaluate_view(layout, v, panels, gt_scene, 4) for v in scene.frontal_views]
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
+    return [evaluate_view(layout, v, truth, 4) for v in scene.frontal_views]
 
 
 @pytest.fixture(scope="module")
@@ -53,14 +53,12 @@ def test_corner_error_median_and_95th_percentile(results, building):
 def test_every_view_has_a_facade_and_the_corners_file_follows_the_contract(scenes, building):
     layout = scenes[building][0]
     for v in ImportedScene.load(layout).frontal_views:
-        c = json.loads(layout.path("segment_corners", stem=v.stem).read_text())
-        assert c["image"] == v.stem and (c["width"], c["height"]) == (v.camera.width, v.camera.height)
-        assert c["facade_found"] and c["rectified"]
-        for p in c["panels"]:
-            assert np.array(p["corners_px"]).shape == (4, 2) and np.array(
-                p["corners_rectified_px"]
-            ).shape == (4, 2)
-            assert isinstance(p["complete"], bool) and p["row"] >= 0 and p["col"] >= 0
+        # the reader checks the size against the view's and each panel's 4 finite corners in both images
+        seg = ViewSegmentation.load(layout, v.stem, v.camera.width, v.camera.height)
+        assert seg.stem == v.stem and seg.facade_found and seg.rectified and seg.reason == ""
+        for p in seg.panels:
+            assert p.corners_px.shape == (4, 2) and p.corners_rectified_px.shape == (4, 2)
+            assert p.row >= 0 and p.col >= 0
 
 
 @pytest.mark.parametrize("building", BUILDINGS)

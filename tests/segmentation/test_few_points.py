@@ -10,12 +10,13 @@ import shutil
 
 import numpy as np
 
-from facade_pipeline.io.images import read_image, read_mask
+from facade_pipeline.io.images import read_image
 from facade_pipeline.io.meshes import make_points, read_points, write_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.rectification.views import view_points
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.segmentation.result import ViewSegmentation
 from stages._runner import main
 
 BUILDING = "synthetic64_curved"
@@ -63,12 +64,11 @@ def test_view_with_too_few_points_passes_through(scenes, tmp_path, monkeypatch):
                           read_image(layout.import_frontal_image(starved.stem)))
 
     run_stage("segment_panels", layout)
-    corners = json.loads(layout.path("segment_corners", stem=starved.stem).read_text())
-    assert corners["rectified"] is False and isinstance(corners["facade_found"], bool)
-    for p in corners["panels"]:
-        assert p["corners_px"] == p["corners_rectified_px"]
-    mask = read_mask(layout.path("segment_mask", stem=starved.stem))
-    assert mask.shape == (starved.camera.height, starved.camera.width)
+    seg = ViewSegmentation.load(layout, starved.stem, starved.camera.width, starved.camera.height)
+    assert seg.rectified is False
+    for p in seg.panels:
+        assert np.array_equal(p.corners_px, p.corners_rectified_px)
+    assert seg.mask.shape == (starved.camera.height, starved.camera.width)
     seg = read_manifest(layout, "segment_panels").metrics
     assert seg["n_views"] == len(scene.frontal_views) and seg["views"][starved.stem]["rectified"] is False
 
@@ -96,6 +96,6 @@ def test_views_whose_rectified_image_is_too_large_are_skipped_with_the_reason(sc
     seg = read_manifest(layout, "segment_panels").metrics
     assert seg["n_views_with_facade"] == 0
     for v in views:
-        c = json.loads(layout.path("segment_corners", stem=v.stem).read_text())
-        assert c["facade_found"] is False and "max_size_factor" in c["reason"] and c["panels"] == []
-        assert not read_mask(layout.path("segment_mask", stem=v.stem)).any()
+        seg = ViewSegmentation.load(layout, v.stem, v.camera.width, v.camera.height)
+        assert seg.facade_found is False and "max_size_factor" in seg.reason and seg.panels == ()
+        assert not seg.mask.any()

@@ -11,8 +11,8 @@ from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
 from facade_pipeline.rectification.surface_map import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
 from facade_pipeline.segmentation.panels import inside_quads, segment_image
+from facade_pipeline.segmentation.result import panel_labels
 from stages import segment_panels
-from stages.segment_panels import panel_labels
 from tests.segmentation.drawn import Drawing
 
 
@@ -82,7 +82,7 @@ def test_grid_masks(reflections):
     err = corner_errors(seg, truth, d.W, d.H)
     assert np.median(err) < 0.5 and err.max() < 1.0
     rect = ViewRectification.unrectified(CAMERA(d.W, d.H), FINE_M_PER_PX, "drawn")
-    labels = panel_labels(seg.panels, rect, d.W, d.H)
+    labels = panel_labels([p.corners for p in seg.panels], rect, d.W, d.H)
     assert panel_ious(labels, glass_mask(d), 4).min() >= 0.95
 
 

@@ -31,34 +31,35 @@ def synth64(tmp_path_factory) -> BuildingLayout:
     return layout
 
 
-def gt_view(layout: BuildingLayout, view) -> TrainView:
-    """A training view whose normal prior and masks are the ground truth (what bake_normals approximates)."""
-    from facade_pipeline.io.exr import read_exr
-    from facade_pipeline.io.images import read_image, read_mask
+def gt_view(truth, view) -> TrainView:
+    """A training view whose normal prior and masks are the ground truth (what bake_normals approximates),
+    from ``truth`` (a ``SyntheticTruth``: local frame)."""
+    from facade_pipeline.io.images import read_image
 
-    normals = read_exr(layout.gt("normal_map", view.stem))
+    normals, valid = truth.normal_map(view.stem)
     return TrainView(
         view.stem,
         view.camera,
-        read_image(layout.root / view.image).astype(np.float32) / 255.0,
-        read_mask(layout.gt("facade_mask", view.stem)),
-        read_mask(layout.gt("glass_mask", view.stem)),
-        normals["N"],
-        normals["valid"] > 0.5,
+        read_image(truth.layout.root / view.image).astype(np.float32) / 255.0,
+        truth.mask("facade", view.stem),
+        truth.mask("glass", view.stem),
+        normals.astype(np.float32),
+        valid,
     )
 
 
 def gt_train_data(layout: BuildingLayout, test_every: int = 8, max_views: int | None = None) -> TrainData:
-    from facade_pipeline.io.meshes import read_mesh, read_points
+    """Training data from gt/: true normals and masks, the true facade mesh, the coarse points."""
+    from facade_pipeline.io.meshes import read_points
     from facade_pipeline.scene import ImportedScene
+    from facade_pipeline.synthetic.truth import SyntheticTruth
 
     scene = ImportedScene.load(layout)
-    views = tuple(gt_view(layout, v) for v in scene.uav_views[:max_views])
-    mesh = read_mesh(layout.gt("facade_mesh"))
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
+    views = tuple(gt_view(truth, v) for v in scene.uav_views[:max_views])
+    vertices, triangles = truth.mesh("facade_mesh")
     pcd = read_points(layout.import_coarse_points)
-    init = InitGeometry(
-        np.asarray(pcd.points), np.asarray(pcd.colors), np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    )
+    init = InitGeometry(np.asarray(pcd.points), np.asarray(pcd.colors), vertices, triangles)
     train, test = split_views(len(views), test_every)
     return TrainData(views, train, test, init)
 

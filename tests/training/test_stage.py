@@ -11,16 +11,17 @@ import numpy as np
 import pytest
 import torch
 
+from facade_pipeline.bake.maps import BakedPrior
 from facade_pipeline.config import available_buildings, load_building_config
 from facade_pipeline.errors import InputError, UpstreamMissingError
 from facade_pipeline.io.atomic import write_json
-from facade_pipeline.io.exr import read_exr, write_exr
-from facade_pipeline.io.images import read_mask, write_mask
-from facade_pipeline.io.meshes import read_mesh, write_mesh
+from facade_pipeline.io.images import write_mask
+from facade_pipeline.io.meshes import make_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, write_labels
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.synthetic.truth import SyntheticTruth
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.ply import read_ply
 from stages import train_gs
@@ -39,18 +40,17 @@ def upstream(synth64, tmp_path) -> BuildingLayout:
     layout = BuildingLayout(tmp_path / "data", "synthetic64")
     shutil.copytree(synth64.root, layout.root)
     layout.path("correct_mesh").parent.mkdir(parents=True)
-    glass, frames = read_mesh(layout.gt("glass_mesh")), read_mesh(layout.gt("frame_mesh"))
-    write_mesh(layout.path("correct_mesh"), glass + frames)
-    labels = [GLASS] * len(glass.triangles) + [FRAME] * len(frames.triangles)
+    truth = SyntheticTruth.load(layout)
+    (gv, gf), (fv, ff) = truth.mesh("glass_mesh"), truth.mesh("frame_mesh")
+    both = make_mesh(np.concatenate([gv, fv]), np.concatenate([gf, ff + len(gv)]))
+    write_mesh(layout.path("correct_mesh"), both)
+    labels = [GLASS] * len(gf) + [FRAME] * len(ff)
     write_labels(layout.path("correct_mesh_labels"), np.array(labels, np.uint8))
     _fake_manifest(layout, "correct_mesh")
     for v in ImportedScene.load(layout).uav_views:
-        n = read_exr(layout.gt("normal_map", v.stem))
-        write_exr(layout.path("bake_normal_map", stem=v.stem), n)
-        for kind in ("facade", "glass"):
-            write_mask(
-                layout.path(f"bake_{kind}_mask", stem=v.stem), read_mask(layout.gt(f"{kind}_mask", v.stem))
-            )
+        normal, valid = truth.normal_map(v.stem)
+        facade, glass = truth.mask("facade", v.stem), truth.mask("glass", v.stem)
+        BakedPrior(v.stem, normal.astype(np.float32), valid, facade=facade, glass=glass).save(layout)
     _fake_manifest(layout, "bake_normals")
     return layout
 
