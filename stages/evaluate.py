@@ -76,6 +76,7 @@ from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
+from facade_pipeline.training.params import flat_params
 from facade_pipeline.training.trainer import resolve_device
 from stages._runner import StageReport, main
 
@@ -306,7 +307,7 @@ def ablation_group(params: dict[str, Any]) -> str:
 
 
 def _variant_entry(v: TrainedVariant, tm: TrainedModel) -> dict[str, Any]:
-    p = v.params
+    p = flat_params(v.params)
     arch = {k: p[k] for k in ARCHITECTURE_KEYS if k in p} if p["reflection_model"] == "mlp" else None
     return {
         "reflection_model": p["reflection_model"],

@@ -153,7 +153,7 @@ def fingerprint(layout: BuildingLayout, params: Params) -> str:
 
 def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Path]:
     write_ply(layout.path("train_ply"), tr.model)
-    refl = reflection_record(tr.params.reflection(), tr.data.bounds, tr.reflection)
+    refl = reflection_record(tr.params.reflection_strategy(), tr.data.bounds, tr.reflection)
     save_torch(layout.path("train_reflection"), refl)
     lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": metrics})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")
@@ -199,7 +199,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "iterations": tr.iteration,
             "resumed_from_iteration": resumed_from,
             "n_gaussians": tr.model.n,
-            "reflection_model": params.reflection_model,
+            "reflection_model": params.reflection.model,
             "device": str(device),
             "n_train_views": len(data.train_idx),
             "n_test_views": len(data.test_idx),

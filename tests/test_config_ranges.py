@@ -111,7 +111,7 @@ BAD_VALUES = [
     ("train_gs.densify", "prune_opacity = 1.5", "train_gs.densify.prune_opacity", "<= 1"),
     ("synthesize.coarse", "glass_hole_fraction = 1.5", "synthesize.coarse.glass_hole_fraction", "<= 1"),
     ("segment_panels.grid", "sigma_frac = nan", "segment_panels.grid.sigma_frac", "found nan"),
-    ("train_gs", "near_m = inf", "train_gs.near_m", "> 0, found inf"),
+    ("train_gs", "lowpass_sigma_px = inf", "train_gs.lowpass_sigma_px", "> 0, found inf"),
     ("train_gs.lr", "position_init = -inf", "train_gs.lr.position_init", "found -inf"),
     ("rectify", "occlusion_margin_m = -inf", "rectify.occlusion_margin_m", ">= 0 (or inf)"),
     ("rectify", "max_view_angle_deg = 90.0", "rectify.max_view_angle_deg", "< 90"),

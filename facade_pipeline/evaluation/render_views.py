@@ -25,14 +25,11 @@ from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.io.atomic import write_bytes, write_json
 from facade_pipeline.shading.reflection import (
-    EnvMap,
-    ReflectionMLP,
     ReflectionModel,
-    SHOnly,
     build_reflection_module,
     reflection_record,
+    strategy_from_record,
 )
-from facade_pipeline.shading.self_hits import MESH_FIELDS
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
@@ -104,21 +101,6 @@ class RenderedView:
     alpha: np.ndarray
 
 
-def reflection_from_config(name: str, config: dict[str, Any], path: Path | None = None) -> ReflectionModel:
-    """The reflection strategy named ``name`` (``sh``/``envmap``/``mlp``) with its saved fields."""
-    try:
-        match name:
-            case "sh":
-                return SHOnly()
-            case "envmap":
-                return EnvMap(**config)
-            case "mlp":
-                return ReflectionMLP(**config)
-    except TypeError as e:
-        raise InputError(path, f"the fields of the {name!r} reflection model", str(e)) from None
-    raise InputError(path, "a reflection model 'sh', 'envmap' or 'mlp'", repr(name))
-
-
 def active_sh_degree(params: dict[str, Any]) -> int:
     """The SH degree in use at the end of training (one band more every ``sh_degree_interval``)."""
     degree, interval = int(params["sh_degree"]), int(params["sh_degree_interval"])
@@ -132,14 +114,13 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
     try:
         refl = torch.load(variant.reflection, map_location="cpu", weights_only=True)
         name, config, bounds = refl["model"], refl["config"], refl["bounds"]
-        mesh = tuple(refl["mesh"][n] for n in MESH_FIELDS) if "mesh" in refl else None
     except Exception as e:  # torch raises several types for truncated or foreign files
         found = f"an unreadable file ({type(e).__name__}: {e})"
         raise InputError(variant.reflection, "train_gs reflection weights", found) from None
-    strategy = reflection_from_config(name, config, variant.reflection)
+    strategy = strategy_from_record(name, config, variant.reflection)
     lo, hi = (torch.as_tensor(np.asarray(b), dtype=torch.float32, device=device) for b in bounds)
     try:
-        module = build_reflection_module(strategy, device, (lo, hi), mesh)
+        module = build_reflection_module(strategy, device, (lo, hi))
     except ValueError as e:
         raise InputError(variant.reflection, f"what a {strategy} is built from", str(e)) from None
     if module is not None:
@@ -174,7 +155,7 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
         name,
         tr.model,
         tr.reflection,
-        p.reflection(),
+        p.reflection_strategy(),
         tr.shading,
         active_sh_degree(to_dict(p) | {"iterations": tr.iteration}),
         p.near_m,

@@ -3,7 +3,7 @@
 UAV cameras expose each photo on their own (and may set its white balance on their own): the same frame
 bar is brighter in one photo than in the next. Trained as if all photos were exposed alike, a model takes
 these changes for view-dependent colour, which on glass is indistinguishable from a reflection, and the
-held-out views pay for it. Learning a gain per view with the splats (``exposure_refinement``) is poorly
+held-out views pay for it. Learning a gain per view with the splats instead was poorly
 determined early in a short run, when the gains absorb the model's own colour errors.
 
 The opaque parts of the facade (frames, walls) are diffuse: a point on them has one radiance, whichever

@@ -1,7 +1,7 @@
 """The trainer: ``build_trainer``, ``step``, ``evaluate``, ``save_checkpoint`` / ``load_checkpoint`` and
 ``train`` (the loop that ties them together with checkpoints and a progress callback).
 
-Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf (+ lambda_d L_d), with L_c = 0.8 L1
+Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf, with L_c = 0.8 L1
 + 0.2 D-SSIM, the 2DGS normal consistency L_n, the normal prior L_np (Eq. 11) and the high-frequency loss
 L_hf (Eq. 12), all over the facade mask. Every random draw comes from one ``torch.Generator`` that is saved
 in checkpoints, so a resumed run equals an uninterrupted one.
@@ -87,7 +87,7 @@ class Trainer:
     iteration: int = 0
     log: list[dict[str, Any]] = field(default_factory=list)
     corrections: ViewCorrections | None = None
-    """per-view pose and exposure corrections (``pose_refinement``, ``exposure_refinement``), else None"""
+    """per-view pose corrections (``pose_refinement``), else None"""
     opt_corrections: torch.optim.Adam | None = None
     exposure: ExposureEstimate | None = None
     """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
@@ -137,11 +137,7 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
         reflection = build_reflection_module(
-            p.reflection(),
-            device,
-            (shading.bounds_lo, shading.bounds_hi),
-            reflection_mesh(data),
-            data.init.points,
+            p.reflection_strategy(), device, (shading.bounds_lo, shading.bounds_hi), data.init.points
         )
     opt = _gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else _reflection_optimizer(p, reflection)
@@ -157,24 +153,13 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     return reflection, opt, opt_refl, shading, cameras
 
 
-def reflection_mesh(data: TrainData) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The corrected mesh an MLP with self hits casts against: vertices [V, 3] (m), triangles [T, 3] and
-    glass labels [T] bool (None: unknown)."""
-    m = data.init
-    return (
-        torch.as_tensor(m.mesh_vertices, dtype=torch.float32),
-        torch.as_tensor(m.mesh_triangles, dtype=torch.int64),
-        None if m.mesh_glass is None else torch.as_tensor(m.mesh_glass, dtype=torch.bool),
-    )
-
-
 def _build_corrections(
     p: TrainParams, n_views: int, device: torch.device
 ) -> tuple[ViewCorrections | None, torch.optim.Adam | None]:
-    if not (p.pose_refinement or p.exposure_refinement):
+    if not p.pose_refinement:
         return None, None
-    corr = ViewCorrections(n_views, device, pose=p.pose_refinement, exposure=p.exposure_refinement)
-    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, p.lr.exposure)
+    corr = ViewCorrections(n_views, device, pose=True)
+    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, lr_exposure=0.0)
 
 
 def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
@@ -198,20 +183,12 @@ def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | No
 
 
 def exposure_gain(tr: Trainer, index: int) -> Tensor | None:
-    """View ``index``'s exposure gain per colour channel [3]: the estimate (``exposure_estimate``) times
-    the learnt correction (``exposure_refinement``), each relative to the training views' geometric mean,
-    so that the splats keep the mean exposure and the gains have no common factor to trade with the
-    colours; None for held-out views and when neither is on."""
-    if index not in tr.data.train_idx:
+    """View ``index``'s exposure gain per colour channel [3] as estimated before training
+    (``exposure_estimate``), relative to the training views' geometric mean so that the splats keep the
+    mean exposure; None for held-out views and without the estimate."""
+    if index not in tr.data.train_idx or tr.exposure is None:
         return None
-    log_gain = None
-    if tr.exposure is not None:
-        log_gain = torch.as_tensor(tr.exposure.log_gain[index], device=tr.device)
-    if tr.corrections is not None and tr.corrections.log_gain is not None:
-        g = tr.corrections.log_gain
-        learnt = g[index] - g[list(tr.data.train_idx)].mean(0)
-        log_gain = learnt if log_gain is None else log_gain + learnt
-    return None if log_gain is None else log_gain.exp()
+    return torch.as_tensor(tr.exposure.log_gain[index], device=tr.device).exp()
 
 
 @torch.no_grad()
@@ -374,7 +351,7 @@ def _reflection_lr(p: TrainParams, it: int, group: str) -> float:
     the proxy feature maps' are fixed."""
     if group == "proxy":
         return p.lr.proxy
-    if p.reflection_model == "envmap":
+    if p.reflection.model == "envmap":
         return p.lr.envmap
     return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
 
@@ -388,22 +365,14 @@ def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -
     if p.lambda_normal > 0 and iteration >= at_fraction(p.normal_start_fraction, p.iterations):
         terms["normal"] = losses.normal_consistency_loss(r.normal, losses.depth_normals(r.points), loss_mask)
         total = total + p.lambda_normal * terms["normal"]
-    if p.lambda_normal_prior > 0 and iteration >= at_fraction(p.normal_prior_start_fraction, p.iterations):
+    if p.lambda_normal_prior > 0:
         terms["normal_prior"] = losses.normal_prior_loss(r.normal, vt.prior, vt.prior_valid & vt.mask)
         total = total + p.lambda_normal_prior * terms["normal_prior"]
-    if iteration >= at_fraction(p.hf_start_fraction, p.iterations):
-        tau = step_schedule(
-            p.hf_tau_start, p.hf_tau_end, p.hf_steps, p.hf_start_fraction, iteration, p.iterations
-        )
-        lam = step_schedule(
-            p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, p.hf_start_fraction, iteration, p.iterations
-        )
-        if lam > 0:
-            terms["hf"] = losses.high_frequency_loss(r.rgb, vt.image, loss_mask, tau, p.hf_eps, p.hf_residual)
-            total = total + lam * terms["hf"]
-    if p.lambda_distortion > 0 and iteration >= at_fraction(p.distortion_start_fraction, p.iterations):
-        terms["distortion"] = losses.masked_mean(r.distortion, vt.mask)
-        total = total + p.lambda_distortion * terms["distortion"]
+    tau = step_schedule(p.hf_tau_start, p.hf_tau_end, p.hf_steps, iteration, p.iterations)
+    lam = step_schedule(p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, iteration, p.iterations)
+    if lam > 0:
+        terms["hf"] = losses.high_frequency_loss(r.rgb, vt.image, loss_mask, tau)
+        total = total + lam * terms["hf"]
     terms["loss"] = total + zero
     return terms
 

@@ -43,7 +43,7 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     folder = layout.path("variant_dir", variant="tiny")
 
     save_variant(
-        folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, to_dict(tr.params)
+        folder, tr.model, tr.reflection, tr.params.reflection_strategy(), data.bounds, split, to_dict(tr.params)
     )
     variant = variant_from_dir(folder)
     assert variant.name == "tiny" and variant.split_stems() == split
@@ -56,7 +56,7 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)  # PLY stores activated values: float32 round trip
     # a variant trained with supersampling is rendered with it
     params = to_dict(tr.params) | {"supersample": 2}
-    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, params)
+    save_variant(folder, tr.model, tr.reflection, tr.params.reflection_strategy(), data.bounds, split, params)
     ss = load_trained(variant_from_dir(folder))
     assert ss.shading.supersample == 2
     live2 = dataclasses.replace(live, shading=dataclasses.replace(live.shading, supersample=2))
@@ -64,7 +64,7 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     np.testing.assert_allclose(c.rgb, render_trained(live2, v.camera, v.facade_mask).rgb, atol=1e-5)
     assert float(np.abs(c.rgb - a.rgb).max()) > 1e-3  # and that is not the one-sample render
     # ... and one trained with another low-pass sigma with that sigma; one saved before the key, with 2DGS's
-    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split,
+    save_variant(folder, tr.model, tr.reflection, tr.params.reflection_strategy(), data.bounds, split,
                  to_dict(tr.params) | {"lowpass_sigma_px": 0.4})
     lp = load_trained(variant_from_dir(folder))
     assert lp.lowpass_sigma_px == 0.4
@@ -73,7 +73,7 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     np.testing.assert_allclose(d.rgb, render_trained(live3, v.camera, v.facade_mask).rgb, atol=1e-5)
     assert float(np.abs(d.rgb - a.rgb).max()) > 1e-3
     old = {k: v for k, v in to_dict(tr.params).items() if k != "lowpass_sigma_px"}
-    save_variant(folder, tr.model, tr.reflection, tr.params.reflection(), data.bounds, split, old)
+    save_variant(folder, tr.model, tr.reflection, tr.params.reflection_strategy(), data.bounds, split, old)
     assert load_trained(variant_from_dir(folder)).lowpass_sigma_px == LOWPASS_SIGMA_PX
     (folder / "params.json").write_text("{not json")
     with pytest.raises(InputError, match="params.json"):

@@ -60,7 +60,8 @@ def test_every_building_has_valid_train_gs_params():
         p = load_building_config(building).section("train_gs", TrainParams)
         assert p.__dataclass_params__.frozen and p.iterations > 0
     ci = load_building_config("synthetic64").section("train_gs", TrainParams)
-    assert ci.iterations <= 500 and ci.mlp_width <= 128 and ci.patch_px > 0  # the CI run stays short
+    # the CI run stays short
+    assert ci.iterations <= 500 and ci.reflection.mlp.width <= 128 and ci.patch_px > 0
 
 
 def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
@@ -81,7 +82,7 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     lines = [json.loads(x) for x in upstream.path("train_log").read_text().splitlines()]
     assert [x["iteration"] for x in lines[:-1]] == [5, 6] and "evaluation" in lines[-1]
     refl = torch.load(upstream.path("train_reflection"), weights_only=True)
-    assert refl["model"] == "mlp" and refl["config"]["width"] == p.mlp_width and refl["state_dict"]
+    assert refl["model"] == "mlp" and refl["config"]["width"] == p.reflection.mlp.width and refl["state_dict"]
     ply_bytes = upstream.path("train_ply").read_bytes()
     # a rerun with the same parameters and inputs resumes from the final checkpoint: same outputs
     again = execute(train_gs, upstream, p)
