@@ -187,6 +187,22 @@ RENAMED = {
             ),
             ("the loss is on from the start", ("normal_prior_start_fraction", "hf_start_fraction")),
             ("a constant of Eq. 12 (training/losses.py)", ("hf_eps",)),
+            (
+                "2DGS's value, a constant of facade_pipeline/training/trainer.py",
+                ("lambda_dssim", "normal_start_fraction", "divergence_extent_factor", "lr.position_final",
+                 "lr.sh_dc", "lr.sh_rest", "lr.opacity", "lr.scaling", "lr.rotation"),
+            ),
+            ("2DGS's value, a constant of facade_pipeline/splatting/types.py", ("near_m",)),
+            ("3DGS's value, a constant of facade_pipeline/training/init.py", ("init_opacity", "init_knn")),
+            (
+                "2DGS's value, a constant of facade_pipeline/training/densify.py",
+                tuple(
+                    f"densify.{k}"
+                    for k in ("start_fraction", "end_fraction", "percent_dense", "split_count",
+                              "opacity_reset_value", "prune_opacity", "prune_world_size_fraction")
+                ),
+            ),
+            ("the estimate's numbers are fixed (ExposureParams, training/exposure.py)", ("exposure",)),
         )
         for key in keys
     },

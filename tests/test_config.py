@@ -162,8 +162,11 @@ def test_an_old_pixel_key_names_its_replacement(cfg_dir, section, key, replaceme
     ("envmap_height_px", "train_gs.reflection.envmap.height_px"),
     ("mlp_self_hits", "removed"),
     ("mlp_proxy_surroundings", "surroundings"),
+    ("near_m", "splatting/types.py"),
+    ("lambda_dssim", "training/trainer.py"),
+    ("exposure", "ExposureParams"),
 ])
-def test_an_old_flat_reflection_key_names_its_replacement(cfg_dir, key, replacement):
+def test_an_old_train_gs_key_names_its_replacement(cfg_dir, key, replacement):
     _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[train_gs]\n{key} = 10\n')
     with pytest.raises(ConfigError) as e:
         load_building_config("old", cfg_dir)

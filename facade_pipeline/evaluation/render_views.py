@@ -30,7 +30,7 @@ from facade_pipeline.shading.reflection import (
     reflection_record,
     strategy_from_record,
 )
-from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, NEAR_M
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.ply import model_from_ply, read_ply, write_ply
@@ -140,7 +140,7 @@ def load_trained(variant: TrainedVariant, device: str | torch.device = "cpu") ->
         strategy,
         shading,
         active_sh_degree(p),
-        float(p["near_m"]),
+        float(p.get("near_m", NEAR_M)),  # models saved while it was a key kept 2DGS's value
         backend,
         lowpass,
         device,
@@ -158,7 +158,7 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
         p.reflection_strategy(),
         tr.shading,
         active_sh_degree(to_dict(p) | {"iterations": tr.iteration}),
-        p.near_m,
+        NEAR_M,
         p.raster_backend,
         p.lowpass_sigma_px,
         tr.device,

@@ -43,17 +43,19 @@ _VALID = (0.02, 0.98)
 
 @dataclass(frozen=True)
 class ExposureParams:
-    """``[train_gs.exposure]``: how the per-view gains are estimated before training."""
+    """How the per-view gains are estimated before training. The defaults are what training uses: the
+    estimate's internal counts and tolerances, fixed rather than configured because they set how many
+    samples the robust solve sees and how it keeps mixed and hidden pixels out, not what it estimates."""
 
-    samples: PosInt
+    samples: PosInt = 20000
     """points drawn on the corrected mesh's opaque triangles (-)"""
-    erode_px: Count
-    """facade and glass masks eroded by this before a point counts in a view (px)"""
-    occlusion_tolerance: NonNeg
+    erode_px: Count = 1
+    """facade and glass masks eroded by this before a point counts in a view (px): no mixed pixels"""
+    occlusion_tolerance: NonNeg = 0.005
     """a point is seen where the mesh's first hit along the ray is within this fraction of its distance (-)"""
-    min_samples: Count
+    min_samples: Count = 30
     """fewer usable samples than this in a view: its gain stays 1 (-)"""
-    iterations: PosInt
+    iterations: PosInt = 10
     """alternating-median rounds (-)"""
 
 

@@ -11,24 +11,17 @@ from dataclasses import dataclass
 from typing import Annotated, Any, Literal, TypeVar
 
 from facade_pipeline.config import AnyInt, Count, Fraction, NonNeg, PosInt, Positive, Range
-from facade_pipeline.errors import ConfigError
 from facade_pipeline.shading.reflection import ReflectionModel, ReflectionParams
-from facade_pipeline.training.exposure import ExposureParams
 
 T = TypeVar("T")
 
 
 @dataclass(frozen=True)
 class LearningRates:
-    """Adam learning rates (2DGS defaults; ``position_*`` are multiplied by the scene extent)."""
+    """Adam learning rates of what 2DGS does not have, and its position rate at the start (times the
+    scene extent); its other rates are constants of ``training.trainer``."""
 
     position_init: Positive
-    position_final: Positive
-    sh_dc: Positive
-    sh_rest: Positive
-    opacity: Positive
-    scaling: Positive
-    rotation: Positive
     reflectivity: Positive
     f0: Positive
     reflection_init: Positive
@@ -46,33 +39,17 @@ class LearningRates:
 
 @dataclass(frozen=True)
 class DensifyParams:
-    """Densification and pruning as 2DGS does it (clone / split by view-space gradient, prune, reset)."""
+    """Densification and pruning as 2DGS does it (clone / split by view-space gradient, prune, reset): what
+    a budget sets; 2DGS's other numbers are constants of ``training.densify``."""
 
-    start_fraction: Fraction
-    end_fraction: Fraction
     interval: Count
     """iterations between densification steps"""
     grad_threshold: Positive
     """mean view-space (NDC) positional gradient above which a splat is cloned or split"""
-    percent_dense: Fraction
-    """splats larger than this fraction of the scene extent are split, smaller ones cloned"""
-    split_count: PosInt
     opacity_reset_interval: Count
     """iterations between opacity resets (0: never)"""
-    opacity_reset_value: Fraction
-    prune_opacity: Fraction
-    prune_world_size_fraction: Positive
-    """after the first opacity reset, splats larger than this fraction of the extent are pruned"""
     max_gaussians: PosInt
     """no densification beyond this many splats (bounds CPU time and memory)"""
-
-    def __post_init__(self) -> None:
-        if self.start_fraction > self.end_fraction:
-            raise ConfigError(
-                None,
-                "'train_gs.densify.start_fraction' <= end_fraction",
-                f"{self.start_fraction} > {self.end_fraction}",
-            )
 
 
 #: settings that change how a run goes, not what it trains (where it runs, how often it logs or saves):
@@ -88,7 +65,6 @@ class TrainParams:
     seed: AnyInt
     device: Literal["cpu", "cuda", "auto"]
     raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
-    near_m: Positive
     lowpass_sigma_px: Positive
     """sigma of the renderer's screen-space low-pass filter (``splatting.render_2dgs``), in training and in
     every later render of the model"""
@@ -107,9 +83,7 @@ class TrainParams:
     patch_px: Count
     test_every: Count
     mask_by_facade: bool
-    lambda_dssim: Fraction
     lambda_normal: NonNeg
-    normal_start_fraction: Fraction
     lambda_normal_prior: NonNeg
     lambda_hf_start: NonNeg
     lambda_hf_end: NonNeg
@@ -119,17 +93,13 @@ class TrainParams:
     init_max_points: Count
     init_mesh_samples: Count
     init_bounds_margin_m: NonNeg
-    init_opacity: Fraction
     init_reflectivity: Fraction
     init_reflectivity_glass: Fraction
     init_f0: Fraction
-    init_knn: PosInt
     checkpoint_every: Count
     log_every: Count
-    divergence_extent_factor: Positive
     lr: LearningRates
     densify: DensifyParams
-    exposure: ExposureParams
 
     def reflection_strategy(self) -> ReflectionModel:
         """The reflection model strategy these parameters select."""

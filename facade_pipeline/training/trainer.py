@@ -28,6 +28,7 @@ from facade_pipeline.evaluation import metrics
 from facade_pipeline.evaluation.errors import EmptyMaskError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
+from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training import losses
 from facade_pipeline.training.corrections import (
     AlignParams,
@@ -36,14 +37,17 @@ from facade_pipeline.training.corrections import (
 )
 from facade_pipeline.training.data import TrainData, TrainView
 from facade_pipeline.training.densify import (
+    DENSIFY_END_FRACTION,
+    DENSIFY_START_FRACTION,
+    OPACITY_RESET_VALUE,
     DensifyStats,
     accumulate,
     densify_and_prune,
     reset_opacity,
     view_space_grad,
 )
-from facade_pipeline.training.exposure import ExposureEstimate, estimate_exposures
-from facade_pipeline.training.init import initial_model
+from facade_pipeline.training.exposure import ExposureEstimate, ExposureParams, estimate_exposures
+from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.render import (
@@ -62,6 +66,27 @@ CHECKPOINT_FORMAT = 2
 EVAL_CHUNK = 65536
 #: Pixels nearer than this to the edge of a view's glass mask are left out of ``psnr_glass_interior``.
 INTERIOR_MARGIN_PX = 2
+
+# Adam rates of the splat attributes that 2DGS shares with 3DGS (their training defaults; DESIGN.md). They
+# are per-attribute rates on activation-space parameters, not tied to a scene's size, and were never tuned
+# here: the splat geometry and colour train as the reference does. The position rate decays from
+# ``lr.position_init`` to this, times the scene extent, as in 3DGS.
+POSITION_LR_FINAL = 1.6e-6
+SH_DC_LR = 2.5e-3
+SH_REST_LR = SH_DC_LR / 20.0  # 3DGS: the higher SH bands at a twentieth of the DC rate
+OPACITY_LR = 0.05
+SCALING_LR = 5e-3
+ROTATION_LR = 1e-3
+#: Weight of D-SSIM in L_c = (1 - w) L1 + w D-SSIM: the paper's (Eq. 13, after 2DGS), never tuned here.
+LAMBDA_DSSIM = 0.2
+#: Normal consistency from this fraction of the run: 2DGS's 7k of 30k iterations (a fraction, so that short
+#: runs keep its schedule), never tuned here.
+NORMAL_START_FRACTION = 0.2333
+#: A splat this many scene extents from the facade means the run diverged: a sanity bound, far beyond any
+#: real splat (the surroundings are within a few extents).
+DIVERGENCE_EXTENT_FACTOR = 100.0
+#: How the per-view exposure gains are estimated before training (``training.exposure``): its defaults.
+EXPOSURE_ESTIMATE = ExposureParams()
 
 
 class TrainingDivergedError(PipelineError):
@@ -110,11 +135,11 @@ def _gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> 
     lr = p.lr
     rates = {
         "means": lr.position_init * extent,
-        "quats": lr.rotation,
-        "log_scales": lr.scaling,
-        "opacity_logits": lr.opacity,
-        "sh_dc": lr.sh_dc,
-        "sh_rest": lr.sh_rest,
+        "quats": ROTATION_LR,
+        "log_scales": SCALING_LR,
+        "opacity_logits": OPACITY_LR,
+        "sh_dc": SH_DC_LR,
+        "sh_rest": SH_REST_LR,
         "refl_logits": lr.reflectivity,
         "f0_logits": lr.f0,
     }
@@ -167,17 +192,16 @@ def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | No
         return None
     m = data.init
     est = estimate_exposures(
-        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, p.exposure, p.seed
+        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, EXPOSURE_ESTIMATE, p.seed
     )
-    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < p.exposure.min_samples]
+    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < EXPOSURE_ESTIMATE.min_samples]
     if few:
         shown = ", ".join(few[:5]) + (f" and {len(few) - 5} more" if len(few) > 5 else "")
         log.warning(
             "exposure estimate: %d of %d training views have fewer than %d usable samples of the facade's "
             "opaque parts (non-glass points of the corrected mesh inside their facade mask) (%s); their gain "
-            "stays 1. Expected where the mesh covers little of a view; if their exposure differs, lower "
-            "[train_gs.exposure] min_samples",
-            len(few), len(data.train_idx), p.exposure.min_samples, shown,
+            "stays 1. Expected where the mesh covers little of a view",
+            len(few), len(data.train_idx), EXPOSURE_ESTIMATE.min_samples, shown,
         )  # fmt: skip
     return est
 
@@ -224,8 +248,8 @@ def build_trainer(
         p.init_max_points,
         p.init_mesh_samples,
         p.init_bounds_margin_m,
-        p.init_knn,
-        p.init_opacity,
+        INIT_KNN,
+        INIT_OPACITY,
         p.init_reflectivity,
         p.init_reflectivity_glass,
         p.init_f0,
@@ -326,7 +350,7 @@ def _set_learning_rates(tr: Trainer) -> None:
     for g in tr.opt.param_groups:
         if g["name"] == "means":
             g["lr"] = exp_decay(
-                p.lr.position_init * tr.extent, p.lr.position_final * tr.extent, it, p.iterations
+                p.lr.position_init * tr.extent, POSITION_LR_FINAL * tr.extent, it, p.iterations
             )
     if tr.opt_refl is not None:
         for g in tr.opt_refl.param_groups:
@@ -360,9 +384,9 @@ def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -
     """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``)."""
     zero = r.rgb.new_zeros(())
     loss_mask = vt.mask & ~r.skipped
-    terms = {"color": losses.color_loss(r.rgb, vt.image, loss_mask, p.lambda_dssim)}
+    terms = {"color": losses.color_loss(r.rgb, vt.image, loss_mask, LAMBDA_DSSIM)}
     total = terms["color"]
-    if p.lambda_normal > 0 and iteration >= at_fraction(p.normal_start_fraction, p.iterations):
+    if p.lambda_normal > 0 and iteration >= at_fraction(NORMAL_START_FRACTION, p.iterations):
         terms["normal"] = losses.normal_consistency_loss(r.normal, losses.depth_normals(r.points), loss_mask)
         total = total + p.lambda_normal * terms["normal"]
     if p.lambda_normal_prior > 0:
@@ -391,7 +415,7 @@ def _check_extent(tr: Trainer) -> None:
     lo, hi = tr.shading.bounds_lo, tr.shading.bounds_hi
     centre = 0.5 * (lo + hi)
     far = float((tr.model.means.detach() - centre).norm(dim=-1).max()) if tr.model.n else 0.0
-    limit = tr.params.divergence_extent_factor * tr.extent
+    limit = DIVERGENCE_EXTENT_FACTOR * tr.extent
     if far > limit:
         raise TrainingDivergedError(
             None,
@@ -414,7 +438,7 @@ def render_window(
         cam,
         window,
         tr.rasterize,
-        tr.params.near_m,
+        NEAR_M,
         active_sh_degree(tr.params, tr.iteration),
         tr.shading,
         spec_mask=vt.mask,
@@ -445,7 +469,7 @@ def step(tr: Trainer) -> dict[str, float]:
     if tr.corrections is not None:
         grads |= {f"view_{n}": t.grad for n, t in tr.corrections.named_parameters()}
     _check_finite(tr, "gradients", grads)
-    densify_end = at_fraction(p.densify.end_fraction, p.iterations)
+    densify_end = at_fraction(DENSIFY_END_FRACTION, p.iterations)
     if tr.iteration < densify_end and tr.model.means.grad is not None:
         g, vis = view_space_grad(
             tr.model.means,
@@ -454,7 +478,7 @@ def step(tr: Trainer) -> dict[str, float]:
             cam.K,
             (cam.width, cam.height),
             window,
-            p.near_m,
+            NEAR_M,
         )
         accumulate(tr.stats, g, vis)
     for opt in (tr.opt, tr.opt_refl, tr.opt_corrections):
@@ -472,7 +496,8 @@ def step(tr: Trainer) -> dict[str, float]:
 
 def _densify_if_due(tr: Trainer) -> None:
     p, d, it = tr.params, tr.params.densify, tr.iteration
-    if not at_fraction(d.start_fraction, p.iterations) < it <= at_fraction(d.end_fraction, p.iterations):
+    start, end = (at_fraction(f, p.iterations) for f in (DENSIFY_START_FRACTION, DENSIFY_END_FRACTION))
+    if not start < it <= end:
         return
     if d.interval > 0 and it % d.interval == 0:
         prune_big = d.opacity_reset_interval > 0 and it > d.opacity_reset_interval
@@ -480,7 +505,7 @@ def _densify_if_due(tr: Trainer) -> None:
         tr.stats = DensifyStats.zeros(tr.model.n, tr.device)
         log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.model.n)
     if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
-        reset_opacity(tr.model, tr.opt, d.opacity_reset_value)
+        reset_opacity(tr.model, tr.opt, OPACITY_RESET_VALUE)
 
 
 @torch.no_grad()

@@ -42,9 +42,8 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     }
     folder = layout.path("variant_dir", variant="tiny")
 
-    save_variant(
-        folder, tr.model, tr.reflection, tr.params.reflection_strategy(), data.bounds, split, to_dict(tr.params)
-    )
+    strategy = tr.params.reflection_strategy()
+    save_variant(folder, tr.model, tr.reflection, strategy, data.bounds, split, to_dict(tr.params))
     variant = variant_from_dir(folder)
     assert variant.name == "tiny" and variant.split_stems() == split
     loaded = load_trained(variant)

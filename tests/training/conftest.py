@@ -83,7 +83,6 @@ def small_params(**changes) -> TrainParams:
         mlp_max_pixels=128,
         checkpoint_every=5,
         log_every=5,
-        normal_start_fraction=0.0,
         exposure_estimate=False,  # one exposure unless a test asks (synthetic64 has no exposure change)
     )
     tables = {

@@ -11,7 +11,10 @@ import pytest
 import torch
 
 from facade_pipeline.errors import PipelineError
+from facade_pipeline.splatting.types import NEAR_M
+from facade_pipeline.training import trainer as trainer_module
 from facade_pipeline.training.corrections import AlignParams
+from facade_pipeline.training.exposure import ExposureParams
 from facade_pipeline.training.render import Camera, random_subset, render_view, splatting_rasterizer
 from facade_pipeline.training.trainer import (
     TrainingDivergedError,
@@ -53,8 +56,8 @@ def test_adapter_matches_the_dense_reference(data64, sigma):
         for t in (m.means, m.unit_quats(), m.scales(), m.opacities(), feats, cam.cam_from_world, cam.K)
     ]
     raster = splatting_rasterizer("torch") if sigma is None else splatting_rasterizer("torch", sigma)
-    a = raster(*tensors, cam.width, cam.height, p.near_m, (8, 16, 40, 32))
-    b = render_dense(*tensors, cam.width, cam.height, near=p.near_m, x0=8, y0=16, crop_w=40, crop_h=32,
+    a = raster(*tensors, cam.width, cam.height, NEAR_M, (8, 16, 40, 32))
+    b = render_dense(*tensors, cam.width, cam.height, near=NEAR_M, x0=8, y0=16, crop_w=40, crop_h=32,
                      lowpass_sigma_px=sigma)
     for ours, theirs in (
         ("features", "features"),
@@ -83,7 +86,7 @@ def test_supersampled_render_is_the_mean_of_sub_pixel_renders(data64):
     x0, y0, w, h = window
     spec = torch.as_tensor(data64.views[index].facade_mask[y0 : y0 + h, x0 : x0 + w])
     one = dataclasses.replace(tr.shading, supersample=1)
-    args = (tr.reflection, RASTER, p.near_m, p.sh_degree)
+    args = (tr.reflection, RASTER, NEAR_M, p.sh_degree)
     with torch.no_grad():
         fine = render_view(tm, args[0], cam, window, args[1], args[2], args[3], tr.shading, spec)
         subs = []
@@ -186,14 +189,14 @@ def test_hard_scene_stays_finite(model, refl):
         hf_tau_start=5.0,
         hf_tau_end=5.0,
         densify_interval=4,
-        densify_start_fraction=0.0,
     )
     tr = build_trainer(p, data, RASTER)
     with torch.no_grad():
         tr.model.refl_logits.fill_(refl)
     for idx in (2, 3, 4):  # grazing, behind, sky
         r, vt = render_window(tr, idx, (0, 0, 24, 24))
-        terms = compute_losses(p, r, vt, 0)
+        terms = compute_losses(p, r, vt, p.iterations - 1)  # late: every term is on
+        assert {"normal", "normal_prior", "hf"} <= set(terms)
         assert terms["hf"] == 0.0 and all(torch.isfinite(t) for t in terms.values())
         assert bool((r.alpha == 0).any()) or idx != 4  # the sky view has pixels with no splat
         terms["loss"].backward()
@@ -271,7 +274,7 @@ def test_held_out_views_align_after_pose_refinement(data64):
     assert torch.equal(tr.corrections.rotation.detach(), before)
 
 
-def test_estimated_exposure_renders_a_darker_training_view_darker(data64):
+def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkeypatch):
     """``exposure_estimate``: one training photo at 0.6 times the exposure of the others is found from the
     frames before training (log gain -0.51 against the others' median), and that view renders at its gain;
     held-out views render unchanged."""
@@ -279,8 +282,9 @@ def test_estimated_exposure_renders_a_darker_training_view_darker(data64):
     views = list(data64.views)
     views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
     data = dataclasses.replace(data64, views=tuple(views))
-    est = dataclasses.replace(small_params().exposure, samples=40000, min_samples=10)  # small photos
-    tr = build_trainer(small_params(exposure_estimate=True, exposure=est), data, RASTER)
+    est = ExposureParams(samples=40000, min_samples=10)  # small photos
+    monkeypatch.setattr(trainer_module, "EXPOSURE_ESTIMATE", est)
+    tr = build_trainer(small_params(exposure_estimate=True), data, RASTER)
     assert tr.corrections is None
     g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
     others = [i for i in data.train_idx if i != dark]
@@ -326,9 +330,9 @@ def test_exploding_learning_rate_is_caught_and_reported():
     with pytest.raises(TrainingDivergedError, match="position_init"):
         train(tr)
     tr = build_trainer(
-        dataclasses.replace(p, lr=dataclasses.replace(p.lr, opacity=float("inf"))), data, RASTER
+        dataclasses.replace(p, lr=dataclasses.replace(p.lr, reflectivity=float("inf"))), data, RASTER
     )
-    with pytest.raises(TrainingDivergedError, match="opacity_logits"):
+    with pytest.raises(TrainingDivergedError, match="refl_logits"):
         train(tr)
 
 
