@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from facade_pipeline.config import result_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.evaluation import metrics
 from facade_pipeline.evaluation.errors import EmptyMaskError
@@ -49,7 +50,7 @@ from facade_pipeline.training.densify import (
 from facade_pipeline.training.exposure import ExposureEstimate, ExposureParams, estimate_exposures
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
-from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.params import RUN_ONLY, TrainParams
 from facade_pipeline.training.render import (
     Camera,
     Rasterizer,
@@ -607,6 +608,7 @@ def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
     state = {
         "format": CHECKPOINT_FORMAT,
         "fingerprint": fingerprint,
+        "params": result_dict(tr.params, RUN_ONLY),  # to tell, when it does not match, what changed
         "iteration": tr.iteration,
         "model": tr.model.state(),
         "opt": tr.opt.state_dict(),
@@ -638,8 +640,9 @@ def load_checkpoint(
     fingerprint: str,
 ) -> Trainer | None:
     """The trainer saved at ``path``, or None when there is none or it belongs to other parameters or
-    inputs (its fingerprint differs) or an older format. A damaged file is moved aside to
-    ``<name>.bad`` (kept for a person to look at) and training starts afresh."""
+    inputs (its fingerprint differs) or an older format, which the log says (naming the parameters that
+    changed when the checkpoint records them). A damaged file is moved aside to ``<name>.bad`` (kept for a
+    person to look at) and training starts afresh."""
     path = Path(path)
     if not path.is_file():
         return None
@@ -657,11 +660,11 @@ def load_checkpoint(
         return None
     if state.get("format") != CHECKPOINT_FORMAT or state.get("fingerprint") != fingerprint:
         log.warning(
-            "%s: checkpoint of iteration %s was made with other parameters, inputs or code; "
-            "training starts from iteration 0",
-            path, state.get("iteration", "?"),
+            "%s: checkpoint of iteration %s not resumed: %s; training starts from iteration 0",
+            path, state.get("iteration", "?"), _mismatch(state, p),
         )  # fmt: skip
         return None
+    log.info("%s: resuming from the checkpoint of iteration %s", path, state["iteration"])
     device = torch.device(device)
     model = GaussianModel.from_state(state["model"], device)
     reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
@@ -695,6 +698,33 @@ def load_checkpoint(
         opt_corrections,
         _estimate_exposure(p, data),
     )
+
+
+def _mismatch(state: dict[str, Any], p: TrainParams) -> str:
+    """Why a checkpoint's fingerprint differs, as far as it records: its format, the parameters that
+    changed (dotted [train_gs] keys, old -> new, the first few), or else the inputs or the code."""
+    if state.get("format") != CHECKPOINT_FORMAT:
+        return f"it has format {state.get('format')!r}, this version reads {CHECKPOINT_FORMAT}"
+    saved = state.get("params")
+    if not isinstance(saved, dict):
+        return "it was made with other parameters, inputs or code"
+    old, new = _dotted(saved), _dotted(result_dict(p, RUN_ONLY))
+    keys = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    changed = [f"{k} {old.get(k, '(none)')!r} -> {new.get(k, '(none)')!r}" for k in keys]
+    if not changed:
+        return "same parameters, other inputs or code (an upstream output or facade_pipeline changed)"
+    more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+    return "other parameters: " + ", ".join(changed[:3]) + more
+
+
+def _dotted(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            out |= _dotted(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 ProgressCallback = Callable[[int, int, dict[str, float]], None]

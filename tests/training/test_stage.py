@@ -21,7 +21,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, write_labels
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.params import TrainParams, replace_keys
 from facade_pipeline.training.ply import read_ply
 from stages import train_gs
 from stages._runner import execute
@@ -93,6 +93,10 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     run_only = dataclasses.replace(p, raster_backend="torch", log_every=3, checkpoint_every=2)
     assert train_gs.fingerprint(upstream, run_only) == train_gs.fingerprint(upstream, p)
     assert execute(train_gs, upstream, run_only)["metrics"]["resumed_from_iteration"] == 6
+    # any setting that changes the result changes the fingerprint, in the nested tables too
+    for change in ({"reflection.model": "envmap"}, {"reflection.proxy.cell_m": 2.0}, {"lr.proxy": 0.2},
+                   {"densify.grad_threshold": 1e-3}, {"hf_steps": 2}):  # fmt: skip
+        assert train_gs.fingerprint(upstream, replace_keys(p, change)) != train_gs.fingerprint(upstream, p)
     # other parameters: the old checkpoint is not trusted, training starts over
     other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3, exposure_estimate=True))
     assert other["metrics"]["resumed_from_iteration"] == 0 and other["metrics"]["iterations"] == 3

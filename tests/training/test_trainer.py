@@ -4,6 +4,7 @@ divergence reporting, the full-size MLP on tiny inputs, and exact resume from ch
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
@@ -398,6 +399,32 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")  # moved aside, training starts afresh
     assert load_checkpoint(tmp_path / "bad.pt", p, data64, RASTER, "cpu", "fp") is None
     assert (tmp_path / "bad.pt.bad").is_file() and not (tmp_path / "bad.pt").exists()
+
+
+def test_a_checkpoint_not_resumed_says_why_in_the_log(data64, tmp_path, caplog):
+    """Another fingerprint: the log names the parameters that changed, or says that the inputs or the code
+    did; another format says so; a checkpoint that matches is resumed and logged."""
+    p = small_params(iterations=4)
+    ckpt = tmp_path / "ckpt.pt"
+    train(build_trainer(p, data64, RASTER), ckpt, "fp")
+    caplog.set_level(logging.INFO, logger="facade_pipeline.training.trainer")
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp").iteration == 4
+    assert "resuming from the checkpoint of iteration 4" in caplog.text
+    caplog.clear()
+    wider = small_params(iterations=4, lambda_normal=0.5, mlp_width=16)
+    assert load_checkpoint(ckpt, wider, data64, RASTER, "cpu", "other") is None
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(lines) == 1 and "\n" not in lines[0] and str(ckpt) in lines[0]
+    assert "lambda_normal 0.05 -> 0.5" in lines[0] and "reflection.mlp.width 32 -> 16" in lines[0]
+    assert "iteration 4 not resumed" in lines[0] and "starts from iteration 0" in lines[0]
+    caplog.clear()
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "other inputs") is None
+    assert "same parameters, other inputs or code" in caplog.text
+    caplog.clear()
+    state = torch.load(ckpt, weights_only=True)
+    torch.save({**state, "format": 1}, ckpt)
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp") is None
+    assert "format 1" in caplog.text and ckpt.is_file()  # an older format is left in place, not moved
 
 
 def test_training_improves_the_training_views(data64):
