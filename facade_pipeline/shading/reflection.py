@@ -14,7 +14,7 @@ The dataclasses are read from ``[train_gs.reflection]``: ``model`` picks the str
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, assert_never
 
@@ -76,8 +76,9 @@ class ReflectionMLP:
     """hidden units per layer"""
     skip: bool = True
     """re-inject gamma(X_r) at the middle layer beside gamma(w_r)"""
-    proxy: EnvironmentProxy = field(default_factory=EnvironmentProxy)
-    """the environment proxy's features (none by default: the paper's network)"""
+    proxy: EnvironmentProxy | None = None
+    """the environment proxy's features (None, or 0 channels: the paper's network);
+    ``ReflectionParams.strategy`` fills it from [train_gs.reflection.proxy]"""
     proxy_margin_m: NonNeg = 1.0
     """coarse points farther than this outside the facade bounds (horizontally) make the proxy's surface
     model of the surroundings (m; ``train_gs.init_bounds_margin_m``)"""
@@ -152,7 +153,7 @@ class ReflectionMLPModule(nn.Module):
         self.cfg = cfg
         self.proxy: ProxyFeatures | None = None
         proxy = cfg.proxy
-        if proxy.channels > 0:
+        if proxy is not None and proxy.channels > 0:
             if bounds is None:
                 raise ValueError("a reflection MLP with proxy features needs the facade bounds")
             lo, hi = (b.detach().float() for b in bounds)
@@ -289,7 +290,7 @@ def strategy_from_record(name: str, config: dict[str, Any], path: Path | None = 
 
 
 def _mlp_from_record(config: dict[str, Any], path: Path | None) -> ReflectionMLP:
-    channels = config.get("proxy", {}).get("channels", config.get("proxy_channels", 0))
+    channels = (config.get("proxy") or {}).get("channels", config.get("proxy_channels", 0))
     for key, kept in _RETIRED_MLP_FIELDS.items():
         value = config.pop(key, kept)
         # without proxy features the room and its surroundings were never built: any value did the same
@@ -302,4 +303,6 @@ def _mlp_from_record(config: dict[str, Any], path: Path | None) -> ReflectionMLP
             )
     flat = {new: config.pop(old) for old, new in _FLAT_PROXY_FIELDS.items() if old in config}
     proxy = config.pop("proxy", None)
-    return ReflectionMLP(**config, proxy=EnvironmentProxy(**(flat if proxy is None else proxy)))
+    if flat:
+        proxy = flat
+    return ReflectionMLP(**config, proxy=None if proxy is None else EnvironmentProxy(**proxy))
