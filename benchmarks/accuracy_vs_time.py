@@ -44,7 +44,7 @@ from facade_pipeline.evaluation.report import pareto_front, svg_scatter  # noqa:
 from facade_pipeline.geometry.camera import PinholeCamera  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.training.data import TrainData, TrainView  # noqa: E402
-from facade_pipeline.training.params import TrainParams  # noqa: E402
+from facade_pipeline.training.params import TrainParams, replace_keys  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
 from facade_pipeline.training.trained import TrainedModelFiles  # noqa: E402
 from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
@@ -59,40 +59,44 @@ UPSTREAM = [s for s in PIPELINE if PIPELINE.index(s) < PIPELINE.index("train_gs"
 
 
 def sweep(quick: bool) -> list[tuple[str, dict[str, Any]]]:
-    """(label, changes) pairs, one factor at a time around the base. ``changes`` holds train_gs fields,
-    ``densify_*`` fields and ``scale`` (training-image resolution factor)."""
+    """(label, changes) pairs, one factor at a time around the base. ``changes`` holds train_gs keys, dotted
+    for its tables (``densify.max_gaussians``, ``reflection.mlp.depth``), and ``scale`` (training-image
+    resolution factor)."""
     if quick:
         iters = [20, 80]
         gaussians = [(500, 1000), (2000, 6000)]
         arch = [
-            dict(fourier_levels=4),
-            dict(mlp_depth=2),
-            dict(mlp_width=32),
-            dict(mlp_skip=False),
-            dict(mlp_proxy_channels=0),
+            {"mlp.fourier_levels": 4},
+            {"mlp.depth": 2},
+            {"mlp.width": 32},
+            {"mlp.skip": False},
+            {"proxy.channels": 0},
         ]
         scales = [0.5]
     else:
         iters = [1000, 3000, 10000]
         gaussians = [(20000, 50000), (100000, 300000), (100000, 1000000)]
         arch = [
-            dict(fourier_levels=10),
-            dict(fourier_levels=14),
-            dict(fourier_levels=16),
-            dict(mlp_depth=6),
-            dict(mlp_width=256),
-            dict(mlp_skip=False),
-            dict(mlp_proxy_channels=0),
+            {"mlp.fourier_levels": 10},
+            {"mlp.fourier_levels": 14},
+            {"mlp.fourier_levels": 16},
+            {"mlp.depth": 6},
+            {"mlp.width": 256},
+            {"mlp.skip": False},
+            {"proxy.channels": 0},
         ]
         scales = [0.25, 0.5]
     runs: list[tuple[str, dict[str, Any]]] = [(f"iterations={n}", {"iterations": n}) for n in iters]
     runs += [(f"resolution x{s}", {"scale": s}) for s in scales]
     runs += [
-        (f"gaussians<={cap}", {"init_max_points": n, "init_mesh_samples": n, "densify_max_gaussians": cap})
+        (f"gaussians<={cap}", {"init_max_points": n, "init_mesh_samples": n, "densify.max_gaussians": cap})
         for n, cap in gaussians
     ]
-    runs += [(f"reflection={m}", {"reflection_model": m}) for m in ("sh", "envmap")]
-    runs += [("mlp " + ", ".join(f"{k}={v}" for k, v in a.items()), a) for a in arch]
+    runs += [(f"reflection={m}", {"reflection.model": m}) for m in ("sh", "envmap")]
+    runs += [
+        ("mlp " + ", ".join(f"{k}={v}" for k, v in a.items()), {f"reflection.{k}": v for k, v in a.items()})
+        for a in arch
+    ]
     return runs
 
 
@@ -105,9 +109,7 @@ def base_params(building: str, quick: bool) -> TrainParams:
 
 
 def apply(p: TrainParams, changes: dict[str, Any]) -> TrainParams:
-    ch = {k: v for k, v in changes.items() if k != "scale"}
-    dens = {k[len("densify_") :]: ch.pop(k) for k in list(ch) if k.startswith("densify_")}
-    return dataclasses.replace(p, densify=dataclasses.replace(p.densify, **dens), **ch)
+    return replace_keys(p, {k: v for k, v in changes.items() if k != "scale"})
 
 
 # ------------------------------------------------------------------------------------------ one run
@@ -139,7 +141,7 @@ def downscale(view: TrainView, scale: float) -> TrainView:
 
 
 def slug(label: str) -> str:
-    """A folder name for a run label (``mlp fourier_levels=4`` -> ``mlp_fourier_levels-4``)."""
+    """A folder name for a run label (``mlp mlp.depth=4`` -> ``mlp_mlp.depth-4``)."""
     return "".join(c if c.isalnum() or c in "._" else ("-" if c == "=" else "_") for c in label).strip("_")
 
 
@@ -169,7 +171,7 @@ def child(
             for k, idx in (("train", full.train_idx), ("test", full.test_idx))
         }
         files = TrainedModelFiles.variant(layout.path("variant_dir", variant=slug(label)), to_dict(p))
-        files.save(tr.model, tr.reflection, p.reflection(), data.bounds, split)
+        files.save(tr.model, tr.reflection, p.reflection_strategy(), data.bounds, split)
     return {
         "label": label,
         "changes": changes,
@@ -323,6 +325,7 @@ def main() -> None:
         )
     svg, front = pareto(rows)
     base = base_params(a.building, a.quick)
+    mlp = base.reflection.mlp
     dags = [d for d in (dag_times(a.data_root, b) for b in a.dag) if d]
     sweep_s = time.perf_counter() - t_all
     text = "\n".join(
@@ -332,8 +335,8 @@ def main() -> None:
             machine(),
             "",
             f"One factor at a time around the base: {base.iterations} iterations, reflection "
-            f"`{base.reflection_model}` (L={base.fourier_levels}, depth {base.mlp_depth}, width "
-            f"{base.mlp_width}, skip {base.mlp_skip}, environment proxy {base.mlp_proxy_channels} channels), "
+            f"`{base.reflection.model}` (L={mlp.fourier_levels}, depth {mlp.depth}, width "
+            f"{mlp.width}, skip {mlp.skip}, environment proxy {base.reflection.proxy.channels} channels), "
             f"at most {base.densify.max_gaussians} Gaussians. "
             f"Metrics on the {rows[0]['test_views']} held-out views "
             f"(full resolution) over the facade mask; train s = training wall time of the run, peak MB = its "

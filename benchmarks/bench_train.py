@@ -46,7 +46,7 @@ from facade_pipeline.training.data import (  # noqa: E402
     save_bundle,
     split_views,
 )
-from facade_pipeline.training.params import TrainParams  # noqa: E402
+from facade_pipeline.training.params import TrainParams, replace_keys  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
 from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
 
@@ -97,34 +97,33 @@ def gt_data(layout: BuildingLayout, test_every: int) -> TrainData:
 
 def paper_mlp(base: TrainParams) -> TrainParams:
     """``base`` with the paper's reflection model and training as published: its 8 x 512 network without
-    the environment proxy or self hits, reflection gradients into the normals, one initial reflectivity for
-    every splat, the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos, the
-    imported poses kept, 2DGS's low-pass filter; the MLP pixel cap of the old CPU budget."""
-    return dataclasses.replace(
+    the environment proxy, reflection gradients into the normals, one initial reflectivity for every splat,
+    the high-frequency loss from the start (weight 1 -> 10), one exposure for all photos, the imported poses
+    kept, 2DGS's low-pass filter; the MLP pixel cap of the old CPU budget."""
+    return replace_keys(
         base,
-        reflection_model="mlp",
-        mlp_proxy_channels=0,
-        mlp_self_hits=False,
-        mlp_depth=8,
-        mlp_width=512,
-        mlp_max_pixels=2048 if base.patch_px else base.mlp_max_pixels,
-        reflection_normal_grad=True,
-        init_reflectivity_glass=base.init_reflectivity,
-        lambda_hf_start=1.0,
-        lambda_hf_end=10.0,
-        hf_start_fraction=0.0,
-        exposure_estimate=False,
-        exposure_refinement=False,
-        pose_refinement=False,
-        lowpass_sigma_px=LOWPASS_SIGMA_PX,
+        {
+            "reflection.model": "mlp",
+            "reflection.proxy.channels": 0,
+            "reflection.mlp.depth": 8,
+            "reflection.mlp.width": 512,
+            "mlp_max_pixels": 2048 if base.patch_px else base.mlp_max_pixels,
+            "reflection_normal_grad": True,
+            "init_reflectivity_glass": base.init_reflectivity,
+            "lambda_hf_start": 1.0,
+            "lambda_hf_end": 10.0,
+            "exposure_estimate": False,
+            "pose_refinement": False,
+            "lowpass_sigma_px": LOWPASS_SIGMA_PX,
+        },
     )
 
 
 def variants(base: TrainParams) -> list[tuple[str, TrainParams]]:
     return [
         ("mlp", base),
-        ("sh", dataclasses.replace(base, reflection_model="sh")),
-        ("envmap", dataclasses.replace(base, reflection_model="envmap")),
+        ("sh", replace_keys(base, {"reflection.model": "sh"})),
+        ("envmap", replace_keys(base, {"reflection.model": "envmap"})),
         ("mlp, no normal prior", dataclasses.replace(base, lambda_normal_prior=0.0)),
         ("mlp, as the paper", paper_mlp(base)),
     ]
@@ -151,20 +150,21 @@ def main() -> None:
     cfg = load_building_config(a.building)
     base = cfg.section("train_gs", TrainParams)
     align = cfg.section("evaluate.align", AlignParams)
-    base = dataclasses.replace(
+    mlp = base.reflection.mlp
+    base = replace_keys(
         base,
-        iterations=a.iterations or base.iterations,
-        patch_px=base.patch_px if a.patch_px < 0 else a.patch_px,
-        mlp_max_pixels=base.mlp_max_pixels if a.mlp_max_pixels < 0 else a.mlp_max_pixels,
-        init_max_points=a.init_points or base.init_max_points,
-        init_mesh_samples=a.init_points or base.init_mesh_samples,
-        checkpoint_every=0,
-        mlp_width=a.mlp_width or base.mlp_width,
-        mlp_depth=a.mlp_depth or base.mlp_depth,
-        supersample=a.supersample or base.supersample,
-        densify=dataclasses.replace(
-            base.densify, max_gaussians=a.max_gaussians or base.densify.max_gaussians
-        ),
+        {
+            "iterations": a.iterations or base.iterations,
+            "patch_px": base.patch_px if a.patch_px < 0 else a.patch_px,
+            "mlp_max_pixels": base.mlp_max_pixels if a.mlp_max_pixels < 0 else a.mlp_max_pixels,
+            "init_max_points": a.init_points or base.init_max_points,
+            "init_mesh_samples": a.init_points or base.init_mesh_samples,
+            "checkpoint_every": 0,
+            "reflection.mlp.width": a.mlp_width or mlp.width,
+            "reflection.mlp.depth": a.mlp_depth or mlp.depth,
+            "supersample": a.supersample or base.supersample,
+            "densify.max_gaussians": a.max_gaussians or base.densify.max_gaussians,
+        },
     )
     data, prior = building_data(a, base)
     if a.save_bundle:
@@ -224,11 +224,7 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         import torch
 
         where += f" GPU: {torch.cuda.get_device_name(device)} (torch {torch.__version__}), training on it."
-    proxy_shape = (
-        f"the surroundings' surface model in {p.mlp_proxy_cell_m} m cells"
-        if p.mlp_proxy_surroundings
-        else "the cylinder room"
-    )
+    mlp, proxy = p.reflection.mlp, p.reflection.proxy
     lines = [
         "\n## train_gs accuracy\n",
         f"{where}\n",
@@ -237,14 +233,14 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"{'GPU' if device.type == 'cuda' else 'CPU'} budget per variant: {p.iterations} iterations on "
         f"{p.patch_px or 'whole-image'} px patches, at most "
         f"{p.mlp_max_pixels or 'all'} MLP pixels per step, {p.init_max_points} + {p.init_mesh_samples} "
-        f"initial splats (cap {p.densify.max_gaussians}), reflection MLP {p.mlp_depth} x {p.mlp_width}, "
-        f"L = {p.fourier_levels}, skip {p.mlp_skip}, environment proxy {p.mlp_proxy_channels} channels at "
-        f"{p.mlp_proxy_resolution_px} px (rate {p.lr.proxy}; {proxy_shape}), "
-        f"facade self hits {p.mlp_self_hits}, "
+        f"initial splats (cap {p.densify.max_gaussians}), reflection MLP {mlp.depth} x {mlp.width}, "
+        f"L = {mlp.fourier_levels}, skip {mlp.skip}, environment proxy {proxy.channels} channels at "
+        f"{proxy.resolution_px} px (rate {p.lr.proxy}; the surroundings' surface model in {proxy.cell_m} m "
+        "cells), "
         f"initial reflectivity {p.init_reflectivity} "
         f"({p.init_reflectivity_glass} on glass), reflection gradient into normals "
         f"{p.reflection_normal_grad}, pose refinement {p.pose_refinement}, exposure gains estimated "
-        f"{p.exposure_estimate} / learnt {p.exposure_refinement}, high-frequency weight "
+        f"{p.exposure_estimate}, high-frequency weight "
         f"{p.lambda_hf_start} -> {p.lambda_hf_end}, {p.supersample} x {p.supersample} samples per pixel, "
         f"low-pass sigma {p.lowpass_sigma_px} px. "
         "`mlp, as the paper` changes these to the paper's (`paper_mlp` in this file). The paper trains "

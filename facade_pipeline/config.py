@@ -162,6 +162,50 @@ RENAMED = {
     "segment_panels.grid.min_pitch_px": "segment_panels.grid.min_pitch_m and max_pitch_m (metres)",
     "segment_panels.grid.min_bar_px": "segment_panels.grid.min_bar_m (metres on the facade)",
     "segment_panels.grid.max_bar_px": "segment_panels.grid.max_bar_m (metres on the facade)",
+    "train_gs.reflection_model": "train_gs.reflection.model",
+    "train_gs.fourier_levels": "train_gs.reflection.mlp.fourier_levels",
+    "train_gs.mlp_depth": "train_gs.reflection.mlp.depth",
+    "train_gs.mlp_width": "train_gs.reflection.mlp.width",
+    "train_gs.mlp_skip": "train_gs.reflection.mlp.skip",
+    "train_gs.mlp_proxy_channels": "train_gs.reflection.proxy.channels",
+    "train_gs.mlp_proxy_resolution_px": "train_gs.reflection.proxy.resolution_px",
+    "train_gs.mlp_proxy_levels": "train_gs.reflection.proxy.levels",
+    "train_gs.mlp_proxy_cell_m": "train_gs.reflection.proxy.cell_m",
+    "train_gs.envmap_height_px": "train_gs.reflection.envmap.height_px",
+    "train_gs.envmap_width_px": "train_gs.reflection.envmap.width_px",
+    **{
+        f"train_gs.{key}": f"none: {why}; delete the key"
+        for why, keys in (
+            (
+                "removed, it measured no gain (benchmarks/RESULTS.md)",
+                ("mlp_self_hits", "mlp_self_hit_offset_m", "mlp_self_hit_max_m", "exposure_refinement",
+                 "lr.exposure", "lambda_distortion", "distortion_start_fraction", "hf_residual"),
+            ),
+            (
+                "the proxy's rays always meet the surroundings, reaching as far as the facade's size says",
+                ("mlp_proxy_surroundings", "mlp_proxy_radius_m", "mlp_proxy_reach_m"),
+            ),
+            ("the loss is on from the start", ("normal_prior_start_fraction", "hf_start_fraction")),
+            ("a constant of Eq. 12 (training/losses.py)", ("hf_eps",)),
+            (
+                "2DGS's value, a constant of facade_pipeline/training/trainer.py",
+                ("lambda_dssim", "normal_start_fraction", "divergence_extent_factor", "lr.position_final",
+                 "lr.sh_dc", "lr.sh_rest", "lr.opacity", "lr.scaling", "lr.rotation"),
+            ),
+            ("2DGS's value, a constant of facade_pipeline/splatting/types.py", ("near_m",)),
+            ("3DGS's value, a constant of facade_pipeline/training/init.py", ("init_opacity", "init_knn")),
+            (
+                "2DGS's value, a constant of facade_pipeline/training/densify.py",
+                tuple(
+                    f"densify.{k}"
+                    for k in ("start_fraction", "end_fraction", "percent_dense", "split_count",
+                              "opacity_reset_value", "prune_opacity", "prune_world_size_fraction")
+                ),
+            ),
+            ("the estimate's numbers are fixed (ExposureParams, training/exposure.py)", ("exposure",)),
+        )
+        for key in keys
+    },
 }
 
 

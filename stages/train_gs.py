@@ -154,7 +154,7 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list
     if gains:
         split["exposure_gain"] = gains
     files = TrainedModelFiles.pipeline(layout, to_dict(tr.params))
-    files.save(tr.model, tr.reflection, tr.params.reflection(), tr.data.bounds, split)
+    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(), tr.data.bounds, split)
     lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": evaluation})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")
     return targets(layout, tr.params)
@@ -198,7 +198,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "iterations": tr.iteration,
             "resumed_from_iteration": resumed_from,
             "n_gaussians": tr.model.n,
-            "reflection_model": params.reflection_model,
+            "reflection_model": params.reflection.model,
             "device": str(device),
             "n_train_views": len(data.train_idx),
             "n_test_views": len(data.test_idx),

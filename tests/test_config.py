@@ -32,8 +32,9 @@ def test_shipped_buildings_load_every_existing_stage():
 def test_paper_settings_on_the_paper_buildings():
     for building in ("shatin", "hkust_library"):
         t = load_building_config(building).tables["train_gs"]
-        assert t["iterations"] == 200_000 and t["fourier_levels"] == 12
-        assert (t["mlp_depth"], t["mlp_width"], t["mlp_skip"]) == (8, 512, True)
+        mlp = t["reflection"]["mlp"]
+        assert t["iterations"] == 200_000 and t["reflection"]["model"] == "mlp"
+        assert (mlp["fourier_levels"], mlp["depth"], mlp["width"], mlp["skip"]) == (12, 8, 512, True)
         assert (t["lambda_normal"], t["lambda_normal_prior"]) == (0.05, 1.0)
         assert (t["lambda_hf_start"], t["lambda_hf_end"], t["hf_tau_start"], t["hf_tau_end"]) == (
             1,
@@ -151,3 +152,23 @@ def test_an_old_pixel_key_names_its_replacement(cfg_dir, section, key, replaceme
         load_building_config("old", cfg_dir)
     msg = str(e.value)
     assert f"{section}.{key}" in msg and replacement in msg and "old.toml" in msg
+
+
+@pytest.mark.parametrize(("key", "replacement"), [
+    ("reflection_model", "train_gs.reflection.model"),
+    ("mlp_width", "train_gs.reflection.mlp.width"),
+    ("fourier_levels", "train_gs.reflection.mlp.fourier_levels"),
+    ("mlp_proxy_channels", "train_gs.reflection.proxy.channels"),
+    ("envmap_height_px", "train_gs.reflection.envmap.height_px"),
+    ("mlp_self_hits", "removed"),
+    ("mlp_proxy_surroundings", "surroundings"),
+    ("near_m", "splatting/types.py"),
+    ("lambda_dssim", "training/trainer.py"),
+    ("exposure", "ExposureParams"),
+])
+def test_an_old_train_gs_key_names_its_replacement(cfg_dir, key, replacement):
+    _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[train_gs]\n{key} = 10\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("old", cfg_dir)
+    msg = str(e.value)
+    assert f"train_gs.{key}" in msg and replacement in msg and "old.toml" in msg and "\n" not in msg

@@ -108,10 +108,10 @@ BAD_VALUES = [
     ("synthesize.render", "chunk_rays = 0", "synthesize.render.chunk_rays", ">= 1"),
     ("train_gs", "lowpass_sigma_px = -1.0", "train_gs.lowpass_sigma_px", "> 0"),
     ("train_gs", "lowpass_sigma_px = 0.0", "train_gs.lowpass_sigma_px", "> 0"),
-    ("train_gs.densify", "prune_opacity = 1.5", "train_gs.densify.prune_opacity", "<= 1"),
+    ("train_gs", "init_reflectivity_glass = 1.5", "train_gs.init_reflectivity_glass", "<= 1"),
     ("synthesize.coarse", "glass_hole_fraction = 1.5", "synthesize.coarse.glass_hole_fraction", "<= 1"),
     ("segment_panels.grid", "sigma_frac = nan", "segment_panels.grid.sigma_frac", "found nan"),
-    ("train_gs", "near_m = inf", "train_gs.near_m", "> 0, found inf"),
+    ("train_gs", "lowpass_sigma_px = inf", "train_gs.lowpass_sigma_px", "> 0, found inf"),
     ("train_gs.lr", "position_init = -inf", "train_gs.lr.position_init", "found -inf"),
     ("rectify", "occlusion_margin_m = -inf", "rectify.occlusion_margin_m", ">= 0 (or inf)"),
     ("rectify", "max_view_angle_deg = 90.0", "rectify.max_view_angle_deg", "< 90"),
@@ -122,7 +122,6 @@ BAD_VALUES = [
     # a min above its max
     ("segment_panels.grid", "min_pitch_m = 7.0", "segment_panels.grid.min_pitch_m", "max_pitch_m"),
     ("segment_panels.grid", "min_bar_m = 0.5", "segment_panels.grid.min_bar_m", "max_bar_m"),
-    ("train_gs.densify", "start_fraction = 0.6", "train_gs.densify.start_fraction", "end_fraction"),
     ("import_photogrammetry", "undistort_min_scale = 3.0", "import_photogrammetry.undistort_min_scale",
      "undistort_max_scale"),
     ("synthesize.environment", "building_width_m = [28.0, 14.0]", "synthesize.environment.building_width_m",
@@ -146,11 +145,11 @@ def test_a_value_out_of_range_names_key_file_and_range(write_building, table, li
 
 def test_the_bounds_themselves_are_allowed(write_building):
     """Closed ends are in range: a fraction of 0 and of 1, a count of 0; inf where a limit may be off."""
-    lines = "prune_opacity = 1.0\nopacity_reset_value = 0.0\nopacity_reset_interval = 0\nstart_fraction = 0.0"
-    path = write_building("train_gs.densify", lines)
+    lines = "init_reflectivity = 1.0\ninit_f0 = 0.0\nmlp_max_pixels = 0"
+    path = write_building("train_gs", lines)
     cfg = load_building_config("bad", path.parents[1])
-    d = cfg.section("train_gs", load_stage("train_gs").Params).densify
-    assert (d.prune_opacity, d.opacity_reset_value, d.opacity_reset_interval) == (1.0, 0.0, 0)
+    p = cfg.section("train_gs", load_stage("train_gs").Params)
+    assert (p.init_reflectivity, p.init_f0, p.mlp_max_pixels) == (1.0, 0.0, 0)
     path = write_building("rectify", "occlusion_margin_m = inf")
     cfg = load_building_config("bad", path.parents[1])
     assert cfg.section("rectify", load_stage("rectify").Params).occlusion_margin_m == float("inf")

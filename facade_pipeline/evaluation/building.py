@@ -43,6 +43,7 @@ from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
+from facade_pipeline.training.params import flat_params
 from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
 
 
@@ -228,7 +229,7 @@ def ablation_group(params: dict[str, Any]) -> str:
 
 def variant_entry(v: TrainedModelFiles, tm: TrainedModel) -> dict[str, Any]:
     """What metrics.json says of a variant before its figures: model, architecture, ablation group, files."""
-    p = v.params
+    p = flat_params(v.params)
     arch = {k: p[k] for k in ARCHITECTURE_KEYS if k in p} if p["reflection_model"] == "mlp" else None
     return {
         "reflection_model": p["reflection_model"],

@@ -9,8 +9,6 @@ Where a trained model lies and what produced it is ``training.trained.TrainedMod
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -19,14 +17,11 @@ from torch import nn
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.shading.reflection import (
-    EnvMap,
-    ReflectionMLP,
     ReflectionModel,
-    SHOnly,
     build_reflection_module,
+    strategy_from_record,
 )
-from facade_pipeline.shading.self_hits import MESH_FIELDS
-from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, NEAR_M
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.ply import model_from_ply, read_ply
@@ -73,21 +68,6 @@ class RenderedView:
     alpha: np.ndarray
 
 
-def reflection_from_config(name: str, config: dict[str, Any], path: Path | None = None) -> ReflectionModel:
-    """The reflection strategy named ``name`` (``sh``/``envmap``/``mlp``) with its saved fields."""
-    try:
-        match name:
-            case "sh":
-                return SHOnly()
-            case "envmap":
-                return EnvMap(**config)
-            case "mlp":
-                return ReflectionMLP(**config)
-    except TypeError as e:
-        raise InputError(path, f"the fields of the {name!r} reflection model", str(e)) from None
-    raise InputError(path, "a reflection model 'sh', 'envmap' or 'mlp'", repr(name))
-
-
 def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu") -> TrainedModel:
     """Read a variant's PLY and reflection weights. A damaged file raises ``InputError`` naming it."""
     device = torch.device(device)
@@ -95,14 +75,13 @@ def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu")
     try:
         refl = torch.load(variant.reflection, map_location="cpu", weights_only=True)
         name, config, bounds = refl["model"], refl["config"], refl["bounds"]
-        mesh = tuple(refl["mesh"][n] for n in MESH_FIELDS) if "mesh" in refl else None
     except Exception as e:  # torch raises several types for truncated or foreign files
         found = f"an unreadable file ({type(e).__name__}: {e})"
         raise InputError(variant.reflection, "train_gs reflection weights", found) from None
-    strategy = reflection_from_config(name, config, variant.reflection)
+    strategy = strategy_from_record(name, config, variant.reflection)
     lo, hi = (torch.as_tensor(np.asarray(b), dtype=torch.float32, device=device) for b in bounds)
     try:
-        module = build_reflection_module(strategy, device, (lo, hi), mesh)
+        module = build_reflection_module(strategy, device, (lo, hi))
     except ValueError as e:
         raise InputError(variant.reflection, f"what a {strategy} is built from", str(e)) from None
     if module is not None:
@@ -122,7 +101,7 @@ def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu")
         strategy,
         shading,
         active_sh_degree(int(p["sh_degree"]), int(p["sh_degree_interval"]), int(p["iterations"])),
-        float(p["near_m"]),
+        float(p.get("near_m", NEAR_M)),  # models saved while it was a key kept 2DGS's value
         backend,
         lowpass,
         device,
@@ -137,10 +116,10 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
         name,
         tr.model,
         tr.reflection,
-        p.reflection(),
+        p.reflection_strategy(),
         tr.shading,
         active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration),
-        p.near_m,
+        NEAR_M,
         p.raster_backend,
         p.lowpass_sigma_px,
         tr.device,

@@ -4,24 +4,29 @@
 - ``EnvMap``: R looked up in a learnable environment map by the reflection direction alone, the infinitely
   distant light of GaussianShader and Ref-Gaussian (cannot represent near-field parallax).
 - ``ReflectionMLP``: the paper's network (section 3.2.2, Fig. 7): R = MLP(gamma(X_r), gamma(w_r)), optionally
-  also fed features read where the reflected ray meets a proxy of the surroundings (``shading.proxy``)
-  and where it meets the facade itself (``shading.self_hits``).
+  also fed features read where the reflected ray meets a proxy of the surroundings (``shading.proxy``).
+
+The dataclasses are read from ``[train_gs.reflection]``: ``model`` picks the strategy, ``[...mlp]``,
+``[...proxy]`` and ``[...envmap]`` fill ``ReflectionMLP``, ``EnvironmentProxy`` and ``EnvMap``;
+``ReflectionParams.strategy`` is the one builder.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Any, assert_never
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any, Literal, assert_never
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from facade_pipeline.config import Count, NonNeg, PosInt, Positive
+from facade_pipeline.errors import InputError
 from facade_pipeline.shading.fourier import fourier_dim, fourier_features
-from facade_pipeline.shading.proxy import ProxyFeatures, ProxyGeometry
-from facade_pipeline.shading.self_hits import MESH_FIELDS, SELF_HIT_DIM, FacadeHits
+from facade_pipeline.shading.proxy import ProxyFeatures, proxy_reach_m
 from facade_pipeline.shading.surroundings import Surroundings
 
 #: Standard deviation of the proxy feature maps' initial values.
@@ -35,55 +40,75 @@ class SHOnly:
 
 @dataclass(frozen=True)
 class EnvMap:
-    """A learnable equal-area (cylindrical) environment map, sigmoid-activated RGB."""
+    """A learnable equal-area (cylindrical) environment map, sigmoid-activated RGB
+    (``[train_gs.reflection.envmap]``)."""
 
-    height_px: int = 64
+    height_px: PosInt = 64
     """rows: the cosine of the polar angle (w_r.z from +1 at the top to -1 at the bottom)"""
-    width_px: int = 128
+    width_px: PosInt = 128
     """columns: azimuth from -pi to pi"""
 
 
 @dataclass(frozen=True)
-class ReflectionMLP:
-    """The paper's reflection MLP (Table 3 varies all four)."""
+class EnvironmentProxy:
+    """Feature maps read where the reflected ray meets the surroundings (``shading.proxy``,
+    ``[train_gs.reflection.proxy]``), given to the MLP's middle layer beside gamma(w_r)."""
 
-    fourier_levels: int = 12
+    channels: Count = 0
+    """feature channels; 0: none, the paper's network"""
+    resolution_px: PosInt = 256
+    """texels across the proxy's finest floor map (and around its finest wall map)"""
+    levels: PosInt = 3
+    """feature maps per part, each a quarter of the resolution of the one before"""
+    cell_m: Positive = 1.0
+    """cell size of the surroundings' surface model (m)"""
+
+
+@dataclass(frozen=True)
+class ReflectionMLP:
+    """The paper's reflection MLP (Table 3 varies the first four; ``[train_gs.reflection.mlp]``)."""
+
+    fourier_levels: PosInt = 12
     """L of Eq. 10, for both X_r and w_r"""
-    depth: int = 8
+    depth: PosInt = 8
     """hidden ReLU layers; the first depth // 2 see the encoded position alone"""
-    width: int = 512
+    width: PosInt = 512
     """hidden units per layer"""
     skip: bool = True
     """re-inject gamma(X_r) at the middle layer beside gamma(w_r)"""
-    proxy_channels: int = 0
-    """feature channels read where the reflected ray meets the environment proxy (``shading.proxy``), given
-    to the middle layer beside gamma(w_r); 0: none, the paper's network"""
-    proxy_resolution_px: int = 512
-    """texels across the proxy's finest floor map (and around its finest wall map)"""
-    proxy_levels: int = 3
-    """proxy feature maps per part, each a quarter of the resolution of the one before"""
-    proxy_radius_m: float = 0.0
-    """radius of the proxy around the facade (m); 0: twice the facade bounds' horizontal half-diagonal"""
-    proxy_surroundings: bool = False
-    """reflected rays meet the surroundings of the coarse point cloud (``shading.surroundings``: a surface
-    model of its trees and buildings) and the ground instead of the room's wall and floor"""
-    proxy_cell_m: float = 1.0
-    """cell size of that surface model (m)"""
-    proxy_reach_m: float = 0.0
-    """how far from the facade's centre the surface model and the floor reach (m); 0: 1.5 x the room's
-    radius"""
-    proxy_margin_m: float = 1.0
-    """coarse points farther than this outside the facade bounds (horizontally) make the surface model (m)"""
-    self_hits: bool = False
-    """cast each reflected ray against the corrected mesh and give the middle layer where it meets the
-    facade itself (``shading.self_hits``); the proxy's features are zeroed on such rays"""
-    self_hit_offset_m: float = 0.02
-    """reflected rays start this far along w_r from X_r (m), off the surface they leave"""
-    self_hit_max_m: float = 0.0
-    """hits farther than this are misses (m); 0: every hit counts"""
+    proxy: EnvironmentProxy | None = None
+    """the environment proxy's features (None, or 0 channels: the paper's network);
+    ``ReflectionParams.strategy`` fills it from [train_gs.reflection.proxy]"""
+    proxy_margin_m: NonNeg = 1.0
+    """coarse points farther than this outside the facade bounds (horizontally) make the proxy's surface
+    model of the surroundings (m; ``train_gs.init_bounds_margin_m``)"""
 
 
 ReflectionModel = SHOnly | EnvMap | ReflectionMLP
+
+
+@dataclass(frozen=True)
+class ReflectionParams:
+    """``[train_gs.reflection]``: the specular term R of Eq. 7 and the fields of each choice."""
+
+    model: Literal["sh", "envmap", "mlp"]
+    """"sh" (none, vanilla 2DGS), "envmap" (distant light) or "mlp" (the paper's)"""
+    mlp: ReflectionMLP
+    proxy: EnvironmentProxy
+    envmap: EnvMap
+
+    def strategy(self, margin_m: float) -> ReflectionModel:
+        """The strategy ``model`` selects; an MLP gets the proxy and ``margin_m`` (the splats' bounds
+        margin, m), around the facade bounds of which the proxy's surroundings are taken."""
+        match self.model:
+            case "sh":
+                return SHOnly()
+            case "envmap":
+                return self.envmap
+            case "mlp":
+                return replace(self.mlp, proxy=self.proxy, proxy_margin_m=margin_m)
+            case _:
+                assert_never(self.model)
 
 
 class EnvMapModule(nn.Module):
@@ -110,52 +135,35 @@ class EnvMapModule(nn.Module):
 
 class ReflectionMLPModule(nn.Module):
     """The reflection MLP of Fig. 7: gamma(X_r) through the first half; at the middle layer concatenate the
-    features with gamma(w_r), (skip) gamma(X_r) again, (self hits) where the reflected ray meets the facade
-    and (proxy) the environment proxy's features at the reflected ray's hit; ReLU hidden layers; sigmoid
-    RGB out."""
+    features with gamma(w_r), (skip) gamma(X_r) again and (proxy) the environment proxy's features at the
+    reflected ray's hit; ReLU hidden layers; sigmoid RGB out."""
 
     def __init__(
         self,
         cfg: ReflectionMLP,
         bounds: tuple[Tensor, Tensor] | None = None,
-        mesh: tuple[Tensor, Tensor, Tensor | None] | None = None,
         points: np.ndarray | None = None,
     ):
-        """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features or
-        self hits. ``mesh``: the corrected mesh's vertices [V, 3] (m), triangles [T, 3] and glass labels
-        [T] bool (None: unknown); needed with self hits. ``points``: the coarse point cloud [N, 3] (m) the
-        proxy's surroundings are binned from (None: left empty for a saved state to fill)."""
+        """``bounds``: the facade's [lo, hi] (m) that X_r is normalised by; needed with proxy features.
+        ``points``: the coarse point cloud [N, 3] (m) the proxy's surroundings are binned from (None: left
+        empty for a saved state to fill)."""
         super().__init__()
         if cfg.depth < 2 or cfg.width < 1:
             raise ValueError(f"reflection MLP needs depth >= 2 and width >= 1, got {cfg.depth}x{cfg.width}")
         self.cfg = cfg
         self.proxy: ProxyFeatures | None = None
-        self.self_hits: FacadeHits | None = None
-        if cfg.proxy_channels > 0 or cfg.self_hits:
+        proxy = cfg.proxy
+        if proxy is not None and proxy.channels > 0:
             if bounds is None:
-                raise ValueError("a reflection MLP with proxy features or self hits needs the facade bounds")
+                raise ValueError("a reflection MLP with proxy features needs the facade bounds")
             lo, hi = (b.detach().float() for b in bounds)
             self.register_buffer("bounds_lo", lo.clone(), persistent=False)
             self.register_buffer("bounds_hi", hi.clone(), persistent=False)
-        if cfg.self_hits:
-            if mesh is None:
-                raise ValueError("a reflection MLP with self hits needs the corrected mesh")
-            self.self_hits = FacadeHits(
-                *mesh, offset_m=cfg.self_hit_offset_m, max_distance_m=cfg.self_hit_max_m
+            surroundings = Surroundings(
+                lo, hi, proxy_reach_m(lo, hi), proxy.cell_m, points, cfg.proxy_margin_m
             )
-        if cfg.proxy_channels > 0:
-            geometry = ProxyGeometry.around(lo, hi, cfg.proxy_radius_m)
-            surroundings = None
-            if cfg.proxy_surroundings:
-                reach = cfg.proxy_reach_m if cfg.proxy_reach_m > 0 else 1.5 * geometry.radius
-                surroundings = Surroundings(lo, hi, reach, cfg.proxy_cell_m, points, cfg.proxy_margin_m)
             self.proxy = ProxyFeatures(
-                geometry,
-                cfg.proxy_channels,
-                cfg.proxy_resolution_px,
-                cfg.proxy_levels,
-                PROXY_INIT_STD,
-                surroundings,
+                surroundings, proxy.channels, proxy.resolution_px, proxy.levels, PROXY_INIT_STD
             )
         enc = fourier_dim(cfg.fourier_levels)
         self.n_first = cfg.depth // 2
@@ -167,7 +175,6 @@ class ReflectionMLPModule(nn.Module):
             + enc
             + (enc if cfg.skip else 0)
             + (0 if self.proxy is None else self.proxy.out_dim)
-            + (0 if self.self_hits is None else SELF_HIT_DIM)
         )
         second = [nn.Linear(mid_in, cfg.width)]
         second += [nn.Linear(cfg.width, cfg.width) for _ in range(cfg.depth - self.n_first - 1)]
@@ -189,14 +196,9 @@ class ReflectionMLPModule(nn.Module):
         for layer in self.first:
             h = F.relu(layer(h))
         mid = [h, gw, gx] if self.cfg.skip else [h, gw]
-        if self.proxy is not None or self.self_hits is not None:
+        if self.proxy is not None:
             x = self.bounds_lo + 0.5 * (x_norm + 1.0) * (self.bounds_hi - self.bounds_lo)
-            hits = None if self.self_hits is None else self.self_hits(x, w_r)
-            if self.proxy is not None:
-                env = self.proxy(x, w_r)
-                mid.append(env if hits is None else env * (1.0 - hits[:, :1]))
-            if hits is not None:
-                mid.append(hits)
+            mid.append(self.proxy(x, w_r))
         h = torch.cat(mid, dim=-1)
         for layer in self.second:
             h = F.relu(layer(h))
@@ -207,21 +209,19 @@ def build_reflection_module(
     model: ReflectionModel,
     device: torch.device | str,
     bounds: tuple[Tensor, Tensor] | None = None,
-    mesh: tuple[Tensor, Tensor, Tensor | None] | None = None,
     points: np.ndarray | None = None,
 ) -> nn.Module | None:
     """The trainable module of a reflection model (None for ``SHOnly``), on ``device``, in float32.
-    ``bounds``: the facade's [lo, hi] (m), which an MLP with proxy features or self hits is built around;
-    ``mesh``: the corrected mesh (vertices [V, 3] m, triangles [T, 3], glass labels [T] or None) that an
-    MLP with self hits casts its reflected rays against; ``points``: the coarse point cloud [N, 3] (m) an
-    MLP's proxy surroundings are binned from (None: empty until a saved state is loaded)."""
+    ``bounds``: the facade's [lo, hi] (m), which an MLP with proxy features is built around; ``points``:
+    the coarse point cloud [N, 3] (m) an MLP's proxy surroundings are binned from (None: empty until a
+    saved state is loaded)."""
     match model:
         case SHOnly():
             return None
         case EnvMap():
             return EnvMapModule(model).to(device)
         case ReflectionMLP():
-            return ReflectionMLPModule(model, bounds, mesh, points).to(device)
+            return ReflectionMLPModule(model, bounds, points).to(device)
         case _:
             assert_never(model)
 
@@ -242,16 +242,67 @@ def model_name(model: ReflectionModel) -> str:
 def reflection_record(
     strategy: ReflectionModel, bounds: tuple[Any, Any], reflection: nn.Module | None
 ) -> dict[str, Any]:
-    """What a ``reflection.pt`` holds (``evaluation.render_views.load_trained`` reads it): the strategy's
-    name and fields, the facade bounds [lo, hi] (m), the weights and, for an MLP with self hits, the mesh
-    it casts against."""
-    record: dict[str, Any] = {
+    """What a ``reflection.pt`` holds (``evaluation.render_views.load_trained`` reads it back with
+    ``strategy_from_record``): the strategy's name and fields, the facade bounds [lo, hi] (m) and the
+    weights."""
+    return {
         "model": model_name(strategy),
         "config": asdict(strategy),
         "bounds": [[float(c) for c in b] for b in bounds],
         "state_dict": {} if reflection is None else reflection.state_dict(),
     }
-    hits = getattr(reflection, "self_hits", None)
-    if hits is not None:
-        record["mesh"] = {n: getattr(hits, n).cpu() for n in MESH_FIELDS}
-    return record
+
+
+#: Fields of a saved MLP's record that options no longer offered used, with the value that means what the
+#: code does now; a record with another value was trained with the option and cannot be rebuilt.
+_RETIRED_MLP_FIELDS = {
+    "proxy_radius_m": 0.0,
+    "proxy_reach_m": 0.0,
+    "proxy_surroundings": True,
+    "self_hits": False,
+    "self_hit_offset_m": None,
+    "self_hit_max_m": None,
+}
+#: Proxy fields of a record written before the proxy had its own table, by their present name.
+_FLAT_PROXY_FIELDS = {
+    "proxy_channels": "channels",
+    "proxy_resolution_px": "resolution_px",
+    "proxy_levels": "levels",
+    "proxy_cell_m": "cell_m",
+}
+
+
+def strategy_from_record(name: str, config: dict[str, Any], path: Path | None = None) -> ReflectionModel:
+    """The reflection strategy named ``name`` (``sh``/``envmap``/``mlp``) with the fields a
+    ``reflection_record`` saved, in its present form or in the flat form of earlier records (the proxy's
+    fields as ``proxy_*``). A field that asks for an option no longer offered is an ``InputError``."""
+    try:
+        match name:
+            case "sh":
+                return SHOnly()
+            case "envmap":
+                return EnvMap(**config)
+            case "mlp":
+                return _mlp_from_record(dict(config), path)
+    except TypeError as e:
+        raise InputError(path, f"the fields of the {name!r} reflection model", str(e)) from None
+    raise InputError(path, "a reflection model 'sh', 'envmap' or 'mlp'", repr(name))
+
+
+def _mlp_from_record(config: dict[str, Any], path: Path | None) -> ReflectionMLP:
+    channels = (config.get("proxy") or {}).get("channels", config.get("proxy_channels", 0))
+    for key, kept in _RETIRED_MLP_FIELDS.items():
+        value = config.pop(key, kept)
+        # without proxy features the room and its surroundings were never built: any value did the same
+        moot = key.startswith("proxy_") and not channels
+        if kept is not None and value != kept and not moot:
+            raise InputError(
+                path,
+                f"a reflection MLP this version builds ({key} = {kept!r})",
+                f"{key} = {value!r}, an option no longer offered: retrain the model",
+            )
+    flat = {new: config.pop(old) for old, new in _FLAT_PROXY_FIELDS.items() if old in config}
+    proxy = config.pop("proxy", None)
+    if flat:
+        proxy = flat
+    return ReflectionMLP(**config, proxy=None if proxy is None else EnvironmentProxy(**proxy))

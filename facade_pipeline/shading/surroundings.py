@@ -1,12 +1,12 @@
 """The surroundings as a surface model from the coarse point cloud: what a reflected ray meets in front of
 the facade.
 
-The environment proxy's room (``shading.proxy``) puts everything above the ground on one cylinder wall, twice
-the facade's half-diagonal away. Where the surroundings stand at other distances (on demo, trees 16-32 m from
-the facade and buildings 50-75 m), rays from different points of the facade that meet the same tree read
-different texels of that wall, and the reflection of the tree smears across views. Photogrammetry
-reconstructs the surroundings with the facade: its coarse point cloud holds them. Here they become a
-surface model (a DSM, as photogrammetry software exports one) that the reflected rays are cast against:
+A proxy that put everything above the ground on one cylinder wall, twice the facade's half-diagonal away,
+smeared the surroundings that stand at other distances (on demo, trees 16-32 m from the facade and
+buildings 50-75 m): rays from different points of the facade that meet the same tree read different texels
+of that wall. Photogrammetry reconstructs the surroundings with the facade: its coarse point cloud holds
+them. Here they become a surface model (a DSM, as photogrammetry software exports one) that the reflected
+rays of the environment proxy (``shading.proxy``) are cast against:
 
 - points off the facade (beyond its bounds by ``margin_m``, horizontally) and above the ground (by
   ``MIN_HEIGHT_M``) are binned into square cells of ``cell_m`` around the facade's centre, out to
@@ -134,7 +134,7 @@ def surface_mesh(heights: np.ndarray, cell_m: float, centre_xy: np.ndarray, grou
 
 
 class Surroundings(nn.Module):
-    """The surface model as a proxy shape: ``hit`` returns what ``ProxyGeometry.hit`` does (see the module
+    """The surface model as the proxy's shape: ``hit`` gives where a ray meets it (see the module
     docstring for the coordinates)."""
 
     def __init__(
@@ -205,7 +205,7 @@ class Surroundings(nn.Module):
             except ImportError as e:
                 raise ImportError(
                     f"the environment proxy's surroundings cast rays with open3d, which is not importable "
-                    f"({e}); install it or train with mlp_proxy_surroundings = false"
+                    f"({e}); install it or train with [train_gs.reflection.proxy] channels = 0"
                 ) from e
             self._caster = MeshRaycaster(*self.mesh())
         return self._caster.cast(o, d).t.astype(np.float64)

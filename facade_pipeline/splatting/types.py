@@ -33,6 +33,10 @@ LOWPASS_SIGMA_PX = math.sqrt(0.5)
 """The reference 2DGS screen-space low-pass filter, rho_2d = 2 |x - c|^2: a Gaussian of sigma sqrt(2)/2 px
 around the projected centre c, which every splat renders at least as wide as. ``render_2dgs`` takes another
 sigma (``lowpass_sigma_px``); gsplat's CUDA kernel has this one built in."""
+NEAR_M = 0.2
+"""Splat intersections nearer than this to the camera are skipped (m): the reference 2DGS near plane (fixed
+there; DESIGN.md). UAV views are metres to tens of metres from the facade, so it never binds there; the
+models keep 2DGS's value."""
 LOWPASS_SIGMA_TOL_PX = 1e-4
 """A sigma this close to LOWPASS_SIGMA_PX is the reference one (a config file's 0.7071)."""
 

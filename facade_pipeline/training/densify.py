@@ -12,6 +12,24 @@ from torch import Tensor, nn
 from facade_pipeline.training.model import GaussianModel, inverse_sigmoid, quat_to_rotmat
 from facade_pipeline.training.params import DensifyParams
 
+# 2DGS's densification numbers (its training defaults, those of 3DGS; DESIGN.md), never tuned here: they are
+# fractions of the scene extent or of the run, so they carry over to any facade and budget. What a budget
+# sets (interval, threshold, reset interval, cap) is in [train_gs.densify].
+#: Densify from this fraction of the run (2DGS: 500 of 30k iterations) ...
+DENSIFY_START_FRACTION = 0.0167
+#: ... until this fraction (2DGS: 15k of 30k).
+DENSIFY_END_FRACTION = 0.5
+#: Splats larger than this fraction of the scene extent are split, smaller ones cloned (2DGS: percent_dense).
+PERCENT_DENSE = 0.01
+#: Children of a split splat (2DGS: N = 2).
+SPLIT_COUNT = 2
+#: Splats less opaque than this are pruned (2DGS: 0.05).
+PRUNE_OPACITY = 0.05
+#: After the first opacity reset, splats larger than this fraction of the extent are pruned (2DGS: 0.1).
+PRUNE_WORLD_SIZE_FRACTION = 0.1
+#: Opacities are clamped to at most this at a reset (2DGS: 0.01).
+OPACITY_RESET_VALUE = 0.01
+
 
 @dataclass
 class DensifyStats:
@@ -103,9 +121,9 @@ def densify_and_prune(
     avg = torch.where(
         stats.count > 0, stats.grad_accum / stats.count.clamp_min(1), torch.zeros_like(stats.count)
     )
-    big = model.scales().detach().max(dim=-1).values > p.percent_dense * extent
+    big = model.scales().detach().max(dim=-1).values > PERCENT_DENSE * extent
     hot = avg >= p.grad_threshold
-    budget = max(p.max_gaussians - model.n, 0) // max(p.split_count, 1)
+    budget = max(p.max_gaussians - model.n, 0) // SPLIT_COUNT
     if int(hot.sum()) > budget:  # keep the hottest within the budget
         order = torch.argsort(torch.where(hot, avg, torch.full_like(avg, -1.0)), descending=True)
         hot = torch.zeros_like(hot)
@@ -116,11 +134,11 @@ def densify_and_prune(
         append_rows(model, opt, {name: t.detach()[clone] for name, t in model.params().items()})
     if split.any():
         grown = torch.cat([split, split.new_zeros(model.n - n_before)])  # clones are never split
-        append_rows(model, opt, _split_rows(model, grown, p.split_count, generator))
+        append_rows(model, opt, _split_rows(model, grown, SPLIT_COUNT, generator))
     split_full = torch.cat([split, split.new_zeros(model.n - n_before)])
-    keep = ~split_full & (model.opacities().detach() >= p.prune_opacity)
+    keep = ~split_full & (model.opacities().detach() >= PRUNE_OPACITY)
     if prune_big:
-        keep &= model.scales().detach().max(dim=-1).values <= p.prune_world_size_fraction * extent
+        keep &= model.scales().detach().max(dim=-1).values <= PRUNE_WORLD_SIZE_FRACTION * extent
     if not keep.any():  # never prune everything: keep the most opaque splat
         keep[torch.argmax(model.opacities().detach())] = True
     n_pruned = int((~keep).sum()) - int(split.sum())

@@ -3,7 +3,7 @@
 UAV cameras expose each photo on their own (and may set its white balance on their own): the same frame
 bar is brighter in one photo than in the next. Trained as if all photos were exposed alike, a model takes
 these changes for view-dependent colour, which on glass is indistinguishable from a reflection, and the
-held-out views pay for it. Learning a gain per view with the splats (``exposure_refinement``) is poorly
+held-out views pay for it. Learning a gain per view with the splats instead was poorly
 determined early in a short run, when the gains absorb the model's own colour errors.
 
 The opaque parts of the facade (frames, walls) are diffuse: a point on them has one radiance, whichever
@@ -43,17 +43,19 @@ _VALID = (0.02, 0.98)
 
 @dataclass(frozen=True)
 class ExposureParams:
-    """``[train_gs.exposure]``: how the per-view gains are estimated before training."""
+    """How the per-view gains are estimated before training. The defaults are what training uses: the
+    estimate's internal counts and tolerances, fixed rather than configured because they set how many
+    samples the robust solve sees and how it keeps mixed and hidden pixels out, not what it estimates."""
 
-    samples: PosInt
+    samples: PosInt = 20000
     """points drawn on the corrected mesh's opaque triangles (-)"""
-    erode_px: Count
-    """facade and glass masks eroded by this before a point counts in a view (px)"""
-    occlusion_tolerance: NonNeg
+    erode_px: Count = 1
+    """facade and glass masks eroded by this before a point counts in a view (px): no mixed pixels"""
+    occlusion_tolerance: NonNeg = 0.005
     """a point is seen where the mesh's first hit along the ray is within this fraction of its distance (-)"""
-    min_samples: Count
+    min_samples: Count = 30
     """fewer usable samples than this in a view: its gain stays 1 (-)"""
-    iterations: PosInt
+    iterations: PosInt = 10
     """alternating-median rounds (-)"""
 
 

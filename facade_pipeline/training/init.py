@@ -38,6 +38,13 @@ def crop_to_bounds(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin_m:
     return np.all((points >= lo - margin_m) & (points <= hi + margin_m), axis=1)
 
 
+#: An initial splat's size is its mean distance to this many nearest neighbours: the 3DGS (and 2DGS)
+#: initialisation, never tuned here.
+INIT_KNN = 3
+#: Initial opacity of every splat: 3DGS's and 2DGS's 0.1, never tuned here.
+INIT_OPACITY = 0.1
+
+
 def knn_distance(points: np.ndarray, k: int) -> np.ndarray:  # [P, 3] -> [P]
     """Mean distance to the ``k`` nearest other points (the 3DGS initial scale), at least 1e-4 m."""
     if len(points) < 2:

@@ -61,20 +61,16 @@ def color_loss(pred: Tensor, gt: Tensor, mask: Tensor, lambda_dssim: float) -> T
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * dssim
 
 
-def pixel_residual(pred: Tensor, gt: Tensor, reduce: str) -> Tensor:  # [H, W, 3] -> [H, W]
-    """Per-pixel L1 residual |C - C_gt|: the mean over channels (``mean``) or their sum (``sum``)."""
-    r = (pred - gt).abs()
-    return r.mean(-1) if reduce == "mean" else r.sum(-1)
+#: epsilon of Eq. 12's denominator: only keeps an empty selection at exactly 0 (the numerator is 0 there)
+HF_EPS = 1e-6
 
 
-def high_frequency_loss(
-    pred: Tensor, gt: Tensor, mask: Tensor, tau: float, eps: float, reduce: str = "mean"
-) -> Tensor:
-    """Eq. 12: the mean L1 residual over the pixels whose residual exceeds ``tau``. The selection is a
-    constant indicator (no gradient through it); an empty selection gives exactly 0."""
-    r = pixel_residual(pred, gt, reduce)
+def high_frequency_loss(pred: Tensor, gt: Tensor, mask: Tensor, tau: float) -> Tensor:
+    """Eq. 12: the mean L1 residual over the pixels whose residual (the mean over RGB) exceeds ``tau``. The
+    selection is a constant indicator (no gradient through it); an empty selection gives exactly 0."""
+    r = (pred - gt).abs().mean(-1)  # [H, W]
     sel = (mask & (r.detach() > tau)).to(r.dtype)
-    return (sel * r).sum() / (sel.sum() + eps)
+    return (sel * r).sum() / (sel.sum() + HF_EPS)
 
 
 def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:

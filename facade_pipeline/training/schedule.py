@@ -10,16 +10,13 @@ def at_fraction(fraction: float, iterations: int) -> int:
     return int(round(fraction * iterations))
 
 
-def step_schedule(
-    start: float, end: float, n_steps: int, start_fraction: float, iteration: int, iterations: int
-) -> float:
-    """A value that moves from ``start`` to ``end`` in ``n_steps`` equal stages spread over
-    [start_fraction, 1] of the run (piecewise constant; the paper's stepwise tau and lambda_hf, Eq. 12-13).
-    With ``n_steps`` = 1 the value stays ``start``."""
+def step_schedule(start: float, end: float, n_steps: int, iteration: int, iterations: int) -> float:
+    """A value that moves from ``start`` to ``end`` in ``n_steps`` equal stages spread over the run
+    (piecewise constant; the paper's stepwise tau and lambda_hf, Eq. 12-13). With ``n_steps`` = 1 the
+    value stays ``start``."""
     if n_steps <= 1:
         return start
-    t0 = start_fraction * iterations
-    t = (iteration - t0) / max(iterations - t0, 1)
+    t = iteration / max(iterations, 1)
     k = min(max(int(math.floor(t * n_steps)), 0), n_steps - 1)
     return start + (end - start) * k / (n_steps - 1)
 

@@ -1,7 +1,7 @@
 """The trainer: ``build_trainer``, ``step``, ``save_checkpoint`` / ``load_checkpoint`` and
 ``train`` (the loop that ties them together with checkpoints and a progress callback).
 
-Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf (+ lambda_d L_d), with L_c = 0.8 L1
+Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf, with L_c = 0.8 L1
 + 0.2 D-SSIM, the 2DGS normal consistency L_n, the normal prior L_np (Eq. 11) and the high-frequency loss
 L_hf (Eq. 12), all over the facade mask. Every random draw comes from one ``torch.Generator`` that is saved
 in checkpoints, so a resumed run equals an uninterrupted one.
@@ -23,23 +23,28 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from facade_pipeline.config import result_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
+from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training import losses
 from facade_pipeline.training.corrections import ViewCorrections
 from facade_pipeline.training.data import TrainData, TrainView
 from facade_pipeline.training.densify import (
+    DENSIFY_END_FRACTION,
+    DENSIFY_START_FRACTION,
+    OPACITY_RESET_VALUE,
     DensifyStats,
     accumulate,
     densify_and_prune,
     reset_opacity,
     view_space_grad,
 )
-from facade_pipeline.training.exposure import ExposureEstimate, estimate_exposures
-from facade_pipeline.training.init import initial_model
+from facade_pipeline.training.exposure import ExposureEstimate, ExposureParams, estimate_exposures
+from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
-from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.params import RUN_ONLY, TrainParams
 from facade_pipeline.training.render import (
     Camera,
     Rasterizer,
@@ -53,6 +58,27 @@ from facade_pipeline.training.schedule import active_sh_degree, at_fraction, exp
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 2
+
+# Adam rates of the splat attributes that 2DGS shares with 3DGS (their training defaults; DESIGN.md). They
+# are per-attribute rates on activation-space parameters, not tied to a scene's size, and were never tuned
+# here: the splat geometry and colour train as the reference does. The position rate decays from
+# ``lr.position_init`` to this, times the scene extent, as in 3DGS.
+POSITION_LR_FINAL = 1.6e-6
+SH_DC_LR = 2.5e-3
+SH_REST_LR = SH_DC_LR / 20.0  # 3DGS: the higher SH bands at a twentieth of the DC rate
+OPACITY_LR = 0.05
+SCALING_LR = 5e-3
+ROTATION_LR = 1e-3
+#: Weight of D-SSIM in L_c = (1 - w) L1 + w D-SSIM: the paper's (Eq. 13, after 2DGS), never tuned here.
+LAMBDA_DSSIM = 0.2
+#: Normal consistency from this fraction of the run: 2DGS's 7k of 30k iterations (a fraction, so that short
+#: runs keep its schedule), never tuned here.
+NORMAL_START_FRACTION = 0.2333
+#: A splat this many scene extents from the facade means the run diverged: a sanity bound, far beyond any
+#: real splat (the surroundings are within a few extents).
+DIVERGENCE_EXTENT_FACTOR = 100.0
+#: How the per-view exposure gains are estimated before training (``training.exposure``): its defaults.
+EXPOSURE_ESTIMATE = ExposureParams()
 
 
 class TrainingDivergedError(PipelineError):
@@ -78,7 +104,7 @@ class Trainer:
     iteration: int = 0
     log: list[dict[str, Any]] = field(default_factory=list)
     corrections: ViewCorrections | None = None
-    """per-view pose and exposure corrections (``pose_refinement``, ``exposure_refinement``), else None"""
+    """per-view pose corrections (``pose_refinement``), else None"""
     opt_corrections: torch.optim.Adam | None = None
     exposure: ExposureEstimate | None = None
     """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
@@ -101,11 +127,11 @@ def _gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> 
     lr = p.lr
     rates = {
         "means": lr.position_init * extent,
-        "quats": lr.rotation,
-        "log_scales": lr.scaling,
-        "opacity_logits": lr.opacity,
-        "sh_dc": lr.sh_dc,
-        "sh_rest": lr.sh_rest,
+        "quats": ROTATION_LR,
+        "log_scales": SCALING_LR,
+        "opacity_logits": OPACITY_LR,
+        "sh_dc": SH_DC_LR,
+        "sh_rest": SH_REST_LR,
         "refl_logits": lr.reflectivity,
         "f0_logits": lr.f0,
     }
@@ -128,11 +154,7 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
         reflection = build_reflection_module(
-            p.reflection(),
-            device,
-            (shading.bounds_lo, shading.bounds_hi),
-            reflection_mesh(data),
-            data.init.points,
+            p.reflection_strategy(), device, (shading.bounds_lo, shading.bounds_hi), data.init.points
         )
     opt = _gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else _reflection_optimizer(p, reflection)
@@ -148,24 +170,13 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     return reflection, opt, opt_refl, shading, cameras
 
 
-def reflection_mesh(data: TrainData) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The corrected mesh an MLP with self hits casts against: vertices [V, 3] (m), triangles [T, 3] and
-    glass labels [T] bool (None: unknown)."""
-    m = data.init
-    return (
-        torch.as_tensor(m.mesh_vertices, dtype=torch.float32),
-        torch.as_tensor(m.mesh_triangles, dtype=torch.int64),
-        None if m.mesh_glass is None else torch.as_tensor(m.mesh_glass, dtype=torch.bool),
-    )
-
-
 def _build_corrections(
     p: TrainParams, n_views: int, device: torch.device
 ) -> tuple[ViewCorrections | None, torch.optim.Adam | None]:
-    if not (p.pose_refinement or p.exposure_refinement):
+    if not p.pose_refinement:
         return None, None
-    corr = ViewCorrections(n_views, device, pose=p.pose_refinement, exposure=p.exposure_refinement)
-    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, p.lr.exposure)
+    corr = ViewCorrections(n_views, device, pose=True)
+    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, lr_exposure=0.0)
 
 
 def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
@@ -173,36 +184,27 @@ def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | No
         return None
     m = data.init
     est = estimate_exposures(
-        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, p.exposure, p.seed
+        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, EXPOSURE_ESTIMATE, p.seed
     )
-    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < p.exposure.min_samples]
+    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < EXPOSURE_ESTIMATE.min_samples]
     if few:
         shown = ", ".join(few[:5]) + (f" and {len(few) - 5} more" if len(few) > 5 else "")
         log.warning(
             "exposure estimate: %d of %d training views have fewer than %d usable samples of the facade's "
             "opaque parts (non-glass points of the corrected mesh inside their facade mask) (%s); their gain "
-            "stays 1. Expected where the mesh covers little of a view; if their exposure differs, lower "
-            "[train_gs.exposure] min_samples",
-            len(few), len(data.train_idx), p.exposure.min_samples, shown,
+            "stays 1. Expected where the mesh covers little of a view",
+            len(few), len(data.train_idx), EXPOSURE_ESTIMATE.min_samples, shown,
         )  # fmt: skip
     return est
 
 
 def exposure_gain(tr: Trainer, index: int) -> Tensor | None:
-    """View ``index``'s exposure gain per colour channel [3]: the estimate (``exposure_estimate``) times
-    the learnt correction (``exposure_refinement``), each relative to the training views' geometric mean,
-    so that the splats keep the mean exposure and the gains have no common factor to trade with the
-    colours; None for held-out views and when neither is on."""
-    if index not in tr.data.train_idx:
+    """View ``index``'s exposure gain per colour channel [3] as estimated before training
+    (``exposure_estimate``), relative to the training views' geometric mean so that the splats keep the
+    mean exposure; None for held-out views and without the estimate."""
+    if index not in tr.data.train_idx or tr.exposure is None:
         return None
-    log_gain = None
-    if tr.exposure is not None:
-        log_gain = torch.as_tensor(tr.exposure.log_gain[index], device=tr.device)
-    if tr.corrections is not None and tr.corrections.log_gain is not None:
-        g = tr.corrections.log_gain
-        learnt = g[index] - g[list(tr.data.train_idx)].mean(0)
-        log_gain = learnt if log_gain is None else log_gain + learnt
-    return None if log_gain is None else log_gain.exp()
+    return torch.as_tensor(tr.exposure.log_gain[index], device=tr.device).exp()
 
 
 @torch.no_grad()
@@ -238,8 +240,8 @@ def build_trainer(
         p.init_max_points,
         p.init_mesh_samples,
         p.init_bounds_margin_m,
-        p.init_knn,
-        p.init_opacity,
+        INIT_KNN,
+        INIT_OPACITY,
         p.init_reflectivity,
         p.init_reflectivity_glass,
         p.init_f0,
@@ -333,7 +335,7 @@ def _set_learning_rates(tr: Trainer) -> None:
     for g in tr.opt.param_groups:
         if g["name"] == "means":
             g["lr"] = exp_decay(
-                p.lr.position_init * tr.extent, p.lr.position_final * tr.extent, it, p.iterations
+                p.lr.position_init * tr.extent, POSITION_LR_FINAL * tr.extent, it, p.iterations
             )
     if tr.opt_refl is not None:
         for g in tr.opt_refl.param_groups:
@@ -358,7 +360,7 @@ def _reflection_lr(p: TrainParams, it: int, group: str) -> float:
     the proxy feature maps' are fixed."""
     if group == "proxy":
         return p.lr.proxy
-    if p.reflection_model == "envmap":
+    if p.reflection.model == "envmap":
         return p.lr.envmap
     return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
 
@@ -367,27 +369,19 @@ def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -
     """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``)."""
     zero = r.rgb.new_zeros(())
     loss_mask = vt.mask & ~r.skipped
-    terms = {"color": losses.color_loss(r.rgb, vt.image, loss_mask, p.lambda_dssim)}
+    terms = {"color": losses.color_loss(r.rgb, vt.image, loss_mask, LAMBDA_DSSIM)}
     total = terms["color"]
-    if p.lambda_normal > 0 and iteration >= at_fraction(p.normal_start_fraction, p.iterations):
+    if p.lambda_normal > 0 and iteration >= at_fraction(NORMAL_START_FRACTION, p.iterations):
         terms["normal"] = losses.normal_consistency_loss(r.normal, losses.depth_normals(r.points), loss_mask)
         total = total + p.lambda_normal * terms["normal"]
-    if p.lambda_normal_prior > 0 and iteration >= at_fraction(p.normal_prior_start_fraction, p.iterations):
+    if p.lambda_normal_prior > 0:
         terms["normal_prior"] = losses.normal_prior_loss(r.normal, vt.prior, vt.prior_valid & vt.mask)
         total = total + p.lambda_normal_prior * terms["normal_prior"]
-    if iteration >= at_fraction(p.hf_start_fraction, p.iterations):
-        tau = step_schedule(
-            p.hf_tau_start, p.hf_tau_end, p.hf_steps, p.hf_start_fraction, iteration, p.iterations
-        )
-        lam = step_schedule(
-            p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, p.hf_start_fraction, iteration, p.iterations
-        )
-        if lam > 0:
-            terms["hf"] = losses.high_frequency_loss(r.rgb, vt.image, loss_mask, tau, p.hf_eps, p.hf_residual)
-            total = total + lam * terms["hf"]
-    if p.lambda_distortion > 0 and iteration >= at_fraction(p.distortion_start_fraction, p.iterations):
-        terms["distortion"] = losses.masked_mean(r.distortion, vt.mask)
-        total = total + p.lambda_distortion * terms["distortion"]
+    tau = step_schedule(p.hf_tau_start, p.hf_tau_end, p.hf_steps, iteration, p.iterations)
+    lam = step_schedule(p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, iteration, p.iterations)
+    if lam > 0:
+        terms["hf"] = losses.high_frequency_loss(r.rgb, vt.image, loss_mask, tau)
+        total = total + lam * terms["hf"]
     terms["loss"] = total + zero
     return terms
 
@@ -406,7 +400,7 @@ def _check_extent(tr: Trainer) -> None:
     lo, hi = tr.shading.bounds_lo, tr.shading.bounds_hi
     centre = 0.5 * (lo + hi)
     far = float((tr.model.means.detach() - centre).norm(dim=-1).max()) if tr.model.n else 0.0
-    limit = tr.params.divergence_extent_factor * tr.extent
+    limit = DIVERGENCE_EXTENT_FACTOR * tr.extent
     if far > limit:
         raise TrainingDivergedError(
             None,
@@ -429,7 +423,7 @@ def render_window(
         cam,
         window,
         tr.rasterize,
-        tr.params.near_m,
+        NEAR_M,
         active_sh_degree(tr.params.sh_degree, tr.params.sh_degree_interval, tr.iteration),
         tr.shading,
         spec_mask=vt.mask,
@@ -460,7 +454,7 @@ def step(tr: Trainer) -> dict[str, float]:
     if tr.corrections is not None:
         grads |= {f"view_{n}": t.grad for n, t in tr.corrections.named_parameters()}
     _check_finite(tr, "gradients", grads)
-    densify_end = at_fraction(p.densify.end_fraction, p.iterations)
+    densify_end = at_fraction(DENSIFY_END_FRACTION, p.iterations)
     if tr.iteration < densify_end and tr.model.means.grad is not None:
         g, vis = view_space_grad(
             tr.model.means,
@@ -469,7 +463,7 @@ def step(tr: Trainer) -> dict[str, float]:
             cam.K,
             (cam.width, cam.height),
             window,
-            p.near_m,
+            NEAR_M,
         )
         accumulate(tr.stats, g, vis)
     for opt in (tr.opt, tr.opt_refl, tr.opt_corrections):
@@ -487,7 +481,8 @@ def step(tr: Trainer) -> dict[str, float]:
 
 def _densify_if_due(tr: Trainer) -> None:
     p, d, it = tr.params, tr.params.densify, tr.iteration
-    if not at_fraction(d.start_fraction, p.iterations) < it <= at_fraction(d.end_fraction, p.iterations):
+    start, end = (at_fraction(f, p.iterations) for f in (DENSIFY_START_FRACTION, DENSIFY_END_FRACTION))
+    if not start < it <= end:
         return
     if d.interval > 0 and it % d.interval == 0:
         prune_big = d.opacity_reset_interval > 0 and it > d.opacity_reset_interval
@@ -495,7 +490,7 @@ def _densify_if_due(tr: Trainer) -> None:
         tr.stats = DensifyStats.zeros(tr.model.n, tr.device)
         log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.model.n)
     if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
-        reset_opacity(tr.model, tr.opt, d.opacity_reset_value)
+        reset_opacity(tr.model, tr.opt, OPACITY_RESET_VALUE)
 
 
 def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
@@ -503,6 +498,7 @@ def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
     state = {
         "format": CHECKPOINT_FORMAT,
         "fingerprint": fingerprint,
+        "params": result_dict(tr.params, RUN_ONLY),  # to tell, when it does not match, what changed
         "iteration": tr.iteration,
         "model": tr.model.state(),
         "opt": tr.opt.state_dict(),
@@ -534,8 +530,9 @@ def load_checkpoint(
     fingerprint: str,
 ) -> Trainer | None:
     """The trainer saved at ``path``, or None when there is none or it belongs to other parameters or
-    inputs (its fingerprint differs) or an older format. A damaged file is moved aside to
-    ``<name>.bad`` (kept for a person to look at) and training starts afresh."""
+    inputs (its fingerprint differs) or an older format, which the log says (naming the parameters that
+    changed when the checkpoint records them). A damaged file is moved aside to ``<name>.bad`` (kept for a
+    person to look at) and training starts afresh."""
     path = Path(path)
     if not path.is_file():
         return None
@@ -553,11 +550,11 @@ def load_checkpoint(
         return None
     if state.get("format") != CHECKPOINT_FORMAT or state.get("fingerprint") != fingerprint:
         log.warning(
-            "%s: checkpoint of iteration %s was made with other parameters, inputs or code; "
-            "training starts from iteration 0",
-            path, state.get("iteration", "?"),
+            "%s: checkpoint of iteration %s not resumed: %s; training starts from iteration 0",
+            path, state.get("iteration", "?"), _mismatch(state, p),
         )  # fmt: skip
         return None
+    log.info("%s: resuming from the checkpoint of iteration %s", path, state["iteration"])
     device = torch.device(device)
     model = GaussianModel.from_state(state["model"], device)
     reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
@@ -591,6 +588,33 @@ def load_checkpoint(
         opt_corrections,
         _estimate_exposure(p, data),
     )
+
+
+def _mismatch(state: dict[str, Any], p: TrainParams) -> str:
+    """Why a checkpoint's fingerprint differs, as far as it records: its format, the parameters that
+    changed (dotted [train_gs] keys, old -> new, the first few), or else the inputs or the code."""
+    if state.get("format") != CHECKPOINT_FORMAT:
+        return f"it has format {state.get('format')!r}, this version reads {CHECKPOINT_FORMAT}"
+    saved = state.get("params")
+    if not isinstance(saved, dict):
+        return "it was made with other parameters, inputs or code"
+    old, new = _dotted(saved), _dotted(result_dict(p, RUN_ONLY))
+    keys = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    changed = [f"{k} {old.get(k, '(none)')!r} -> {new.get(k, '(none)')!r}" for k in keys]
+    if not changed:
+        return "same parameters, other inputs or code (an upstream output or facade_pipeline changed)"
+    more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+    return "other parameters: " + ", ".join(changed[:3]) + more
+
+
+def _dotted(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            out |= _dotted(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 ProgressCallback = Callable[[int, int, dict[str, float]], None]

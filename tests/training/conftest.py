@@ -70,7 +70,10 @@ def data64(synth64) -> TrainData:
 
 
 def small_params(**changes) -> TrainParams:
-    """synthetic64's parameters made tiny: few splats, small patches, a small MLP."""
+    """synthetic64's parameters made tiny: few splats, small patches, a small MLP. ``changes`` are
+    [train_gs] keys, and keys of its tables by prefix: ``densify_interval``, ``mlp_width`` (of
+    [train_gs.reflection.mlp]), ``proxy_channels``, ``envmap_height_px``; ``reflection_model`` is
+    [train_gs.reflection] model."""
     p = load_building_config("synthetic64").section("train_gs", TrainParams)
     p = dataclasses.replace(
         p,
@@ -81,17 +84,27 @@ def small_params(**changes) -> TrainParams:
         mlp_max_pixels=128,
         checkpoint_every=5,
         log_every=5,
-        mlp_width=32,
-        mlp_depth=4,
-        fourier_levels=4,
-        normal_start_fraction=0.0,
         exposure_estimate=False,  # one exposure unless a test asks (synthetic64 has no exposure change)
     )
-    densify = dict(interval=5, max_gaussians=400)
+    tables = {
+        "densify": dict(interval=5, max_gaussians=400),
+        "mlp": dict(width=32, depth=4, fourier_levels=4),
+        "proxy": {},
+        "envmap": {},
+    }
     for key in list(changes):
-        if key.startswith("densify_"):
-            densify[key[len("densify_") :]] = changes.pop(key)
-    p = dataclasses.replace(p, densify=dataclasses.replace(p.densify, **densify))
+        prefix, _, rest = key.partition("_")
+        if prefix in tables and key != "mlp_max_pixels":
+            tables[prefix][rest] = changes.pop(key)
+    refl = p.reflection
+    refl = dataclasses.replace(
+        refl,
+        model=changes.pop("reflection_model", refl.model),
+        mlp=dataclasses.replace(refl.mlp, **tables["mlp"]),
+        proxy=dataclasses.replace(refl.proxy, **tables["proxy"]),
+        envmap=dataclasses.replace(refl.envmap, **tables["envmap"]),
+    )
+    p = dataclasses.replace(p, densify=dataclasses.replace(p.densify, **tables["densify"]), reflection=refl)
     return dataclasses.replace(p, **changes)
 
 

@@ -22,7 +22,7 @@ from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, write_labels
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.synthetic.truth import SyntheticTruth
-from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.params import TrainParams, replace_keys
 from facade_pipeline.training.ply import read_ply
 from stages import train_gs
 from stages._runner import execute
@@ -60,7 +60,8 @@ def test_every_building_has_valid_train_gs_params():
         p = load_building_config(building).section("train_gs", TrainParams)
         assert p.__dataclass_params__.frozen and p.iterations > 0
     ci = load_building_config("synthetic64").section("train_gs", TrainParams)
-    assert ci.iterations <= 500 and ci.mlp_width <= 128 and ci.patch_px > 0  # the CI run stays short
+    # the CI run stays short
+    assert ci.iterations <= 500 and ci.reflection.mlp.width <= 128 and ci.patch_px > 0
 
 
 def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
@@ -81,7 +82,7 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     lines = [json.loads(x) for x in upstream.path("train_log").read_text().splitlines()]
     assert [x["iteration"] for x in lines[:-1]] == [5, 6] and "evaluation" in lines[-1]
     refl = torch.load(upstream.path("train_reflection"), weights_only=True)
-    assert refl["model"] == "mlp" and refl["config"]["width"] == p.mlp_width and refl["state_dict"]
+    assert refl["model"] == "mlp" and refl["config"]["width"] == p.reflection.mlp.width and refl["state_dict"]
     ply_bytes = upstream.path("train_ply").read_bytes()
     # a rerun with the same parameters and inputs resumes from the final checkpoint: same outputs
     again = execute(train_gs, upstream, p)
@@ -92,6 +93,10 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     run_only = dataclasses.replace(p, raster_backend="torch", log_every=3, checkpoint_every=2)
     assert train_gs.fingerprint(upstream, run_only) == train_gs.fingerprint(upstream, p)
     assert execute(train_gs, upstream, run_only)["metrics"]["resumed_from_iteration"] == 6
+    # any setting that changes the result changes the fingerprint, in the nested tables too
+    for change in ({"reflection.model": "envmap"}, {"reflection.proxy.cell_m": 2.0}, {"lr.proxy": 0.2},
+                   {"densify.grad_threshold": 1e-3}, {"hf_steps": 2}):  # fmt: skip
+        assert train_gs.fingerprint(upstream, replace_keys(p, change)) != train_gs.fingerprint(upstream, p)
     # other parameters: the old checkpoint is not trusted, training starts over
     other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3, exposure_estimate=True))
     assert other["metrics"]["resumed_from_iteration"] == 0 and other["metrics"]["iterations"] == 3

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from facade_pipeline.shading.reflection import ReflectionMLP, build_reflection_module
+from facade_pipeline.shading.reflection import EnvironmentProxy, ReflectionMLP, build_reflection_module
 from facade_pipeline.shading.surroundings import Surroundings, surface_heights, surface_mesh
 
 pytest.importorskip("open3d")
@@ -154,8 +154,7 @@ def test_bad_sizes_are_refused(reach, cell):
 
 
 def test_saved_state_casts_against_the_same_surface():
-    cfg = ReflectionMLP(2, 2, 8, True, proxy_channels=2, proxy_resolution_px=16, proxy_levels=1,
-                        proxy_surroundings=True, proxy_reach_m=40.0)  # fmt: skip
+    cfg = ReflectionMLP(2, 2, 8, True, EnvironmentProxy(channels=2, resolution_px=16, levels=1))
     points = _points(np.random.default_rng(4))
     torch.manual_seed(0)
     m = build_reflection_module(cfg, "cpu", (LO, HI), points=points)
@@ -186,7 +185,7 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
     from facade_pipeline.training.trainer import build_trainer, train
     from tests.training.conftest import small_params
 
-    p = small_params(iterations=6, mlp_proxy_surroundings=True, mlp_proxy_channels=2)
+    p = small_params(iterations=6, proxy_channels=2)
     tr = build_trainer(p, data64, splatting_rasterizer("torch"))
     sur = tr.reflection.proxy.surroundings
     assert sur.heights[1].max() > 1.0  # synthetic64's coarse points hold trees and buildings
@@ -201,7 +200,7 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
     assert all(torch.isfinite(q).all() for q in tr.reflection.parameters())
     split = {"train": [], "test": []}
     files = TrainedModelFiles.variant(tmp_path, to_dict(p))
-    files.save(tr.model, tr.reflection, p.reflection(), data64.bounds, split)
+    files.save(tr.model, tr.reflection, p.reflection_strategy(), data64.bounds, split)
     loaded = load_trained(TrainedModelFiles.from_dir(tmp_path))
     assert torch.equal(loaded.reflection.proxy.surroundings.heights, sur.heights)
     v = data64.views[data64.test_idx[0]]

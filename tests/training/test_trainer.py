@@ -4,6 +4,7 @@ divergence reporting, the full-size MLP on tiny inputs, and exact resume from ch
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
@@ -11,7 +12,10 @@ import pytest
 import torch
 
 from facade_pipeline.errors import PipelineError
+from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training import losses
+from facade_pipeline.training import trainer as trainer_module
+from facade_pipeline.training.exposure import ExposureParams
 from facade_pipeline.training.render import Camera, random_subset, render_view, splatting_rasterizer
 from facade_pipeline.training.trainer import (
     TrainingDivergedError,
@@ -63,8 +67,8 @@ def test_adapter_matches_the_dense_reference(data64, sigma):
         for t in (m.means, m.unit_quats(), m.scales(), m.opacities(), feats, cam.cam_from_world, cam.K)
     ]
     raster = splatting_rasterizer("torch") if sigma is None else splatting_rasterizer("torch", sigma)
-    a = raster(*tensors, cam.width, cam.height, p.near_m, (8, 16, 40, 32))
-    b = render_dense(*tensors, cam.width, cam.height, near=p.near_m, x0=8, y0=16, crop_w=40, crop_h=32,
+    a = raster(*tensors, cam.width, cam.height, NEAR_M, (8, 16, 40, 32))
+    b = render_dense(*tensors, cam.width, cam.height, near=NEAR_M, x0=8, y0=16, crop_w=40, crop_h=32,
                      lowpass_sigma_px=sigma)
     for ours, theirs in (
         ("features", "features"),
@@ -93,7 +97,7 @@ def test_supersampled_render_is_the_mean_of_sub_pixel_renders(data64):
     x0, y0, w, h = window
     spec = torch.as_tensor(data64.views[index].facade_mask[y0 : y0 + h, x0 : x0 + w])
     one = dataclasses.replace(tr.shading, supersample=1)
-    args = (tr.reflection, RASTER, p.near_m, p.sh_degree)
+    args = (tr.reflection, RASTER, NEAR_M, p.sh_degree)
     with torch.no_grad():
         fine = render_view(tm, args[0], cam, window, args[1], args[2], args[3], tr.shading, spec)
         subs = []
@@ -187,24 +191,22 @@ def test_hard_scene_stays_finite(model, refl):
     data = hard_scene()
     p = small_params(
         reflection_model=model.split("+")[0],
-        mlp_proxy_channels=4 if model.endswith("proxy") else 0,
-        mlp_proxy_resolution_px=64,
+        proxy_channels=4 if model.endswith("proxy") else 0,
+        proxy_resolution_px=64,
         iterations=8,
         patch_px=0,
         mask_by_facade=False,
         hf_tau_start=5.0,
         hf_tau_end=5.0,
-        lambda_distortion=0.1,
-        distortion_start_fraction=0.0,
         densify_interval=4,
-        densify_start_fraction=0.0,
     )
     tr = build_trainer(p, data, RASTER)
     with torch.no_grad():
         tr.model.refl_logits.fill_(refl)
     for idx in (2, 3, 4):  # grazing, behind, sky
         r, vt = render_window(tr, idx, (0, 0, 24, 24))
-        terms = compute_losses(p, r, vt, 0)
+        terms = compute_losses(p, r, vt, p.iterations - 1)  # late: every term is on
+        assert {"normal", "normal_prior", "hf"} <= set(terms)
         assert terms["hf"] == 0.0 and all(torch.isfinite(t) for t in terms.values())
         assert bool((r.alpha == 0).any()) or idx != 4  # the sky view has pixels with no splat
         terms["loss"].backward()
@@ -218,7 +220,7 @@ def test_hard_scene_stays_finite(model, refl):
 def test_proxy_features_train_at_their_own_rate(data64):
     """With proxy features the reflection optimiser has two groups: the network's decaying rate and the
     feature maps' constant one; a few steps move both."""
-    p = small_params(mlp_proxy_channels=4, mlp_proxy_resolution_px=64, iterations=6, mlp_max_pixels=0)
+    p = small_params(proxy_channels=4, proxy_resolution_px=64, iterations=6, mlp_max_pixels=0)
     tr = build_trainer(p, data64, RASTER)
     groups = {g["name"]: g for g in tr.opt_refl.param_groups}
     assert set(groups) == {"reflection", "proxy"} and groups["proxy"]["lr"] == p.lr.proxy
@@ -270,60 +272,17 @@ def test_pose_corrections_move_training_views_only(data64):
     assert plain.corrections is None and camera(plain, 1) is plain.cameras[1]
 
 
-def test_exposure_gains_scale_training_views_only_relative_to_their_mean(data64):
-    """A training view renders at its learnt gain over the training views' geometric mean; held-out views
-    render at that mean, unchanged; without exposure refinement no gain exists."""
-    tr = build_trainer(small_params(exposure_refinement=True), data64, RASTER)
-    assert tr.corrections.log_gain is not None and tr.corrections.rotation is None
-    train_idx, test_idx = list(data64.train_idx), list(data64.test_idx)
-    plain = build_trainer(small_params(), data64, RASTER)
-    assert plain.corrections is None
-    with torch.no_grad():
-        tr.corrections.log_gain[train_idx[0]] = torch.tensor([0.3, 0.0, -0.3])
-    set_to = torch.tensor([0.3, 0.0, -0.3])
-    mean = set_to / len(train_idx)
-    win = (0, 0, 32, 24)
-    for i, gain in ((train_idx[0], (set_to - mean).exp()), (train_idx[1], (-mean).exp())):
-        with torch.no_grad():
-            a, _ = render_window(tr, i, win)
-            b, _ = render_window(plain, i, win)
-        torch.testing.assert_close(a.rgb, b.rgb * gain)
-        torch.testing.assert_close(a.diffuse, b.diffuse)
-    with torch.no_grad():
-        a, _ = render_window(tr, test_idx[0], win)
-        b, _ = render_window(plain, test_idx[0], win)
-    assert torch.equal(a.rgb, b.rgb)
-
-
-def test_exposure_refinement_finds_a_darker_training_view(data64):
-    """One training view photographed at 0.6 times the others' exposure (log gain -0.51): its learnt gain
-    comes out below every other view's and far below their median, and the held-out views' never move."""
-    dark = data64.train_idx[2]
-    views = list(data64.views)
-    views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
-    data = dataclasses.replace(data64, views=tuple(views))
-    # 150 steps at rate 0.02: over 60 steps at 0.05 the other views' gains wander by up to +-0.9 (they take
-    # up the young model's errors), and which view ends lowest depends on the scene's random draws
-    lr = dataclasses.replace(small_params().lr, exposure=0.02)
-    p = small_params(iterations=150, exposure_refinement=True, lr=lr)
-    tr = train(build_trainer(p, data, RASTER))
-    g = tr.corrections.log_gain.detach().mean(-1)
-    others = [i for i in data.train_idx if i != dark]
-    assert float(g[dark]) < float(g[others].min())
-    assert float(g[dark]) < float(g[others].median()) - 0.3
-    assert bool((tr.corrections.log_gain.detach()[list(data.test_idx)] == 0).all())
-
-
-def test_estimated_exposure_renders_a_darker_training_view_darker(data64):
+def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkeypatch):
     """``exposure_estimate``: one training photo at 0.6 times the exposure of the others is found from the
     frames before training (log gain -0.51 against the others' median), and that view renders at its gain;
-    held-out views render unchanged. With refinement too, the learnt gain multiplies the estimate."""
+    held-out views render unchanged."""
     dark = data64.train_idx[2]
     views = list(data64.views)
     views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
     data = dataclasses.replace(data64, views=tuple(views))
-    est = dataclasses.replace(small_params().exposure, samples=40000, min_samples=10)  # small photos
-    tr = build_trainer(small_params(exposure_estimate=True, exposure=est), data, RASTER)
+    est = ExposureParams(samples=40000, min_samples=10)  # small photos
+    monkeypatch.setattr(trainer_module, "EXPOSURE_ESTIMATE", est)
+    tr = build_trainer(small_params(exposure_estimate=True), data, RASTER)
     assert tr.corrections is None
     g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
     others = [i for i in data.train_idx if i != dark]
@@ -335,14 +294,6 @@ def test_estimated_exposure_renders_a_darker_training_view_darker(data64):
             a, _ = render_window(tr, i, win)
             b, _ = render_window(plain, i, win)
             torch.testing.assert_close(a.rgb, b.rgb if gain is None else b.rgb * gain)
-    both_p = small_params(exposure_estimate=True, exposure=est, exposure_refinement=True)
-    both = build_trainer(both_p, data, RASTER)
-    with torch.no_grad():
-        both.corrections.log_gain[dark] = 0.1
-        want = torch.as_tensor(tr.exposure.log_gain[dark]) + 0.1 - 0.1 / len(data.train_idx)
-        a, _ = render_window(both, dark, win)
-        b, _ = render_window(plain, dark, win)
-    torch.testing.assert_close(a.rgb, b.rgb * want.exp())
 
 
 def test_cos_theta_negative_normals_are_clamped():
@@ -364,9 +315,9 @@ def test_exploding_learning_rate_is_caught_and_reported():
     with pytest.raises(TrainingDivergedError, match="position_init"):
         train(tr)
     tr = build_trainer(
-        dataclasses.replace(p, lr=dataclasses.replace(p.lr, opacity=float("inf"))), data, RASTER
+        dataclasses.replace(p, lr=dataclasses.replace(p.lr, reflectivity=float("inf"))), data, RASTER
     )
-    with pytest.raises(TrainingDivergedError, match="opacity_logits"):
+    with pytest.raises(TrainingDivergedError, match="refl_logits"):
         train(tr)
 
 
@@ -377,10 +328,9 @@ def test_full_size_mlp_on_tiny_inputs():
         patch_px=8,
         mlp_depth=8,
         mlp_width=512,
-        fourier_levels=12,
+        mlp_fourier_levels=12,
         mlp_skip=True,
-        mlp_proxy_channels=0,
-        mlp_self_hits=False,
+        proxy_channels=0,
         mask_by_facade=False,
     )
     tr = build_trainer(p, hard_scene(), RASTER)
@@ -410,15 +360,13 @@ def _states_equal(a, b) -> None:
             assert ka == kb and torch.equal(va, vb), ka
 
 
-@pytest.mark.parametrize("refine", ["none", "pose", "exposure", "estimate", "self_hits"])
+@pytest.mark.parametrize("refine", ["none", "pose", "estimate"])
 def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     p = small_params(  # densification every 5 falls between checkpoints
         iterations=14,
         checkpoint_every=3,
         pose_refinement=refine == "pose",
-        exposure_refinement=refine == "exposure",
         exposure_estimate=refine == "estimate",
-        mlp_self_hits=refine == "self_hits",
     )
     ref = train(build_trainer(p, data64, RASTER))
     ckpt = tmp_path / "ckpt.pt"
@@ -435,6 +383,32 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")  # moved aside, training starts afresh
     assert load_checkpoint(tmp_path / "bad.pt", p, data64, RASTER, "cpu", "fp") is None
     assert (tmp_path / "bad.pt.bad").is_file() and not (tmp_path / "bad.pt").exists()
+
+
+def test_a_checkpoint_not_resumed_says_why_in_the_log(data64, tmp_path, caplog):
+    """Another fingerprint: the log names the parameters that changed, or says that the inputs or the code
+    did; another format says so; a checkpoint that matches is resumed and logged."""
+    p = small_params(iterations=4)
+    ckpt = tmp_path / "ckpt.pt"
+    train(build_trainer(p, data64, RASTER), ckpt, "fp")
+    caplog.set_level(logging.INFO, logger="facade_pipeline.training.trainer")
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp").iteration == 4
+    assert "resuming from the checkpoint of iteration 4" in caplog.text
+    caplog.clear()
+    wider = small_params(iterations=4, lambda_normal=0.5, mlp_width=16)
+    assert load_checkpoint(ckpt, wider, data64, RASTER, "cpu", "other") is None
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(lines) == 1 and "\n" not in lines[0] and str(ckpt) in lines[0]
+    assert "lambda_normal 0.05 -> 0.5" in lines[0] and "reflection.mlp.width 32 -> 16" in lines[0]
+    assert "iteration 4 not resumed" in lines[0] and "starts from iteration 0" in lines[0]
+    caplog.clear()
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "other inputs") is None
+    assert "same parameters, other inputs or code" in caplog.text
+    caplog.clear()
+    state = torch.load(ckpt, weights_only=True)
+    torch.save({**state, "format": 1}, ckpt)
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp") is None
+    assert "format 1" in caplog.text and ckpt.is_file()  # an older format is left in place, not moved
 
 
 def test_training_improves_the_training_views(data64):

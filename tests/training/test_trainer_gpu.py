@@ -42,7 +42,7 @@ def test_hard_scene_stays_finite_on_cuda(cuda_device, raster_backend, refl):
     """Grazing and from-behind views and pixels with no splat, on the GPU: losses, gradients, parameters
     finite, as on the CPU (test_trainer.test_hard_scene_stays_finite)."""
     p = small_params(reflection_model="mlp", iterations=6, patch_px=0, mask_by_facade=False,
-                     densify_interval=3, densify_start_fraction=0.0)  # fmt: skip
+                     densify_interval=3)  # fmt: skip
     tr = build_trainer(p, hard_scene(), splatting_rasterizer(raster_backend), cuda_device)
     with torch.no_grad():
         tr.model.refl_logits.fill_(refl)
