@@ -60,8 +60,8 @@ from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, bui
 from facade_pipeline.evaluation.video import (
     VideoParams,
     merge_films,
-    orbit_path,
     render_path,
+    video_path,
     write_clip,
     write_mp4,
 )
@@ -363,7 +363,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     metrics = metrics_header(layout, params, found[0].params["test_every"])
     outputs: list[Path] = []
     jobs = [(v, s, _views_of(layout, v, scene, s)) for v in found for s in splits]
-    path = orbit_path([v.camera for v in scene.uav_views], params.video.frames, params.video.scale)
+    path = video_path(params.video, [(v.stem, v.camera) for v in scene.uav_views])
     facade_mask = _facade_masker(layout) if path else None
     films: list[list[np.ndarray]] = []
     n_views = sum(len(j[2]) for j in jobs) + len(path) * len(found)
@@ -394,6 +394,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             "frames": len(frames),
             "size_px": [int(frames[0].shape[1]), int(frames[0].shape[0])],
             "fps": vp.fps,
+            "path": vp.path if vp.path == "orbit" else list(vp.path),
             "file": layout.path("eval_video").name,
             "clip": layout.path("eval_clip").name,
         }
