@@ -117,8 +117,9 @@ def render_width(full_px: int, moving_factor: float, seconds_since_change: float
 
 
 def rate_text(seconds: float, width: int, height: int) -> str:
-    """The frame-rate readout of a frame that took ``seconds`` from the camera to the browser, with two
-    decimals: a CPU frame of 2.4 s reads 0.42, where a whole number would read 0."""
+    """The frame-rate readout of a frame that took ``seconds`` from reading the browser's camera to handing
+    the image to its connection, with two decimals: a CPU frame of 2.4 s reads 0.42, where a whole number
+    would read 0."""
     return f"{1.0 / max(seconds, 1e-6):.2f} ({1000 * seconds:.0f} ms, {width} x {height} px)"
 
 
