@@ -6,8 +6,9 @@ A viser server (the web viewer nerfstudio and gsplat use) shows the model render
 renderer and shading: each browser's camera is rendered on the server and sent as the scene's background,
 at a lower resolution while the camera moves and at full resolution once it stops. The sidebar switches
 between the final colour and the maps behind it (diffuse, specular, reflectivity, the splats' normals, the
-baked prior's normals, depth); the training and held-out cameras are frustums (click one to look through
-it, its photo beside the render); the corrected mesh and the 3D panels are overlays. The specular term is
+baked prior's normals, depth), sets the camera's vertical field of view and reads out the frame rate; the
+training and held-out cameras are frustums (click one to look through it, its photo beside the render);
+the corrected mesh and the 3D panels are overlays. The specular term is
 limited to the facade as in training: each frame's facade mask is cast from the corrected mesh.
 """
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import json
 import shutil
 import socket
@@ -24,7 +26,7 @@ import tempfile
 import threading
 import time
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +43,8 @@ from facade_pipeline.geometry.raycast import MeshRaycaster
 MODES = ("final", "diffuse", "specular", "reflectivity", "normals (splats)", "normals (prior)", "depth")
 MOVING_SECONDS = 0.25
 """a camera updated more recently than this is moving: it is rendered at the lower resolution"""
+FOV_RANGE_DEG = (10.0, 120.0)
+"""the field-of-view slider's range (vertical, degrees)"""
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,26 @@ def viser_camera(position, wxyz, fov_y: float, aspect: float, width: int) -> Pin
     T[:3, :3] = R.T
     T[:3, 3] = -R.T @ np.asarray(position, float)
     return PinholeCamera(intrinsics(fy, fy, width / 2, h / 2), T, width, h)
+
+
+def fov_of(camera: PinholeCamera) -> float:
+    """Vertical field of view of ``camera`` (rad), as viser's camera has it."""
+    return float(2 * np.arctan(0.5 * camera.height / camera.K[1, 1]))
+
+
+def render_width(full_px: int, moving_factor: float, seconds_since_change: float) -> int:
+    """Pixels across of the next frame: ``full_px`` once the camera has kept still for ``MOVING_SECONDS``,
+    ``moving_factor`` of it (32 at least) while it moves, so that a moving camera gets frames quickly."""
+    if seconds_since_change >= MOVING_SECONDS:
+        return int(full_px)
+    return max(32, int(full_px * moving_factor))
+
+
+def rate_text(seconds: float, width: int, height: int) -> str:
+    """The frame-rate readout of a frame that took ``seconds`` from reading the browser's camera to handing
+    the image to its connection, with two decimals: a CPU frame of 2.4 s reads 0.42, where a whole number
+    would read 0."""
+    return f"{1.0 / max(seconds, 1e-6):.2f} ({1000 * seconds:.0f} ms, {width} x {height} px)"
 
 
 def pose_of(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +194,12 @@ class Viewer:
         self.mode = gui.add_dropdown("show", MODES, initial_value="final")
         self.width = gui.add_slider("width (px)", min=64, max=1920, step=32, initial_value=width_px)
         self.moving_factor = gui.add_slider("while moving", min=0.125, max=1.0, step=0.125, initial_value=0.5)
-        self.fps = gui.add_number("frames per second", initial_value=0.0, disabled=True)
+        self.fov = gui.add_slider("field of view (deg)", min=FOV_RANGE_DEG[0], max=FOV_RANGE_DEG[1], step=1.0,
+                                  initial_value=self._slider_deg(fov_of(self._home().camera))
+                                  if scene.cameras else 60.0)  # fmt: skip
+        # a text, not a number box: viser shows a number with the digits of its first value, and a first
+        # value of 0 rounded every rate below 0.5 frames per second (a CPU frame at full size) to 0
+        self.fps = gui.add_text("frames per second", initial_value="no frame yet", disabled=True)
         self.show_cameras = gui.add_checkbox("cameras", initial_value=True)
         self.show_mesh = gui.add_checkbox("corrected mesh", initial_value=False)
         self.show_panels = gui.add_checkbox("3D panels", initial_value=True)
@@ -178,12 +207,20 @@ class Viewer:
         self._dirty: dict[int, float] = {}
         self.last_image: dict[int, np.ndarray] = {}
         """per client, the last image sent (what its browser shows behind the overlays)"""
+        self.frames_sent: dict[int, int] = {}
+        """per client, how many images were sent"""
+        self.mesh_overlay = None
+        """the corrected mesh's overlay (None without a mesh)"""
+        self.panels_overlay = None
+        """the 3D panels' overlay (None without panels)"""
+        self._fov_from_camera = False  # the slider follows a camera set by the viewer: leave the others
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._add_overlays()
         for handle in (self.mode, self.width, self.moving_factor):
             handle.on_update(lambda _: self._touch_all())
+        self.fov.on_update(lambda _: self._fov_changed())
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
 
@@ -194,10 +231,9 @@ class Viewer:
         self._frustums = []
         for vc in scene.cameras:
             cam = vc.camera
-            fov = 2 * np.arctan(0.5 * cam.height / cam.K[1, 1])
             wxyz, pos = pose_of(cam)
             colour = (40, 160, 255) if vc.split == "train" else (255, 140, 0)
-            f = s.add_camera_frustum(f"/cameras/{vc.split}/{vc.stem}", fov=float(fov),
+            f = s.add_camera_frustum(f"/cameras/{vc.split}/{vc.stem}", fov=fov_of(cam),
                                      aspect=cam.width / cam.height, scale=self._frustum_scale(),
                                      color=colour, wxyz=wxyz, position=pos)  # fmt: skip
             f.on_click(lambda event, vc=vc: self._look_through(event.client, vc))
@@ -206,14 +242,20 @@ class Viewer:
                                                for f in self._frustums])  # fmt: skip
         if scene.mesh is not None:
             v, t, labels = scene.mesh
-            self._mesh = s.add_mesh_simple("/corrected_mesh", v.astype(np.float32), t.astype(np.uint32),
-                                           color=(180, 180, 190), opacity=0.4, visible=False)  # fmt: skip
-            self.show_mesh.on_update(lambda _: setattr(self._mesh, "visible", self.show_mesh.value))
+            self.mesh_overlay = s.add_mesh_simple(
+                "/corrected_mesh", v.astype(np.float32), t.astype(np.uint32), color=(180, 180, 190),
+                opacity=0.4, visible=self.show_mesh.value,
+            )  # fmt: skip
+            self.show_mesh.on_update(lambda _: setattr(self.mesh_overlay, "visible", self.show_mesh.value))
         if scene.panels is not None and len(scene.panels):
             p = scene.panels
             segs = np.stack([p, np.roll(p, -1, axis=1)], axis=2).reshape(-1, 2, 3).astype(np.float32)
-            self._panels = s.add_line_segments("/panels", segs, colors=(60, 220, 90), line_width=2.0)
-            self.show_panels.on_update(lambda _: setattr(self._panels, "visible", self.show_panels.value))
+            self.panels_overlay = s.add_line_segments("/panels", segs, colors=(60, 220, 90), thickness=2.0,
+                                                      thickness_units="screen",
+                                                      visible=self.show_panels.value)  # fmt: skip
+            self.show_panels.on_update(
+                lambda _: setattr(self.panels_overlay, "visible", self.show_panels.value)
+            )
 
     def _frustum_scale(self) -> float:
         centres = np.array([vc.camera.center for vc in self.scene.cameras]) if self.scene.cameras else None
@@ -222,11 +264,14 @@ class Viewer:
         return float(0.05 * np.linalg.norm(np.ptp(centres, axis=0)))
 
     # --- clients ---
+    def _home(self) -> ViewCamera:
+        """The camera a browser starts at: the middle training camera."""
+        train = [vc for vc in self.scene.cameras if vc.split == "train"] or self.scene.cameras
+        return train[len(train) // 2]
+
     def _connect(self, client) -> None:
         if self.scene.cameras:
-            train = [vc for vc in self.scene.cameras if vc.split == "train"] or self.scene.cameras
-            vc = train[len(train) // 2]
-            self._set_pose(client, vc.camera)
+            self._set_pose(client, self._home().camera)
         client.camera.on_update(lambda _: self._touch(client.client_id))
         self._touch(client.client_id)
         thread = threading.Thread(target=self._render_loop, args=(client,), daemon=True)
@@ -239,18 +284,53 @@ class Viewer:
             self._photo.pop(client.client_id, None)
 
     def _set_pose(self, client, camera: PinholeCamera) -> None:
+        """Put the browser's camera at ``camera`` (its field of view included; the slider follows)."""
         wxyz, pos = pose_of(camera)
         with client.atomic():
-            client.camera.fov = float(2 * np.arctan(0.5 * camera.height / camera.K[1, 1]))
+            client.camera.fov = fov_of(camera)
             client.camera.wxyz = wxyz
             client.camera.position = pos
+        self._fov_from_camera = True
+        try:
+            self.fov.value = self._slider_deg(fov_of(camera))
+        finally:
+            self._fov_from_camera = False
+
+    @staticmethod
+    def _slider_deg(fov: float) -> float:
+        return float(np.clip(round(np.degrees(fov)), *FOV_RANGE_DEG))
+
+    def _fov_changed(self) -> None:
+        """The slider moved: every browser's camera takes its field of view (and is rendered anew)."""
+        if self._fov_from_camera:
+            return
+        fov = float(np.radians(self.fov.value))
+        for client in list(self.server.get_clients().values()):
+            client.camera.fov = fov
+            self._touch(client.client_id)
 
     def _look_through(self, client, vc: ViewCamera) -> None:
-        with self._lock:
-            if vc.photo is not None:
-                self._photo[client.client_id] = (vc.photo, vc.camera.center)
+        """A frustum was clicked: the browser looks through ``vc``, its photo beside the render."""
+        self.select(client.client_id, vc)
         self._set_pose(client, vc.camera)
         self._touch(client.client_id)
+
+    def select(self, client_id: int, vc: ViewCamera) -> None:
+        """Show ``vc``'s photo beside the frames of ``client_id`` while it looks from ``vc``'s centre."""
+        with self._lock:
+            if vc.photo is not None:
+                self._photo[client_id] = (vc.photo, vc.camera.center)
+
+    def frame(self, client_id: int, position, wxyz, fov: float, aspect: float, width_px: int) -> np.ndarray:
+        """The image sent to ``client_id`` for its camera (viser's pose, ``fov`` vertical in rad): the render
+        in the chosen mode, with the selected camera's photo on its left while the camera stays there."""
+        img = render_image(self.scene, viser_camera(position, wxyz, fov, aspect, width_px), self.mode.value)
+        with self._lock:
+            photo = self._photo.get(client_id)
+            if photo is not None and not np.allclose(position, photo[1], atol=1e-4):
+                self._photo.pop(client_id, None)  # moved away from it
+                photo = None
+        return img if photo is None else _beside(photo[0], img)
 
     def _touch(self, client_id: int) -> None:
         with self._lock:
@@ -269,27 +349,22 @@ class Viewer:
                 stamp = self._dirty.get(cid)
             if stamp is None:
                 return  # disconnected
-            moving = time.monotonic() - stamp < MOVING_SECONDS
+            since = time.monotonic() - stamp
+            moving = since < MOVING_SECONDS
             if not moving and full_done_for == stamp:
                 time.sleep(0.02)
                 continue
-            factor = self.moving_factor.value if moving else 1.0
             try:
-                cam = client.camera
-                pinhole = viser_camera(cam.position, cam.wxyz, cam.fov, cam.aspect,
-                                       max(32, int(self.width.value * factor)))  # fmt: skip
                 t0 = time.perf_counter()
-                img = render_image(self.scene, pinhole, self.mode.value)
-                self.fps.value = round(1.0 / max(time.perf_counter() - t0, 1e-6), 2)
-                photo = self._photo.get(cid)
-                if photo is not None and np.allclose(cam.position, photo[1], atol=1e-4):
-                    img = _beside(photo[0], img)  # looking through a camera: its photo beside
-                elif photo is not None:
-                    self._photo.pop(cid, None)  # moved away from it
+                cam = client.camera
+                width = render_width(self.width.value, self.moving_factor.value, since)
+                img = self.frame(cid, cam.position, cam.wxyz, cam.fov, cam.aspect, width)
                 if client.client_id not in self.server.get_clients():
                     return  # left while this frame was rendered
                 client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
                 self.last_image[cid] = img
+                self.frames_sent[cid] = self.frames_sent.get(cid, 0) + 1
+                self.fps.value = rate_text(time.perf_counter() - t0, width, img.shape[0])
             except Exception as e:  # a client that disconnects mid-render
                 if "disconnect" in str(e).lower():
                     return
@@ -314,17 +389,13 @@ def _beside(photo: np.ndarray, render: np.ndarray) -> np.ndarray:
     return np.concatenate([left, np.zeros((h, 4, 3), np.uint8), render], axis=1)
 
 
-def browser_screenshot(
-    browser: str,
-    url: str,
-    ready: Callable[[], bool],
-    workdir: Path,
-    timeout: float = 90.0,
-    size: tuple[int, int] = (800, 600),
-) -> bytes:
-    """PNG of ``url`` in headless Chromium (``browser``: its executable), taken through the DevTools
-    protocol once ``ready()`` is true (the server has sent its render) and the page had a moment to draw it;
-    Chromium's profile goes in ``workdir``."""
+@contextlib.contextmanager
+def headless_page(
+    browser: str, url: str, workdir: Path, timeout: float = 90.0, size: tuple[int, int] = (800, 600)
+) -> Iterator[Callable[..., dict]]:
+    """Open ``url`` in headless Chromium (``browser``: its executable; its profile goes in ``workdir``) and
+    yield ``call(method, **params)``, which sends one DevTools protocol command to the page and returns its
+    result; the page is left and Chromium stopped on exit."""
     from websockets.sync.client import connect
 
     port = _free_port()
@@ -348,7 +419,7 @@ def browser_screenshot(
             assert time.time() < deadline, "Chromium did not start"
             time.sleep(0.2)
         with connect(pages[0]["webSocketDebuggerUrl"], max_size=None) as ws:
-            ids = iter(range(1, 1000))
+            ids = iter(range(1, 1 << 30))
 
             def call(method, **params):
                 i = next(ids)
@@ -359,17 +430,34 @@ def browser_screenshot(
                         return msg.get("result", {})
 
             call("Page.navigate", url=url)
-            while not ready():
-                assert time.time() < deadline, "the viewer sent no render to the browser"
-                time.sleep(0.2)
-            time.sleep(3.0)  # the image travels and is drawn (software WebGL)
-            png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
-            call("Page.navigate", url="about:blank")  # leave the viewer cleanly before Chromium goes
-            time.sleep(0.5)
-            return png
+            try:
+                yield call
+            finally:
+                call("Page.navigate", url="about:blank")  # leave the viewer cleanly before Chromium goes
+                time.sleep(0.5)
     finally:
         proc.kill()
         proc.wait()
+
+
+def browser_screenshot(
+    browser: str,
+    url: str,
+    ready: Callable[[], bool],
+    workdir: Path,
+    timeout: float = 90.0,
+    size: tuple[int, int] = (800, 600),
+) -> bytes:
+    """PNG of ``url`` in headless Chromium (``browser``: its executable), taken through the DevTools
+    protocol once ``ready()`` is true (the server has sent its render) and the page had a moment to draw it;
+    Chromium's profile goes in ``workdir``."""
+    deadline = time.time() + timeout
+    with headless_page(browser, url, workdir, timeout, size) as call:
+        while not ready():
+            assert time.time() < deadline, "the viewer sent no render to the browser"
+            time.sleep(0.2)
+        time.sleep(3.0)  # the image travels and is drawn (software WebGL)
+        return base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
 
 
 def _free_port() -> int:

@@ -39,7 +39,7 @@ from facade_pipeline.evaluation.building import (
 )
 from facade_pipeline.evaluation.geometry_eval import load_truth
 from facade_pipeline.evaluation.render_views import load_trained
-from facade_pipeline.evaluation.video import orbit_path, render_path
+from facade_pipeline.evaluation.video import render_path, video_path
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
@@ -97,7 +97,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     metrics = metrics_header(layout, params, found[0].params["test_every"])
     outputs: list[Path] = []
     jobs = {v.name: [(s, split_views(layout, v, scene, s)) for s in params.splits] for v in found}
-    path = orbit_path([v.camera for v in scene.uav_views], params.video.frames, params.video.scale)
+    path = video_path(params.video, [(v.stem, v.camera) for v in scene.uav_views])
     facade_mask = facade_masker(layout) if path else None
     films: list[list[np.ndarray]] = []
     n_views = sum(len(views) for j in jobs.values() for _, views in j) + len(path) * len(found)

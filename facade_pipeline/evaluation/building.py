@@ -285,6 +285,7 @@ def write_fly_through(
         "frames": len(frames),
         "size_px": [int(frames[0].shape[1]), int(frames[0].shape[0])],
         "fps": vp.fps,
+        "path": vp.path if vp.path == "orbit" else list(vp.path),
         "file": layout.path("eval_video").name,
         "clip": layout.path("eval_clip").name,
     }

@@ -419,9 +419,15 @@ _CSS = (
 def _video_line(video: dict[str, Any]) -> str:
     w, h = video["size_px"]
     names = ", ".join(video["variants"])
+    path = video.get("path", "orbit")
+    route = (
+        "an orbit through the training cameras' range"
+        if path == "orbit"
+        else f"a path through the views {', '.join(path)}"
+    )
     return (
         f"[{video['file']}]({video['file']}): {video['frames']} frames of {w} x {h} px at "
-        f"{video['fps']} fps, an orbit through the training cameras' range; left to right: {names}."
+        f"{video['fps']} fps, {route}; left to right: {names}."
     )
 
 

@@ -178,3 +178,30 @@ def test_fly_through_video_of_a_tiny_run(tiny, tmp_path):
     page = build_html(metrics, (), clip)
     assert "data:image/webp;base64," in page and "href='flythrough.mp4'" in page
     assert "![fly-through](clip.webp)" in build_markdown(metrics)
+    assert "an orbit through the training cameras' range" in build_markdown(metrics)
+    metrics["video"]["path"] = ["uav_0001", "uav_0003"]
+    assert "a path through the views uav_0001, uav_0003" in build_markdown(metrics)
+
+
+def test_a_path_through_views_shows_each_view_at_its_key_frame(tiny):
+    """``path = [stems]``: the frames at the named views are those views' renders, and the frames between
+    them change gradually (no cut: each frame is nearer its neighbours than the key views are)."""
+    from facade_pipeline.evaluation.video import VideoParams, render_path, video_path
+
+    _, data, tr = tiny
+    tm = from_trainer(tr, "tiny_path")
+    views = [(v.stem, v.camera) for v in data.views]
+    names = [views[1][0], views[3][0], views[2][0]]
+    params = VideoParams(frames=9, fps=8, scale=1.0, clip_frames=4, clip_width_px=32, path=tuple(names))
+    path = video_path(params, views)
+    frames = render_path(path, lambda c, m: render_trained(tm, c, m).rgb, lambda c: None)
+    assert len(frames) == 9
+    by_stem = dict(views)
+    met = []
+    for name in names:
+        own = (np.clip(render_trained(tm, by_stem[name], None).rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+        met.append([i for i, f in enumerate(frames) if np.array_equal(f, own)])
+    assert met[0] == [0] and met[-1] == [8] and len(met[1]) == 1 and 0 < met[1][0] < 8, met
+    steps = [np.abs(a.astype(int) - b.astype(int)).mean() for a, b in zip(frames, frames[1:], strict=False)]
+    keys_apart = np.abs(frames[0].astype(int) - frames[-1].astype(int)).mean()
+    assert max(steps) < keys_apart
