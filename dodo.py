@@ -15,7 +15,7 @@ whose size or time changed is hashed; one that was damaged or deleted reruns the
 per building in ``<building>/.doit.db``. A run holds ``<building>/.lock`` so that a second one stops at once.
 
 A bad config or building name stops here with one line and exit code 2; a stage that stops on bad input
-prints its own line and doit exits 2 too.
+prints its own line and doit exits 2 too, adding nothing (``OneLineReporter``).
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ import tempfile
 from typing import NoReturn
 
 from doit import get_var
-from doit.exceptions import TaskError, TaskFailed
+from doit.exceptions import BaseFail, TaskError, TaskFailed
+from doit.reporter import ConsoleReporter
 from doit.tools import config_changed
 
 from facade_pipeline.config import load_building_config, result_dict
@@ -82,12 +83,35 @@ elif _command(sys.argv[1:]) not in READ_ONLY_COMMANDS:
     except PipelineError as e:
         _stop(str(e))
 
+
+class StageStopped(TaskError):
+    """A stage stopped on bad input or config: one line says which file or key and what to do. ``said`` is
+    true when the stage's own process already printed that line."""
+
+    def __init__(self, message: str, said: bool):
+        super().__init__(message)
+        self.said = said
+
+
+class OneLineReporter(ConsoleReporter):
+    """doit's console report, except that a stage stopped on bad input shows only its one line (on stderr),
+    not doit's TaskError block with the task's captured output (empty for a stage writing to the terminal)."""
+
+    def add_failure(self, task, fail: BaseFail):
+        if isinstance(fail, StageStopped):
+            if not fail.said:
+                print(fail.message, file=sys.stderr, flush=True)
+            return
+        super().add_failure(task, fail)
+
+
 DOIT_CONFIG = {
     "dep_file": str(DEP_FILE),
     "backend": "sqlite3",
     "default_tasks": STAGES,
     "verbosity": 2,  # stages draw progress bars on stderr
     "sort": "definition",  # `doit list` in pipeline order
+    "reporter": OneLineReporter,
 }
 
 
@@ -102,7 +126,7 @@ def _inputs_action(stage, params):
         try:
             return {"file_dep": [str(p) for p in stage.inputs(LAYOUT, params)]}
         except PipelineError as e:
-            return TaskError(f"{stage.NAME}: {e}")
+            return StageStopped(f"{stage.NAME}: {e}", said=False)
 
     return compute
 
@@ -123,8 +147,8 @@ def _run_stage(name):
 
     def action():
         code = subprocess.run(command).returncode
-        if code == 2:  # bad input or config: the stage said which in one line above
-            return TaskError(f"{name} stopped on the error above")
+        if code == 2:  # bad input or config: the stage said which in one line
+            return StageStopped(f"{name} stopped on bad input", said=True)
         if code != 0:
             return TaskFailed(f"{name} failed (exit code {code})")
         return None

@@ -4,6 +4,9 @@ OpenMP runtimes (torch's, open3d's, the compiled splatting kernel's) keep idle w
 default; two processes on the same cores then burn each other's time (two torch training loops on two cores
 took 4x as long as one, not 2x). Passive waiting gives idle cores back, and no pool is bigger than the cores
 this process may run on (``os.sched_getaffinity``: a container's or ``taskset``'s limit, not the machine's).
+OpenCV here runs its own pthreads pool (``cv2.getBuildInformation()``: "Parallel framework: pthreads"), which
+no OpenMP variable reaches; ``OPENCV_FOR_THREADS_NUM`` sizes it when cv2 loads, as ``cv2.setNumThreads``
+would, without importing cv2 in a stage that never uses it.
 
 The runtimes read these variables once, when their library is loaded, so they are set before anything imports
 torch, OpenCV, open3d or NumPy: ``python -m stages NAME`` does it first. A value the user set is kept;
@@ -16,7 +19,13 @@ import os
 
 #: set in the environment once the policy is in place (the stage CLI re-executes itself without it)
 POLICY_ENV = "FACADE_THREAD_POLICY"
-COUNT_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+COUNT_VARS = (
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "OPENCV_FOR_THREADS_NUM",
+)
 
 
 def usable_cores() -> int:

@@ -5,11 +5,12 @@ For each frontal view of ``01_import``: crop the coarse point cloud to the point
 image (Eq. 6) and that the coarse mesh does not hide from the camera, fit a plane or cylinder robustly
 (``rectification.views``, ``rectification.cylinder``), and sample the surface on a regular (arc length,
 height) grid of ``metres_per_px`` (``rectification.surface_map``: a homography for a plane, the unrolled
-cylinder otherwise). A view whose
-points cannot define a surface is left unrectified, with the coarse mesh's scale at its centre; a view
-whose surface is nearly edge-on or whose rectified image would be too large is skipped with a warning.
-Both are listed in the manifest with the reason. Writes into ``02_rectify/``: the rectified image (none
-for a skipped view), the mapping (both directions and the scale), the fitted surface and an overlay.
+cylinder otherwise). A view whose points cannot define a surface, or whose fitted surface is implausible
+(tilted, tight, loose, or a map that moves pixels further than the view's size), is left unrectified, with
+the coarse mesh's scale at its centre; a view whose surface is nearly edge-on or whose rectified image would
+be too large is skipped with a warning. Both are listed in the manifest with the reason. Writes into
+``02_rectify/``: the rectified image (none for a skipped view), the mapping (both directions and the scale),
+the fitted surface and an overlay.
 """
 
 from __future__ import annotations
@@ -31,12 +32,13 @@ from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.images import read_image, write_image
 from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.rectification.cylinder import SurfaceFitParams
+from facade_pipeline.rectification.cylinder import SurfaceFitParams, implausible_displacement
 from facade_pipeline.rectification.surface_map import (
     RectifyParams,
     ViewRectification,
     mesh_scale_m,
     rectify_view,
+    warp_displacement_px,
     warp_image,
 )
 from facade_pipeline.rectification.views import fit_view, overlay_image
@@ -88,7 +90,15 @@ def rectify_one(
     margin = params.occlusion_margin_m
     fit, status = fit_view(points, view.camera, params.fit, params.surface, margin, mesh, source)
     cam = view.camera
-    if fit is None:
+    rect, displacement = None, None
+    if fit is not None:
+        rect = rectify_view(cam, fit.surface, params)
+        if rect.kind != "skipped":  # edge-on or too large says more than the displacement it implies
+            displacement = warp_displacement_px(cam, fit.surface, params.warp.samples_per_side)
+            why = implausible_displacement(displacement, cam.width, cam.height, params.fit)
+            if why is not None:
+                fit, status, rect = None, f"no surface: implausible fit, {why}", None
+    if rect is None:
         scale = mesh_scale_m(cam, lambda o, d: mesh.cast(o, d).t)
         rect = (
             ViewRectification.unrectified(cam, scale, status)
@@ -97,8 +107,6 @@ def rectify_one(
                 cam, scale, f"{status}; the coarse mesh is not in the view", "skipped"
             )
         )
-    else:
-        rect = rectify_view(cam, fit.surface, params)
     if rect.kind == "skipped":
         log.warning("rectify: view %s skipped: %s", view.stem, rect.reason)
     outs = [layout.path("rectify_mapping", stem=view.stem), layout.path("rectify_surface", stem=view.stem)]
@@ -120,6 +128,7 @@ def rectify_one(
         "metres_per_px": _finite(rect.metres_per_px),
         "size_px": [rect.width, rect.height],
         "polynomial_max_px": None if poly is None else max(poly[0].max_px, poly[1].max_px),
+        "displacement_px": None if displacement is None else _finite(displacement),
         "seconds": round(time.perf_counter() - t0, 3),
     }
     return outs, metrics

@@ -72,6 +72,11 @@ class SurfaceFitParams:
     the surface's depth): a tighter one is a chair or a column in front of the camera (-)."""
     max_rms_footprint: Positive
     """The fit's RMS residual must be under this fraction of the footprint: a looser fit is of clutter (-)."""
+    max_displacement_size: Positive
+    """The map from a view to its rectified image, at the view's own scale and beyond a rotation, scale and
+    shift of the whole view (``surface_map.warp_displacement_px``), may move no pixel further than this many
+    times the view's larger side: a fit whose map does is not the surface the view frames (the view would
+    see it nearly edge-on), and the view gets no surface (-)."""
 
 
 def implausible(fit: SurfaceFit, footprint_m: float, params: SurfaceFitParams,
@@ -95,6 +100,19 @@ def implausible(fit: SurfaceFit, footprint_m: float, params: SurfaceFitParams,
     if fit.rms_m > params.max_rms_footprint * footprint_m:
         return (f"RMS residual {fit.rms_m:.3g} m over {params.max_rms_footprint:g} x the view's footprint of "
                 f"{footprint_m:.3g} m (max_rms_footprint): clutter, not a surface")
+    return None
+
+
+def implausible_displacement(displacement_px: float, width_px: int, height_px: int,
+                             params: SurfaceFitParams) -> str | None:
+    """Why a fit whose rectification moves a pixel of a ``width_px`` x ``height_px`` view by up to
+    ``displacement_px`` (at the view's own scale: ``surface_map.warp_displacement_px``) cannot be the
+    surface the view frames, or None when it can."""
+    limit = params.max_displacement_size * max(width_px, height_px)
+    if not displacement_px <= limit:  # NaN too: no pixel of the view meets the surface
+        return (f"its map moves pixels up to {displacement_px:.0f} px, more than max_displacement_size = "
+                f"{params.max_displacement_size:g} x the view's {width_px} x {height_px} px: not the surface "
+                "the view frames")
     return None
 
 

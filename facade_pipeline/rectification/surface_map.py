@@ -274,6 +274,33 @@ def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams)
     return rect
 
 
+def warp_displacement_px(camera: PinholeCamera, surface: Surface, samples_per_side: int) -> float:
+    """Largest distance (px) by which the rectification onto ``surface`` moves a pixel of the view beyond
+    a rotation, scale and shift of the whole view, at the view's own ground sample distance (so that neither
+    ``metres_per_px`` nor the camera's roll counts): 0 for a view straight on to a plane, a fraction of the
+    view's size for an oblique one (its far side stretched). Over a ``samples_per_side`` grid of the view;
+    NaN when no ray meets the surface."""
+    kind: Kind = "plane" if surface.curvature_per_m == 0.0 else "cylinder"
+    unit = ViewRectification(kind, 1, 1, 1.0, camera, Chart.of(surface))
+    px = image_grid(camera.width, camera.height, samples_per_side)
+    sh = unit.to_rectified(px)  # (s, -h) in metres
+    hit = np.isfinite(sh).all(axis=1)
+    if not hit.any():
+        return float("nan")
+    xy = sh[hit] / ground_sample_m(unit, px[hit])
+    return float(_similarity_residual_px(px[hit], xy).max())
+
+
+def _similarity_residual_px(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Distances [N] from ``dst`` [N, 2] to the best similarity (rotation, scale, shift) image of ``src``."""
+    a, b = src - src.mean(axis=0), dst - dst.mean(axis=0)
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    scale = float(np.trace(np.diag(S) @ D)) / max(float((a**2).sum()), 1e-300)
+    return np.linalg.norm(b - scale * a @ R.T, axis=1)
+
+
 def ground_sample_m(unit: ViewRectification, px: np.ndarray) -> float:
     """Median over ``px`` [N, 2] of the square root of one pixel's footprint area on the surface (m);
     ``unit`` is the view's rectification at 1 m per px."""
