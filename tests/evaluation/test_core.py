@@ -20,6 +20,7 @@ from facade_pipeline.evaluation.image_eval import INTERIOR_MARGIN_PX, LpipsSetti
 from facade_pipeline.evaluation.render_views import from_trainer
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.scene import ImportedScene
+from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training.corrections import AlignParams, align_view, so3_exp
 from facade_pipeline.training.render import Camera, render_view, splatting_rasterizer
 from facade_pipeline.training.schedule import active_sh_degree
@@ -68,7 +69,7 @@ def _ref_view(tr, index: int, align: AlignParams | None) -> dict:
         posed = Camera(cam.K, cam_from_world, cam.width, cam.height)
         sh = active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration)
         window = (0, 0, cam.width, cam.height)
-        return render_view(tr.model, tr.reflection, posed, window, raster, p.near_m, sh, tr.shading,
+        return render_view(tr.model, tr.reflection, posed, window, raster, NEAR_M, sh, tr.shading,
                            spec_mask=facade, chunk=65536)  # fmt: skip
 
     gain = torch.ones(3)
