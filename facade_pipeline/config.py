@@ -91,6 +91,33 @@ class BuildingParams:
     """One line for people."""
 
 
+#: top-level tables that only synthetic buildings have (configs/synthetic.toml): the simulator's
+SYNTHETIC_TABLES = ("synthesize",)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The ``[run]`` table: how the stages run, never what they compute. No stage's parameters hold these,
+    so doit's ``config_changed`` and train_gs's checkpoint fingerprint never see them: changing one reruns
+    nothing and keeps a checkpoint (a run begun on the CPU resumes on a GPU)."""
+
+    device: Literal["cpu", "cuda", "auto"]
+    """where train_gs trains and evaluate renders (``auto``: CUDA when available)"""
+    raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
+    """the rasterizer's implementation (``splatting.render_2dgs``), in training and in every render"""
+    log_every: Count
+    """iterations between train_gs's training-log lines (0: none)"""
+    checkpoint_every: Count
+    """iterations between train_gs's checkpoints (0: only at the end)"""
+    overlay_scale: Positive
+    """rectify's and segment_panels' overlay images are drawn this many times the view's size"""
+
+
+def default_run_settings(directory: Path | None = None) -> RunSettings:
+    """``[run]`` of ``default.toml`` alone: what a stage runs with when no building says otherwise."""
+    return default_params("run", RunSettings, directory)
+
+
 @dataclass(frozen=True)
 class BuildingConfig:
     """The merged configuration of one building, with the files it came from."""
@@ -99,31 +126,43 @@ class BuildingConfig:
     tables: dict[str, Any]
     """The merged tables."""
     default_tables: dict[str, Any]
-    """default.toml alone, to tell which file a bad value came from."""
-    files: tuple[Path, Path]
-    """(default.toml, buildings/<name>.toml)"""
+    """default.toml (merged with synthetic.toml for a synthetic building) alone, to tell which file a bad
+    value came from."""
+    files: tuple[Path, ...]
+    """(default.toml, [synthetic.toml,] buildings/<name>.toml)"""
 
     @property
     def building(self) -> BuildingParams:
         return self.section("building", BuildingParams)
 
+    @property
+    def run(self) -> RunSettings:
+        """The ``[run]`` table: how the stages run, never what they compute."""
+        return self.section("run", RunSettings)
+
     def section(self, name: str, cls: type[T]) -> T:
         """Section ``name`` (dotted for a nested table: ``evaluate.align``) as an instance of the frozen
         dataclass ``cls``."""
         default, merged = self.default_tables, self.tables
+        base_file = self._base_file(name.split(".")[0])
         for key in name.split("."):
             if not isinstance(default.get(key), dict):
-                raise ConfigError(self.files[0], f"a [{name}] section", "none")
+                raise ConfigError(base_file, f"a [{name}] section", "none")
             default, merged = default[key], merged[key]
-        _build(cls, default, name, (self.files[0],))
-        # default.toml is valid on its own, so whatever fails now came from the building's file
+        _build(cls, default, name, (base_file,))
+        # the base files are valid on their own, so whatever fails now came from the building's file
         # (a dataclass's own cross-field check raises without a file: name it here).
         try:
-            return _build(cls, merged, name, (self.files[1],))
+            return _build(cls, merged, name, (self.files[-1],))
         except ConfigError as e:
             if e.path is not None:
                 raise
-            raise ConfigError(self.files[1], e.expected, e.found) from None
+            raise ConfigError(self.files[-1], e.expected, e.found) from None
+
+    def _base_file(self, table: str) -> Path:
+        """The base file that defines top-level ``table``: synthetic.toml for [synthesize], else
+        default.toml."""
+        return self.files[1] if table in SYNTHETIC_TABLES and len(self.files) == 3 else self.files[0]
 
 
 def available_buildings(directory: Path | None = None) -> list[str]:
@@ -132,17 +171,36 @@ def available_buildings(directory: Path | None = None) -> list[str]:
 
 
 def load_building_config(building: str, directory: Path | None = None) -> BuildingConfig:
-    """Read ``default.toml`` and ``buildings/<building>.toml`` and merge them (building wins)."""
+    """Read ``default.toml``, for a synthetic building ``synthetic.toml`` over it, and
+    ``buildings/<building>.toml`` over both (building wins)."""
     directory = directory or config_dir()
     default_file = directory / "default.toml"
     building_file = directory / "buildings" / f"{building}.toml"
     if not building_file.is_file():
         names = ", ".join(available_buildings(directory)) or "none"
         raise ConfigError(building_file, f"a config for building {building!r} (one of: {names})", "no file")
-    default = _read_toml(default_file)
+    base = _read_toml(default_file)
     override = _read_toml(building_file)
-    _check_known_keys(override, default, building_file, "")
-    return BuildingConfig(building, _merge(default, override), default, (default_file, building_file))
+    files: tuple[Path, ...] = (default_file, building_file)
+    if _declared_kind(override) == "synthetic":
+        synthetic_file = directory / "synthetic.toml"
+        base = _merge(base, _read_toml(synthetic_file))
+        files = (default_file, synthetic_file, building_file)
+    else:
+        for table in SYNTHETIC_TABLES:
+            if table in override:
+                raise ConfigError(
+                    building_file,
+                    f'simulator keys ([{table}]) only in a building with [building] kind = "synthetic"',
+                    f"[{table}] in a real building's file",
+                )
+    _check_known_keys(override, base, building_file, "")
+    return BuildingConfig(building, _merge(base, override), base, files)
+
+
+def _declared_kind(override: dict[str, Any]) -> Any:
+    table = override.get("building")
+    return table.get("kind") if isinstance(table, dict) else None
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -155,13 +213,22 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(path, "valid TOML", f"a syntax error ({e})") from None
 
 
-# Keys that were replaced, with what replaces them: a config that still has one gets the replacement named.
+# Keys that were replaced or moved, with what replaces them: a config that still has one gets the
+# replacement named (one mechanism for every old key).
 RENAMED = {
     "rectify.warp.planar_shift_px": "none: every view is rectified (rectify.metres_per_px sets the scale)",
     "segment_panels.min_partial_px": "segment_panels.min_partial_m (metres on the facade)",
     "segment_panels.grid.min_pitch_px": "segment_panels.grid.min_pitch_m and max_pitch_m (metres)",
     "segment_panels.grid.min_bar_px": "segment_panels.grid.min_bar_m (metres on the facade)",
     "segment_panels.grid.max_bar_px": "segment_panels.grid.max_bar_m (metres on the facade)",
+    # run-only settings live in [run], where no stage's parameters (and so no rerun) can see them
+    "train_gs.device": "run.device",
+    "train_gs.raster_backend": "run.raster_backend",
+    "train_gs.log_every": "run.log_every",
+    "train_gs.checkpoint_every": "run.checkpoint_every",
+    "evaluate.device": "run.device",
+    "rectify.overlay_scale": "run.overlay_scale",
+    "segment_panels.overlay_scale": "run.overlay_scale",
 }
 
 
@@ -195,13 +262,6 @@ def from_dict(cls: type[T], table: dict[str, Any], where: str = "", file: Path |
 def to_dict(params: Any) -> dict[str, Any]:
     """The plain-dict form of a params dataclass (tuples become lists), for manifests and doit."""
     return _plain(dataclasses.asdict(params))
-
-
-def result_dict(params: Any, run_only: tuple[str, ...] = ()) -> dict[str, Any]:
-    """``to_dict(params)`` without the keys that only say how a run goes (where it runs, how often it
-    logs or saves): what a result depends on, so changing one of those neither reruns a stage nor drops
-    a checkpoint."""
-    return {k: v for k, v in to_dict(params).items() if k not in run_only}
 
 
 def _plain(x: Any) -> Any:

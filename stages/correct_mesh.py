@@ -18,7 +18,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 
-from facade_pipeline.config import Degrees, Fraction, NonNeg, PosInt, Positive, Range
+from facade_pipeline.config import Degrees, Fraction, NonNeg, PosInt, Positive, Range, RunSettings
 from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import write_image
@@ -124,7 +124,7 @@ def _overlay(layout: BuildingLayout, coarse: tuple, fixed: tuple, labels) -> Non
 NO_PANELS = "no panels: no mesh correction (the coarse mesh is the facade)"
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     coarse = read_mesh(layout.import_coarse_mesh)
     panels = PanelSet.load(layout.path("regularize_panels"))
     v, f = np.asarray(coarse.vertices), np.asarray(coarse.triangles)

@@ -18,12 +18,12 @@ import sys
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import Count, Fraction, PosInt, Positive
+from facade_pipeline.config import Count, Fraction, PosInt, Positive, RunSettings
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.geometry_eval import (
     Truth,
@@ -75,15 +75,12 @@ from facade_pipeline.meshing.correct import FRAME, read_labels
 from facade_pipeline.panels import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
-from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.trainer import resolve_device
 from stages._runner import StageReport, main
 
 NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
 UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
-#: where the renders run changes no figure beyond rounding: a change reruns nothing
-RUN_ONLY: tuple[str, ...] = ("device",)
 MAIN_VARIANT = "07_train"
 
 
@@ -91,7 +88,6 @@ MAIN_VARIANT = "07_train"
 class Params:
     """``[evaluate]``: what is rendered and measured, and how the report shows it."""
 
-    device: Literal["cpu", "cuda", "auto"]
     render_training_views: bool
     """also render and measure the training views"""
     include_saved_variants: bool
@@ -301,7 +297,7 @@ def ablation_group(params: dict[str, Any]) -> str:
     """A digest of the training parameters other than the MLP architecture: variants with the same one
     differ only in L, depth, width, skip, the environment proxy and the self hits, and form a Table 3
     ablation."""
-    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + TRAINING_RUN_ONLY}
+    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS}
     return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -350,12 +346,12 @@ def metrics_header(layout: BuildingLayout, params: Params, test_every: int) -> d
 
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # an earlier run's report must not pass for this one's while it runs, or after it is killed
     for path in targets(layout, params):
         path.unlink(missing_ok=True)
     scene = ImportedScene.load(layout)
-    device = resolve_device(params.device)
+    device = resolve_device(settings.device)
     setting = LpipsSetting(params.lpips_conventions, params.lpips_weights_dir or None)
     truth = load_truth(*_truth_files(layout), scene.georef_from_local) if is_synthetic(layout) else None
     splits = ("test", "train") if params.render_training_views else ("test",)
@@ -369,7 +365,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     n_views = sum(len(j[2]) for j in jobs) + len(path) * len(found)
     with tqdm(total=n_views, desc="evaluate", unit="view", file=sys.stderr) as bar:
         for v in found:
-            tm = load_trained(v, device)
+            tm = load_trained(v, device, settings.raster_backend)
             if path:
                 render = partial(_render_rgb, tm)
                 films.append(render_path(path, render, facade_mask, bar.update))

@@ -17,7 +17,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from facade_pipeline.config import Fraction, NonNeg, Positive, Range
+from facade_pipeline.config import Fraction, NonNeg, Positive, Range, RunSettings
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.geometry.frames import (
     AXES,
@@ -241,7 +241,7 @@ def _check_scene(layout: BuildingLayout, params: Params, views: list[View], mesh
     return check
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     sources = _sources(layout)
     recs = [colmap.read_reconstruction(s.model_dir) for s in sources]
     mesh, cleaned = clean_mesh(read_mesh(_coarse_mesh_path(layout)))

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.geometry.panel_grid import build_panel_set
@@ -132,7 +133,7 @@ def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: l
     return out
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.import_coarse_mesh)
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import result_dict
+from facade_pipeline.config import RunSettings, to_dict
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_json, write_text
 from facade_pipeline.io.exr import read_exr
@@ -29,7 +29,6 @@ from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.shading.reflection import reflection_record
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
-from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.ply import write_ply
 from facade_pipeline.training.render import splatting_rasterizer
@@ -49,7 +48,6 @@ NAME = "train_gs"
 DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
 UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
 Params = TrainParams
-RUN_ONLY = TRAINING_RUN_ONLY  # where it runs and how often it logs or saves: a change reruns nothing
 BAKED = ("normal_map", "facade_mask", "glass_mask")
 
 
@@ -142,8 +140,9 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
 
 
 def fingerprint(layout: BuildingLayout, params: Params) -> str:
-    """What a checkpoint must match to be resumed: the parameters, the inputs' contents and the code."""
-    h = hashlib.sha256(json.dumps(result_dict(params, RUN_ONLY), sort_keys=True).encode())
+    """What a checkpoint must match to be resumed: the parameters, the inputs' contents and the code (not
+    the run settings, which ``params`` does not hold: a run begun on the CPU resumes on a GPU)."""
+    h = hashlib.sha256(json.dumps(to_dict(params), sort_keys=True).encode())
     for f in inputs(layout, params):
         h.update(sha256_file(f).encode())
     code = [p for d in ("training", "shading", "splatting") for p in (PACKAGE_DIR / d).rglob("*.py")]
@@ -169,10 +168,10 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, metrics: dict) -> list[Pa
     return targets(layout, tr.params)
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     data = load_train_data(layout, params)
-    device = resolve_device(params.device)
-    rasterize = splatting_rasterizer(params.raster_backend, params.lowpass_sigma_px)
+    device = resolve_device(settings.device)
+    rasterize = splatting_rasterizer(settings.raster_backend, params.lowpass_sigma_px)
     fp = fingerprint(layout, params)
     ckpt = layout.path("train_checkpoint")
     tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)
@@ -186,7 +185,14 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             bar.update(it - bar.n)
             bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", n=out["n"], refresh=False)
 
-        train(tr, ckpt, fp, progress)
+        train(
+            tr,
+            ckpt,
+            fp,
+            progress,
+            log_every=settings.log_every,
+            checkpoint_every=settings.checkpoint_every,
+        )
     metrics = evaluate(tr, data.test_idx)
     outputs = _save_outputs(layout, tr, metrics)
     last = tr.log[-1] if tr.log else {}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import shutil
 from dataclasses import dataclass
@@ -10,7 +11,13 @@ from typing import Literal
 
 import pytest
 
-from facade_pipeline.config import available_buildings, config_dir, from_dict, load_building_config
+from facade_pipeline.config import (
+    RunSettings,
+    available_buildings,
+    config_dir,
+    from_dict,
+    load_building_config,
+)
 from facade_pipeline.errors import ConfigError
 from stages import PIPELINE, load_stage
 
@@ -144,10 +151,54 @@ def test_a_nested_section_by_its_dotted_name(cfg_dir):
     ("segment_panels.grid", "max_bar_px", "segment_panels.grid.max_bar_m"),
     ("segment_panels", "min_partial_px", "segment_panels.min_partial_m"),
     ("rectify.warp", "planar_shift_px", "rectify.metres_per_px"),
+    ("train_gs", "device", "run.device"),
+    ("train_gs", "raster_backend", "run.raster_backend"),
+    ("train_gs", "log_every", "run.log_every"),
+    ("train_gs", "checkpoint_every", "run.checkpoint_every"),
+    ("evaluate", "device", "run.device"),
+    ("rectify", "overlay_scale", "run.overlay_scale"),
+    ("segment_panels", "overlay_scale", "run.overlay_scale"),
 ])
-def test_an_old_pixel_key_names_its_replacement(cfg_dir, section, key, replacement):
+def test_an_old_key_names_its_replacement(cfg_dir, section, key, replacement):
     _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[{section}]\n{key} = 10\n')
     with pytest.raises(ConfigError) as e:
         load_building_config("old", cfg_dir)
     msg = str(e.value)
     assert f"{section}.{key}" in msg and replacement in msg and "old.toml" in msg
+
+
+def test_simulator_keys_only_in_a_synthetic_building(cfg_dir):
+    """synthetic.toml lies under a synthetic building's file and no real one's; a real building that sets
+    a simulator key is one line naming its file and the kind it needs."""
+    p = _write(cfg_dir, "realsim", '[building]\nkind = "real"\n[synthesize.cameras]\nuav_count = 5\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("realsim", cfg_dir)
+    msg = str(e.value)
+    assert str(p) in msg and 'kind = "synthetic"' in msg and "[synthesize]" in msg and "\n" not in msg
+    _write(cfg_dir, "sim", '[building]\nkind = "synthetic"\n[synthesize.cameras]\nuav_count = 5\n')
+    sim = load_building_config("sim", cfg_dir)
+    assert sim.tables["synthesize"]["cameras"]["uav_count"] == 5  # the building wins
+    assert sim.tables["synthesize"]["seed"] == 0  # synthetic.toml's, under it
+    assert "synthesize" not in load_building_config("shatin").tables
+
+
+def test_a_bad_simulator_default_names_synthetic_toml(cfg_dir):
+    from facade_pipeline.synthetic.params import SynthesizeParams
+
+    text = (cfg_dir / "synthetic.toml").read_text().replace("uav_count = 20", "uav_count = 0")
+    (cfg_dir / "synthetic.toml").write_text(text)
+    _write(cfg_dir, "sim", '[building]\nkind = "synthetic"\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("sim", cfg_dir).section("synthesize", SynthesizeParams)
+    assert "synthetic.toml" in str(e.value) and "uav_count" in str(e.value)
+
+
+def test_run_settings_are_their_own_table(cfg_dir):
+    """[run] is read into RunSettings and is no stage's parameter (so it can rerun nothing)."""
+    _write(cfg_dir, "gpu", '[building]\nkind = "real"\n[run]\ndevice = "auto"\nlog_every = 7\n')
+    run = load_building_config("gpu", cfg_dir).run
+    assert (run.device, run.log_every) == ("auto", 7)
+    assert run.checkpoint_every == load_building_config("shatin").run.checkpoint_every  # default.toml's
+    run_keys = {f.name for f in dataclasses.fields(RunSettings)}
+    for name in PIPELINE:
+        assert not run_keys & {f.name for f in dataclasses.fields(load_stage(name).Params)}, name

@@ -74,19 +74,12 @@ class DensifyParams:
             )
 
 
-#: settings that change how a run goes, not what it trains (where it runs, how often it logs or saves):
-#: changing one neither reruns train_gs nor drops its checkpoint (a run begun on the CPU resumes on a GPU)
-RUN_ONLY: tuple[str, ...] = ("device", "raster_backend", "log_every", "checkpoint_every")
-
-
 @dataclass(frozen=True)
 class TrainParams:
     """``[train_gs]``: every number that changes the trained model."""
 
     iterations: PosInt
     seed: AnyInt
-    device: Literal["cpu", "cuda", "auto"]
-    raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
     near_m: Positive
     lowpass_sigma_px: Positive
     """sigma of the renderer's screen-space low-pass filter (``splatting.render_2dgs``), in training and in
@@ -150,8 +143,6 @@ class TrainParams:
     init_reflectivity_glass: Fraction
     init_f0: Fraction
     init_knn: PosInt
-    checkpoint_every: Count
-    log_every: Count
     divergence_extent_factor: Positive
     lr: LearningRates
     densify: DensifyParams

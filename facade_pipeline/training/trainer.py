@@ -102,7 +102,7 @@ def resolve_device(choice: str) -> torch.device:
     if choice == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if choice == "cuda" and not torch.cuda.is_available():
-        raise PipelineError(None, 'a CUDA device (train_gs.device = "cuda")', 'none; use "cpu" or "auto"')
+        raise PipelineError(None, 'a CUDA device (run.device = "cuda")', 'none; use "cpu" or "auto"')
     return torch.device(choice)
 
 
@@ -712,15 +712,19 @@ def train(
     fingerprint: str = "",
     progress: ProgressCallback | None = None,
     stop_at: int | None = None,
+    *,
+    log_every: int = 0,
+    checkpoint_every: int = 0,
 ) -> Trainer:
-    """Step until ``params.iterations`` (or ``stop_at``), logging every ``log_every`` iterations and saving
-    a checkpoint every ``checkpoint_every`` (and at the end) when ``checkpoint`` is given."""
+    """Step until ``params.iterations`` (or ``stop_at``), logging every ``log_every`` iterations (0: never)
+    and saving a checkpoint every ``checkpoint_every`` (0: only at the end) when ``checkpoint`` is given.
+    Both are run settings (``[run]``): they change how a run goes, never what it trains."""
     p = tr.params
     end = p.iterations if stop_at is None else min(stop_at, p.iterations)
     start = tr.iteration
     while tr.iteration < end:
         out = step(tr)
-        if p.log_every > 0 and (tr.iteration % p.log_every == 0 or tr.iteration == p.iterations):
+        if log_every > 0 and (tr.iteration % log_every == 0 or tr.iteration == p.iterations):
             tr.log.append(
                 {
                     "iteration": tr.iteration,
@@ -728,11 +732,11 @@ def train(
                     **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in out.items()},
                 }
             )
-        if checkpoint is not None and p.checkpoint_every > 0 and tr.iteration % p.checkpoint_every == 0:
+        if checkpoint is not None and checkpoint_every > 0 and tr.iteration % checkpoint_every == 0:
             save_checkpoint(tr, checkpoint, fingerprint)
         if progress is not None:
             progress(tr.iteration, p.iterations, {**out, "n": tr.model.n})
-    saved = p.checkpoint_every > 0 and tr.iteration % p.checkpoint_every == 0
+    saved = checkpoint_every > 0 and tr.iteration % checkpoint_every == 0
     if checkpoint is not None and tr.iteration > start and not saved:
         save_checkpoint(tr, checkpoint, fingerprint)
     return tr
