@@ -229,6 +229,10 @@ RENAMED = {
     "evaluate.device": "run.device",
     "rectify.overlay_scale": "run.overlay_scale",
     "segment_panels.overlay_scale": "run.overlay_scale",
+    # fixed choices and benchmark yardsticks, no longer parameters
+    "correct_mesh.removal": "none: a coarse triangle with any vertex in a panel's cuboid is removed",
+    "correct_mesh.target_normal_error_deg": "none: the target is benchmarks/bench_bake.py's",
+    "correct_mesh.target_distance_fraction": "none: the target is benchmarks/bench_bake.py's",
 }
 
 

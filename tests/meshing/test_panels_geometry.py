@@ -192,7 +192,7 @@ def test_correction_replaces_the_cuboid_keeps_frames_and_faces_outward(kind):
     pts = surf.points(np.c_[np.random.default_rng(2).uniform([-3, 1.3], [3, 4.6], (300, 2)), np.zeros(300)])
     ps, _ = build_panel_set(quads, [True] * len(quads), view, cams, MeshRaycaster(v, f), pts, cfg())
     p = params_of("correct_mesh")
-    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg, p.removal)
+    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg)
     tri = out.vertices[out.triangles]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     c = tri.mean(axis=1)
