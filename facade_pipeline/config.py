@@ -233,6 +233,14 @@ RENAMED = {
     "correct_mesh.removal": "none: a coarse triangle with any vertex in a panel's cuboid is removed",
     "correct_mesh.target_normal_error_deg": "none: the target is benchmarks/bench_bake.py's",
     "correct_mesh.target_distance_fraction": "none: the target is benchmarks/bench_bake.py's",
+    "segment_panels.grid.weak_edge_floor": "none: both edges of an inner frame bar count as seen "
+    "(segment_panels.grid.outer_edge_floor sets the outer bars')",
+    "regularize_corners.depth_refinement": "none: the glass depth is always the coarse points' mode, "
+    "else the coarse mesh's median",
+    "rectify.warp.samples_per_side": "none: fixed at 25 (geometry/rectification.py)",
+    "import_photogrammetry.undistort_blank_pixels": "none: COLMAP's defaults (io/colmap.py)",
+    "import_photogrammetry.undistort_min_scale": "none: COLMAP's defaults (io/colmap.py)",
+    "import_photogrammetry.undistort_max_scale": "none: COLMAP's defaults (io/colmap.py)",
 }
 
 

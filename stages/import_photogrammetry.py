@@ -18,7 +18,7 @@ import pycolmap
 from tqdm import tqdm
 
 from facade_pipeline.config import Fraction, NonNeg, Positive, Range, RunSettings
-from facade_pipeline.errors import ConfigError, InputError
+from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.frames import (
     AXES,
     estimate_up_from_cameras,
@@ -53,21 +53,10 @@ class Params:
     """The local origin is rounded to a multiple of this (m)."""
     auto_up_snap_deg: Annotated[float, Range(0.0, 90.0)]
     """An estimated up within this angle (deg) of a model axis is snapped to it."""
-    undistort_blank_pixels: Fraction
-    undistort_min_scale: Positive
-    undistort_max_scale: Positive
     max_size_ratio: Annotated[float, Range(1.0)]
     """The coarse mesh's size may differ from the camera layout's by at most this factor (a unit error)."""
     min_views_seeing_mesh: Fraction
     """At least this share of the UAV views must have rays that meet the coarse mesh (0: no check)."""
-
-    def __post_init__(self) -> None:
-        if self.undistort_min_scale > self.undistort_max_scale:
-            raise ConfigError(
-                None,
-                "'import_photogrammetry.undistort_min_scale' <= undistort_max_scale",
-                f"{self.undistort_min_scale} > {self.undistort_max_scale}",
-            )
 
 
 @dataclass(frozen=True)
@@ -179,9 +168,7 @@ def _local_frame(
 def _import_views(
     src: _Source, rec: pycolmap.Reconstruction, layout: BuildingLayout, params: Params, bar: tqdm
 ) -> tuple[list[View], list[colmap.ColmapView]]:
-    opts = colmap.undistort_options(
-        params.undistort_blank_pixels, params.undistort_min_scale, params.undistort_max_scale
-    )
+    opts = colmap.undistort_options()
     pinhole: dict[int, pycolmap.Camera] = {}
     views, model_views = [], []
     for im in colmap.registered_images(rec):

@@ -158,6 +158,8 @@ def test_a_nested_section_by_its_dotted_name(cfg_dir):
     ("evaluate", "device", "run.device"),
     ("rectify", "overlay_scale", "run.overlay_scale"),
     ("segment_panels", "overlay_scale", "run.overlay_scale"),
+    ("correct_mesh", "target_normal_error_deg", "benchmarks/bench_bake.py"),
+    ("regularize_corners", "depth_refinement", "coarse points' mode"),
 ])
 def test_an_old_key_names_its_replacement(cfg_dir, section, key, replacement):
     _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[{section}]\n{key} = 10\n')

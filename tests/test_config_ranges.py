@@ -133,8 +133,6 @@ BAD_VALUES = [
     ("segment_panels.grid", "min_pitch_m = 7.0", "segment_panels.grid.min_pitch_m", "max_pitch_m"),
     ("segment_panels.grid", "min_bar_m = 0.5", "segment_panels.grid.min_bar_m", "max_bar_m"),
     ("train_gs.densify", "start_fraction = 0.6", "train_gs.densify.start_fraction", "end_fraction"),
-    ("import_photogrammetry", "undistort_min_scale = 3.0", "import_photogrammetry.undistort_min_scale",
-     "undistort_max_scale"),
     ("synthesize.environment", "building_width_m = [28.0, 14.0]", "synthesize.environment.building_width_m",
      "low <= high"),
     ("synthesize.environment", "tree_height_m = [9.0, 5.0]", "synthesize.environment.tree_height_m",

@@ -19,7 +19,7 @@ Frames: local (01_import), metres. Surface coordinates (s, z, h): see ``facade_p
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated
 
 import numpy as np
 
@@ -52,9 +52,6 @@ class RegularizeConfig:
     """A corner farther from its row or column line than this many robust sigmas is an outlier (-)."""
     outlier_floor_m: NonNeg
     """... but never when it is within this distance (m) of the line."""
-    depth_refinement: Literal["coarse_points_mode", "coarse_mesh_median", "none"]
-    """Where the glass lies along the normal: densest coarse-point offset, median coarse-mesh offset, or
-    the corner hits themselves (the paper's plain ray casting)."""
     depth_window_m: Positive
     """Evidence within this distance (m) of the corner surface is searched for the glass."""
     depth_bandwidth_m: Positive
@@ -243,9 +240,9 @@ def glass_offset(
     """Offset (m, along the outward normal) of the glass from ``surface``, from the coarse evidence inside
     the panel ``footprints`` [P, 4] (s0, s1, z0, z1, shrunk away from frames): the density mode of the
     coarse points' offsets, else the median offset of the coarse mesh. Returns (offset, source, count)."""
-    if cfg.depth_refinement == "none" or len(footprints) == 0:
+    if len(footprints) == 0:
         return 0.0, "none", 0
-    if cfg.depth_refinement == "coarse_points_mode" and len(coarse_points):
+    if len(coarse_points):
         szh = surface.coords(coarse_points)
         inside = _in_footprints(szh, footprints) & (np.abs(szh[:, 2]) <= cfg.depth_window_m)
         h = szh[inside, 2]

@@ -13,8 +13,9 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
   line, which also picks the number of lines);
 - likelihood (line and edge evidence): a frame bar has two parallel edges ``w`` apart along its whole
   length, usually of opposite polarity. Per row (for mullions), with gL, gR the colour gradients across
-  the bar at c - w/2 and c + w/2, the bar response is sqrt(|gL| |gR| (1 - cos(gL, gR)) / 2) (the weaker
-  edge counted at least ``weak_edge_floor`` of the stronger); its mean over the grid's rows is E_g(c).
+  the bar at c - w/2 and c + w/2, the bar response is sqrt(|gL| |gR| (1 - cos(gL, gR)) / 2) (for an outer
+  frame bar, the weaker edge counted at least ``outer_edge_floor`` of the stronger); its mean over the
+  grid's rows is E_g(c).
   LSD segments of the family give the line support S(x) (summed length near x);
   E_l(c) = sqrt(S(c - w/2) S(c + w/2)) / length.
   A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
@@ -71,10 +72,9 @@ class GridParams:
     """Line support (fraction of the grid's length covered by LSD segments) that counts as strong (-)."""
     edge_search_px: Positive
     """A bar edge is searched this far (px) around its MAP position."""
-    weak_edge_floor: Fraction
-    """The weaker edge of a bar counts at least this fraction of the stronger (-)."""
     outer_edge_floor: Fraction
-    """... and of an outer frame bar, one pitch beyond either end of the MAP run, at least this (-)."""
+    """The weaker edge of an outer frame bar, one pitch beyond either end of the MAP run, counts at least
+    this fraction of the stronger (an outer frame may meet a background of its colour) (-)."""
     uniformity_scale: Positive
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
     frame_colour_scale: NonNeg
@@ -171,14 +171,15 @@ class Gradients:
 
 
 def bar_evidence(
-    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes, weak_edge_floor: float | None = None
+    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes, weak_edge_floor: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px).
 
     Per row, edges gL, gR (colour vectors) at the two sides of the bar give sqrt((|gL||gR| - gL.gR) / 2):
     |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
-    agree, 0 for equal changes (a ramp, not a bar). ``weak_edge_floor`` overrides the parameter's."""
-    floor = params.weak_edge_floor if weak_edge_floor is None else weak_edge_floor
+    agree, 0 for equal changes (a ramp, not a bar). The weaker edge counts at least ``weak_edge_floor``
+    of the stronger: 0 inside the grid, where both edges must be seen; ``outer_edge_floor`` for the outer
+    frame bars."""
     g = grad.on_lattice()[rows]
     mag = np.linalg.norm(g, axis=2)
     M = g.shape[1]
@@ -191,7 +192,7 @@ def bar_evidence(
         cos = (gl * gr).sum(axis=2) / np.maximum(ml * mr, 1e-12)
         # the weaker edge counts at least ``weak_edge_floor`` of the stronger: an outer frame may border a
         # background of its own colour on one side
-        weak = np.maximum(np.minimum(ml, mr), floor * np.maximum(ml, mr))
+        weak = np.maximum(np.minimum(ml, mr), weak_edge_floor * np.maximum(ml, mr))
         e = np.pad(np.sqrt(np.maximum(ml, mr) * weak * np.clip(1 - cos, 0, 2) / 2).mean(axis=0), (h, h))
         better = e > best
         best[better], width[better] = e[better], w
