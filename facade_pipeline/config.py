@@ -93,6 +93,7 @@ class BuildingParams:
 
 #: top-level tables that only synthetic buildings have (configs/synthetic.toml): the simulator's
 SYNTHETIC_TABLES = ("synthesize",)
+SYNTHETIC_FILE = "synthetic.toml"
 
 
 @dataclass(frozen=True)
@@ -181,21 +182,37 @@ def load_building_config(building: str, directory: Path | None = None) -> Buildi
         raise ConfigError(building_file, f"a config for building {building!r} (one of: {names})", "no file")
     base = _read_toml(default_file)
     override = _read_toml(building_file)
+    synthetic_file = directory / SYNTHETIC_FILE
+    synthetic = _read_toml(synthetic_file)
     files: tuple[Path, ...] = (default_file, building_file)
     if _declared_kind(override) == "synthetic":
-        synthetic_file = directory / "synthetic.toml"
-        base = _merge(base, _read_toml(synthetic_file))
+        base = _merge(base, synthetic)
         files = (default_file, synthetic_file, building_file)
     else:
-        for table in SYNTHETIC_TABLES:
-            if table in override:
-                raise ConfigError(
-                    building_file,
-                    f'simulator keys ([{table}]) only in a building with [building] kind = "synthetic"',
-                    f"[{table}] in a real building's file",
-                )
+        key = _first_key_only_in(override, synthetic, base, "")
+        if key is not None:
+            raise ConfigError(
+                building_file,
+                f"simulator keys ([synthesize], the metrics against gt/: {SYNTHETIC_FILE}) only in a "
+                'building with [building] kind = "synthetic"',
+                f"'{key}' in a real building's file",
+            )
     _check_known_keys(override, base, building_file, "")
     return BuildingConfig(building, _merge(base, override), base, files)
+
+
+def _first_key_only_in(override: dict, synthetic: dict, default: dict, prefix: str) -> str | None:
+    """The first key of ``override`` that synthetic.toml defines and default.toml does not."""
+    for key, value in override.items():
+        if key not in synthetic:
+            continue
+        if key not in default:
+            return prefix + key
+        if isinstance(value, dict) and isinstance(synthetic[key], dict) and isinstance(default[key], dict):
+            found = _first_key_only_in(value, synthetic[key], default[key], f"{prefix}{key}.")
+            if found is not None:
+                return found
+    return None
 
 
 def _declared_kind(override: dict[str, Any]) -> Any:

@@ -56,9 +56,10 @@ class Params:
     frame_half_depth_m: NonNeg
     """Kept coarse triangles inside a part's facade outline and within this distance (m) of the glass
     surface are labelled frame (the rest: other)."""
-    metric_samples: PosInt
-    """Points sampled on a mesh for the metrics against gt/ (synthetic buildings) (-)."""
-    metric_max_match_m: Positive
+    metric_samples: PosInt | None = None
+    """Points sampled on a mesh for the metrics against gt/ (-). Synthetic buildings only (configs/
+    synthetic.toml); None: no truth to measure against."""
+    metric_max_match_m: Positive | None = None
     """Samples farther than this (m) from every true surface are left out of the metrics."""
 
 
@@ -76,6 +77,8 @@ def truth_metrics(
     panel_width_m: float,
 ) -> dict:
     """Coarse vs corrected against gt/ (synthetic buildings only; metrics, never used to build a mesh)."""
+    if params.metric_samples is None or params.metric_max_match_m is None:
+        return {}
     if not (layout.gt("glass_mesh").is_file() and layout.gt("frame_mesh").is_file()):
         return {}
     local_from_georef = invert_rigid(ImportedScene.load(layout).georef_from_local)

@@ -100,17 +100,18 @@ class Params:
     """absolute error (0-1, mean over RGB) at the top of the heat-map colour ramp"""
     report_views: Count
     """comparison images per variant embedded in the report"""
-    geometry_samples: PosInt
-    """points sampled by area on each mesh for the geometry metrics"""
-    geometry_max_match_m: Positive
-    """samples farther than this (m) from both true glass and frames are left out"""
-    gaussian_min_opacity: Fraction
-    """Gaussians less opaque than this are left out of the geometry metrics"""
     align: AlignParams
-    video: VideoParams
-    """``[evaluate.video]``: the fly-through of each model (frames = 0: none)"""
     """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
     against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
+    video: VideoParams
+    """``[evaluate.video]``: the fly-through of each model (frames = 0: none)"""
+    geometry_samples: PosInt | None = None
+    """points sampled by area on each mesh for the geometry metrics against gt/. This and the next two:
+    synthetic buildings only (configs/synthetic.toml); None: no truth to measure against"""
+    geometry_max_match_m: Positive | None = None
+    """samples farther than this (m) from both true glass and frames are left out"""
+    gaussian_min_opacity: Fraction | None = None
+    """Gaussians less opaque than this are left out of the geometry metrics"""
 
     def __post_init__(self) -> None:
         if not self.lpips_conventions:
@@ -123,9 +124,10 @@ def _truth_files(layout: BuildingLayout) -> list[Path]:
     return [layout.gt("glass_mesh"), layout.gt("frame_mesh"), layout.gt("panels")]
 
 
-def is_synthetic(layout: BuildingLayout) -> bool:
-    """Whether gt/ holds the truth the geometry metrics need."""
-    return all(p.is_file() for p in _truth_files(layout))
+def measures_geometry(layout: BuildingLayout, params: Params) -> bool:
+    """Whether the geometry is measured: the config has the metrics' settings (a synthetic building's) and
+    gt/ holds the truth they need."""
+    return params.geometry_samples is not None and all(p.is_file() for p in _truth_files(layout))
 
 
 def variants(layout: BuildingLayout, params: Params) -> list[TrainedVariant]:
@@ -186,7 +188,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
                 files += _view_files(layout, view)
     if params.video.frames > 0:  # each frame's facade mask is cast from the corrected mesh
         files += [layout.path("correct_mesh"), layout.path("correct_mesh_labels")]
-    if is_synthetic(layout):
+    if measures_geometry(layout, params):
         files += [
             layout.import_coarse_mesh,
             layout.path("correct_mesh"),
@@ -353,7 +355,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     scene = ImportedScene.load(layout)
     device = resolve_device(settings.device)
     setting = LpipsSetting(params.lpips_conventions, params.lpips_weights_dir or None)
-    truth = load_truth(*_truth_files(layout), scene.georef_from_local) if is_synthetic(layout) else None
+    geometry = measures_geometry(layout, params)
+    truth = load_truth(*_truth_files(layout), scene.georef_from_local) if geometry else None
     splits = ("test", "train") if params.render_training_views else ("test",)
     found = variants(layout, params)
     metrics = metrics_header(layout, params, found[0].params["test_every"])

@@ -50,10 +50,11 @@ def test_paper_settings_on_the_paper_buildings():
         )
 
 
-def test_every_default_parameter_has_a_comment():
-    for i, line in enumerate((config_dir() / "default.toml").read_text().splitlines(), 1):
+@pytest.mark.parametrize("name", ["default.toml", "synthetic.toml"])
+def test_every_default_parameter_has_a_comment(name):
+    for i, line in enumerate((config_dir() / name).read_text().splitlines(), 1):
         if re.match(r"^\s*[A-Za-z_][A-Za-z0-9_]*\s*=", line):
-            assert "#" in line.split("=", 1)[1], f"default.toml:{i} has no comment: {line}"
+            assert "#" in line.split("=", 1)[1], f"{name}:{i} has no comment: {line}"
 
 
 @pytest.fixture
@@ -176,7 +177,12 @@ def test_simulator_keys_only_in_a_synthetic_building(cfg_dir):
     with pytest.raises(ConfigError) as e:
         load_building_config("realsim", cfg_dir)
     msg = str(e.value)
-    assert str(p) in msg and 'kind = "synthetic"' in msg and "[synthesize]" in msg and "\n" not in msg
+    assert str(p) in msg and 'kind = "synthetic"' in msg and "'synthesize'" in msg and "\n" not in msg
+    p = _write(cfg_dir, "realsim", '[building]\nkind = "real"\n[correct_mesh]\nmetric_samples = 5\n')
+    with pytest.raises(ConfigError, match=r"correct_mesh\.metric_samples.*real building"):
+        load_building_config("realsim", cfg_dir)
+    correct_mesh = load_stage("correct_mesh").Params
+    assert load_building_config("shatin").section("correct_mesh", correct_mesh).metric_samples is None
     _write(cfg_dir, "sim", '[building]\nkind = "synthetic"\n[synthesize.cameras]\nuav_count = 5\n')
     sim = load_building_config("sim", cfg_dir)
     assert sim.tables["synthesize"]["cameras"]["uav_count"] == 5  # the building wins
