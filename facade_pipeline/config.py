@@ -254,11 +254,52 @@ RENAMED = {
     "(segment_panels.grid.outer_edge_floor sets the outer bars')",
     "regularize_corners.depth_refinement": "none: the glass depth is always the coarse points' mode, "
     "else the coarse mesh's median",
-    "rectify.warp.samples_per_side": "none: fixed at 25 (geometry/rectification.py)",
-    "import_photogrammetry.undistort_blank_pixels": "none: COLMAP's defaults (io/colmap.py)",
-    "import_photogrammetry.undistort_min_scale": "none: COLMAP's defaults (io/colmap.py)",
-    "import_photogrammetry.undistort_max_scale": "none: COLMAP's defaults (io/colmap.py)",
 }
+#: parameters that no building moved, now constants beside their use, by the file that holds them
+FIXED = {
+    "facade_pipeline/io/colmap.py": (
+        "import_photogrammetry.undistort_blank_pixels",
+        "import_photogrammetry.undistort_min_scale",
+        "import_photogrammetry.undistort_max_scale",
+    ),
+    "stages/import_photogrammetry.py": (
+        "import_photogrammetry.georef_threshold_m",
+        "import_photogrammetry.auto_up_snap_deg",
+    ),
+    "facade_pipeline/geometry/cylinder.py": (
+        "rectify.fit.ransac_iterations",
+        "rectify.fit.seed",
+        "rectify.fit.min_sagitta_rms",
+    ),
+    "facade_pipeline/geometry/rectification.py": ("rectify.warp.samples_per_side",),
+    "facade_pipeline/segmentation/panels.py": (
+        "segment_panels.min_segment_px",
+        "segment_panels.orientation_search_deg",
+        "segment_panels.orientation_tolerance_deg",
+        "segment_panels.lsd_sigma_px",
+        "segment_panels.parallax_min_bars",
+        "segment_panels.min_edge_support",
+    ),
+    "facade_pipeline/segmentation/grid.py": (
+        "segment_panels.grid.sigma_min_px",
+        "segment_panels.grid.lsd_scale",
+        "segment_panels.grid.edge_search_px",
+    ),
+    "facade_pipeline/geometry/panel_grid.py": (
+        "regularize_corners.part_link_factor",
+        "regularize_corners.cluster_gap_factor",
+        "regularize_corners.footprint_shrink",
+        "regularize_corners.border_margin_px",
+    ),
+    "facade_pipeline/geometry/regularize.py": ("regularize_corners.outlier_mad_factor",),
+    "stages/regularize_corners.py": (
+        "regularize_corners.mask_min_region_px",
+        "regularize_corners.mask_refit_iou",
+    ),
+    "facade_pipeline/evaluation/video.py": ("evaluate.video.clip_frames", "evaluate.video.clip_width_px"),
+    "stages/evaluate.py": ("evaluate.report_views",),
+}
+RENAMED |= {key: f"none: a constant in {where}" for where, keys in FIXED.items() for key in keys}
 
 
 def _check_known_keys(override: dict, default: dict, file: Path, prefix: str) -> None:

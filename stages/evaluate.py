@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import Count, Fraction, PosInt, Positive, RunSettings
+from facade_pipeline.config import Fraction, PosInt, Positive, RunSettings
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.geometry_eval import (
     Truth,
@@ -57,6 +57,8 @@ from facade_pipeline.evaluation.render_views import (
 )
 from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
 from facade_pipeline.evaluation.video import (
+    CLIP_FRAMES,
+    CLIP_WIDTH_PX,
     VideoParams,
     merge_films,
     orbit_path,
@@ -82,6 +84,8 @@ NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
 UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
 MAIN_VARIANT = "07_train"
+#: comparison images per variant embedded in the report; the others are written as PNG beside it
+REPORT_VIEWS = 4
 
 
 @dataclass(frozen=True)
@@ -98,8 +102,6 @@ class Params:
     """folder or file of the LPIPS weights; "" searches $FACADE_LPIPS_DIR, then ../shared/lpips"""
     heatmap_max_error: Positive
     """absolute error (0-1, mean over RGB) at the top of the heat-map colour ramp"""
-    report_views: Count
-    """comparison images per variant embedded in the report"""
     align: AlignParams
     """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
     against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
@@ -387,7 +389,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         frames = merge_films(films) if len(films) > 1 else films[0]
         vp = params.video
         write_mp4(layout.path("eval_video"), frames, vp.fps)
-        write_clip(layout.path("eval_clip"), frames, vp.clip_frames, vp.clip_width_px, vp.fps)
+        write_clip(layout.path("eval_clip"), frames, CLIP_FRAMES, CLIP_WIDTH_PX, vp.fps)
         metrics["video"] = {
             "variants": [v.name for v in found],
             "frames": len(frames),
@@ -414,7 +416,7 @@ def _render_rgb(tm, camera, facade_mask):
 
 def write_reports(layout: BuildingLayout, params: Params, metrics: dict[str, Any]) -> list[Path]:
     """``metrics.json`` and the report (Markdown linking the comparison images, HTML embedding them)."""
-    images = _report_images(layout, metrics, params.report_views)
+    images = _report_images(layout, metrics, REPORT_VIEWS)
     report_dir = layout.path("eval_report_md").parent
     write_json(layout.path("eval_metrics"), metrics)
     write_text(

@@ -35,6 +35,11 @@ from facade_pipeline.scene import ImportedScene
 from stages import PIPELINE
 from stages._runner import StageReport, main
 
+#: panel-mask regions smaller than this (px) are specks (a hand edit's stray stroke), not panels: ignored
+MASK_MIN_REGION_PX = 8
+#: a panel whose quadrilateral overlaps its mask region with an IoU below this (0-1) is refitted from the
+#: mask: the mask, which a person may have edited, wins where the two disagree
+MASK_REFIT_IOU = 0.6
 NAME = "regularize_corners"
 DOC = "3D panel models: ray-cast segmented corners onto the coarse mesh, merge, regularise rows and columns"
 # segment_panels writes the corners and masks; until it is part of the pipeline they are read as they are.
@@ -91,7 +96,7 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
         vc = read_view_corners(cpath, v.camera.width, v.camera.height)
         mask = read_mask(mpath)
         found, stats = reconcile_with_mask(
-            vc.quads if vc.facade_found else (), mask, params.mask_min_region_px, params.mask_refit_iou
+            vc.quads if vc.facade_found else (), mask, MASK_MIN_REGION_PX, MASK_REFIT_IOU
         )
         if stats["merged"]:
             raise InputError(

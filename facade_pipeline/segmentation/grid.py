@@ -6,7 +6,7 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
 
 - prior (structural regularities of curtain walls): repeated spacing, ``c_k = c_0 + k p + delta_k`` with
   one pitch ``p`` (panels of equal size) and small deviations ``delta_k ~ N(0, sigma^2)``,
-  ``sigma = max(sigma_min_px, sigma_frac p)``; the lines of the family run across the whole grid (corners
+  ``sigma = max(SIGMA_MIN_PX, sigma_frac p)``; the lines of the family run across the whole grid (corners
   aligned in rows and columns); ``p`` uniform in [min_pitch_m, max_pitch_m] (in pixels of the image at its
   scale, at most the image size); the bars form one contiguous
   run of indices ``k`` (no holes in a facade); each line costs ``line_cost`` nats (prior odds against a
@@ -20,7 +20,7 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
   E_l(c) = sqrt(S(c - w/2) S(c + w/2)) / length.
   A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
   is small (glass reflects a varying scene). The log-likelihood ratio of a bar at c is
-  ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / lsd_scale) - v(c) / uniformity_scale``,
+  ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / LSD_SCALE) - v(c) / uniformity_scale``,
   ``w`` the best width in [min_bar_m, max_bar_m] (in pixels at the image's scale).
 
 MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) - line_cost]`` over ``p``,
@@ -48,6 +48,16 @@ from facade_pipeline.config import Fraction, NonNeg, Positive
 from facade_pipeline.errors import ConfigError
 
 STEP_PX = 0.5  # lattice of bar-centre hypotheses (px)
+# Image-precision constants of the grid model, which hold at any facade scale since the view is segmented
+# at a fixed bar width in pixels (``SegmentParams.work_bar_px``); no building ever needed other values, and
+# the segmentation benchmarks (benchmarks/RESULTS.md) were measured with these.
+#: a bar's deviation from the regular grid has a std of at least this (px): the lattice step, whatever the
+#: pitch
+SIGMA_MIN_PX = 0.5
+#: LSD line support (fraction of the grid's length covered by segments) that counts as strong (-)
+LSD_SCALE = 0.25
+#: a bar edge is searched this far (px) around its MAP position: the lattice step and one pixel
+EDGE_SEARCH_PX = 1.5
 
 
 @dataclass(frozen=True)
@@ -58,8 +68,6 @@ class GridParams:
     """Largest panel pitch (m on the facade) considered."""
     sigma_frac: NonNeg
     """Std of a bar's deviation from the regular grid, as a fraction of the pitch (-)."""
-    sigma_min_px: Positive
-    """... but at least this (px)."""
     line_cost: NonNeg
     """Prior cost of one grid line (nats): the evidence a bar must bring to be accepted."""
     min_bar_m: Positive
@@ -68,10 +76,6 @@ class GridParams:
     """Widest frame bar (m on the facade)."""
     lsd_weight: NonNeg
     """Weight of the LSD line-support term against the gradient term (-)."""
-    lsd_scale: Positive
-    """Line support (fraction of the grid's length covered by LSD segments) that counts as strong (-)."""
-    edge_search_px: Positive
-    """A bar edge is searched this far (px) around its MAP position."""
     outer_edge_floor: Fraction
     """The weaker edge of an outer frame bar, one pitch beyond either end of the MAP run, counts at least
     this fraction of the stronger (an outer frame may meet a background of its colour) (-)."""
@@ -218,7 +222,7 @@ def log_likelihood(
     background = float(np.median(e_grad)) + 1e-6
     ll = (
         np.log1p(e_grad / background)
-        + params.lsd_weight * np.log1p(e_lsd / params.lsd_scale)
+        + params.lsd_weight * np.log1p(e_lsd / LSD_SCALE)
         - uniformity / params.uniformity_scale
     )
     if colour_distance is not None and params.frame_colour_scale > 0:
@@ -276,7 +280,7 @@ def map_family(
     M = len(ll)
     best: tuple[float, np.ndarray, float] | None = None
     for pitch in np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX):
-        sigma = max(params.sigma_min_px, params.sigma_frac * pitch)
+        sigma = max(SIGMA_MIN_PX, params.sigma_frac * pitch)
         relaxed, delta = _relaxed(ll, sigma)
         k = np.arange(int(size / pitch) + 2)
         phases = np.arange(0.0, pitch, STEP_PX)
@@ -307,7 +311,7 @@ def _with_outer_frames(
     background of its own colour: its edge on the glass side only) one pitch beyond the end, relaxed as
     in the prior, pays for the line (module docstring)."""
     M = len(ll_outer)
-    sigma = max(params.sigma_min_px, params.sigma_frac * fit.pitch)
+    sigma = max(SIGMA_MIN_PX, params.sigma_frac * fit.pitch)
     relaxed, delta = _relaxed(ll_outer, sigma)
     centres, widths, score = list(fit.centres), list(fit.widths), fit.score
     for end, sign in ((-1, 1.0), (0, -1.0)):
