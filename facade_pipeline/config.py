@@ -1,6 +1,18 @@
-"""One config system: ``configs/default.toml`` holds every parameter of every stage; a building's
-``configs/buildings/<name>.toml`` overrides some of them. Each stage reads its section into one frozen
-dataclass. An unknown key, a missing key or a wrong type is a ``ConfigError`` naming the key and the file.
+"""One config system: ``configs/default.toml`` holds every parameter of every stage; for a building with
+``[building] kind = "synthetic"`` only, ``configs/synthetic.toml`` (the simulator's ``[synthesize]`` and the
+metrics against its truth) is merged over it; a building's ``configs/buildings/<name>.toml`` overrides
+either. Each stage reads its section into one frozen dataclass. An unknown key, a missing key or a wrong
+type is a ``ConfigError`` naming the key and the file; so is a simulator key in a real building's file, and
+an old key (``RENAMED``), which names what replaced it.
+
+The ``[run]`` table (``RunSettings``: device, rasterizer backend, logging, checkpoints, overlay size) says
+how the stages run, never what they compute. No stage's parameters hold it, so doit's ``config_changed`` and
+train_gs's checkpoint fingerprint, which read the parameters, never see it: changing it reruns nothing.
+
+One source of defaults: the TOML files. The params dataclasses declare types and ranges, not values; the
+only field defaults are ``None`` for settings that exist for synthetic buildings alone (absent for a real
+one) and a planar part's ``radius_m = 0`` in an array of parts (arrays replace the default whole). Numbers
+no building moves are named constants beside their use, each saying where its value comes from.
 
 Merging: tables merge key by key; any other value (arrays of tables included) replaces the default whole.
 
