@@ -179,6 +179,8 @@ def test_config_errors_are_one_line_with_exit_code_2(real):
     for extra, words in [
         ("[train_gs]\niteratons = 3\n", "unknown key 'train_gs.iteratons'"),
         ("[train_gs]\niterations = -5\n", "'train_gs.iterations' >= 1"),
+        ("[train_gs]\ndevice = \"cuda\"\n", "replaced by run.device"),
+        ("[synthesize]\nseed = 1\n", 'kind = "synthetic"'),
     ]:
         toml.write_text('[building]\nkind = "real"\ndescription = "test"\n' + extra)
         out = _doit(["building=faults"], env, layout.data_root, check=False)
