@@ -32,7 +32,7 @@ from doit.exceptions import BaseFail, TaskError, TaskFailed
 from doit.reporter import ConsoleReporter
 from doit.tools import config_changed
 
-from facade_pipeline.config import load_building_config, result_dict
+from facade_pipeline.config import load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.lock import acquire
 from facade_pipeline.layout import BuildingLayout
@@ -192,7 +192,8 @@ def _stage_tasks(name):
         "file_dep": [str(p) for p in source_files(stage)] + [str(LAYOUT.manifest(u)) for u in upstream],
         "targets": [str(p) for p in stage.targets(LAYOUT, params)] + [str(LAYOUT.manifest(name))],
         "uptodate": [
-            config_changed(result_dict(params, getattr(stage, "RUN_ONLY", ()))),
+            # [run] is not in params: a run setting reruns nothing
+            config_changed(to_dict(params)),
             _outputs_intact(stage),
         ],
         "clean": True,

@@ -103,9 +103,7 @@ def sweep(quick: bool) -> list[tuple[str, dict[str, Any]]]:
 def base_params(building: str, quick: bool) -> TrainParams:
     """The building's train_gs parameters; the quick sweep shortens the run (middle of its iterations)."""
     p = load_building_config(building).section("train_gs", TrainParams)
-    if quick:
-        p = dataclasses.replace(p, iterations=40, checkpoint_every=0, log_every=0)
-    return dataclasses.replace(p, checkpoint_every=0)
+    return dataclasses.replace(p, iterations=40) if quick else p
 
 
 def apply(p: TrainParams, changes: dict[str, Any]) -> TrainParams:
@@ -156,12 +154,13 @@ def child(
     full = train_stage.load_train_data(layout, p)
     scale = float(changes.get("scale", 1.0))
     data = TrainData(tuple(downscale(v, scale) for v in full.views), full.train_idx, full.test_idx, full.init)
-    device = resolve_device(p.device)
+    run = load_building_config(building).run
+    device = resolve_device(run.device)
     t0 = time.perf_counter()
-    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend, p.lowpass_sigma_px), device)
+    tr = build_trainer(p, data, splatting_rasterizer(run.raster_backend, p.lowpass_sigma_px), device)
     train(tr)
     t_train = time.perf_counter() - t0
-    tm = from_trainer(tr, label)
+    tm = from_trainer(tr, label, run.raster_backend)
     t0 = time.perf_counter()
     mean = evaluate_views(tm, views_of(full, full.test_idx), LpipsSetting((LPIPS_CONVENTION,)))["mean"]
     t_eval = time.perf_counter() - t0

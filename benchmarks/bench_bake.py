@@ -33,6 +33,11 @@ from facade_pipeline.geometry.raycast import MeshRaycaster  # noqa: E402
 from facade_pipeline.io.meshes import read_mesh  # noqa: E402
 
 W, H, CHUNK = 1024, 768, 262144
+# The targets of the mesh correction on glass against gt/ (synthetic buildings): a mean normal error of at
+# most 1 deg and a mean distance of at most 1 % of the median panel width. A benchmark's yardstick, not a
+# parameter: the stage reports the errors and the panel width, this script says whether they meet it.
+TARGET_NORMAL_ERROR_DEG = 1.0
+TARGET_DISTANCE_FRACTION = 0.01
 
 
 def load_mesh(data_root: str | None) -> tuple[np.ndarray, np.ndarray, str]:
@@ -97,6 +102,17 @@ def run_child(n: int, data_root: str | None) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def targets_met(corrected: dict, panel_width_m: float) -> bool:
+    """Whether the corrected mesh's glass errors (``truth.corrected`` of its manifest) meet the targets."""
+    normal, distance = corrected["glass_normal_error_mean_deg"], corrected["glass_distance_mean_m"]
+    return (
+        normal is not None
+        and normal <= TARGET_NORMAL_ERROR_DEG
+        and distance is not None
+        and distance <= TARGET_DISTANCE_FRACTION * panel_width_m
+    )
+
+
 def correction_rows(data_root: str | None) -> list[str]:
     rows = []
     for man in sorted(Path(data_root or "/nonexistent").glob("*/05_correct_mesh/manifest.json")):
@@ -120,7 +136,7 @@ def correction_rows(data_root: str | None) -> list[str]:
             )
         ]
         deg = [pair(k_, 1, "{:.2f}") for k_ in ("glass_normal_error_mean_deg", "glass_normal_error_p95_deg")]
-        met = "yes" if t["target_glass_normal_met"] and t["target_glass_distance_met"] else "no"
+        met = "yes" if targets_met(k, t["panel_width_m"]) else "no"
         reg = json.loads((man.parents[1] / "04_regularize" / "manifest.json").read_text())["metrics"]
         bake = man.parents[1] / "06_bake_normals" / "manifest.json"
         bt = json.loads(bake.read_text())["metrics"].get("truth", {}) if bake.is_file() else {}
@@ -178,7 +194,8 @@ def main() -> None:
     if rows:
         lines += [
             "\nMesh correction against gt/ (coarse / corrected; distances in cm, angles in degrees; target: "
-            "glass normal mean <= 1 deg and glass distance mean <= 1 % of the panel width):\n",
+            f"glass normal mean <= {TARGET_NORMAL_ERROR_DEG:g} deg and glass distance mean <= "
+            f"{100 * TARGET_DISTANCE_FRACTION:g} % of the panel width):\n",
             "| building | 03_segment from | 3D panels / true | glass dist mean | glass dist p95 "
             "| frame dist mean | frame dist p95 | glass normal mean | glass normal p95 | panel width m "
             "| targets met | glass-mask IoU mean / min (bake) |",

@@ -159,7 +159,6 @@ def main() -> None:
             "mlp_max_pixels": base.mlp_max_pixels if a.mlp_max_pixels < 0 else a.mlp_max_pixels,
             "init_max_points": a.init_points or base.init_max_points,
             "init_mesh_samples": a.init_points or base.init_mesh_samples,
-            "checkpoint_every": 0,
             "reflection.mlp.width": a.mlp_width or mlp.width,
             "reflection.mlp.depth": a.mlp_depth or mlp.depth,
             "supersample": a.supersample or base.supersample,
@@ -173,7 +172,7 @@ def main() -> None:
         print(f"wrote {a.save_bundle} ({len(data.views)} views; prior: {prior})")
         return
     device = resolve_device(a.device)
-    raster = splatting_rasterizer(base.raster_backend, base.lowpass_sigma_px)
+    raster = splatting_rasterizer(cfg.run.raster_backend, base.lowpass_sigma_px)
     rows = []
     for name, p in variants(base):
         if a.only and name not in a.only.split(","):

@@ -1,6 +1,18 @@
-"""One config system: ``configs/default.toml`` holds every parameter of every stage; a building's
-``configs/buildings/<name>.toml`` overrides some of them. Each stage reads its section into one frozen
-dataclass. An unknown key, a missing key or a wrong type is a ``ConfigError`` naming the key and the file.
+"""One config system: ``configs/default.toml`` holds every parameter of every stage; for a building with
+``[building] kind = "synthetic"`` only, ``configs/synthetic.toml`` (the simulator's ``[synthesize]`` and the
+metrics against its truth) is merged over it; a building's ``configs/buildings/<name>.toml`` overrides
+either. Each stage reads its section into one frozen dataclass. An unknown key, a missing key or a wrong
+type is a ``ConfigError`` naming the key and the file; so is a simulator key in a real building's file, and
+an old key (``RENAMED``), which names what replaced it.
+
+The ``[run]`` table (``RunSettings``: device, rasterizer backend, logging, checkpoints, overlay size) says
+how the stages run, never what they compute. No stage's parameters hold it, so doit's ``config_changed`` and
+train_gs's checkpoint fingerprint, which read the parameters, never see it: changing it reruns nothing.
+
+One source of defaults: the TOML files. The params dataclasses declare types and ranges, not values; the
+only field defaults are ``None`` for settings that exist for synthetic buildings alone (absent for a real
+one) and a planar part's ``radius_m = 0`` in an array of parts (arrays replace the default whole). Numbers
+no building moves are named constants beside their use, each saying where its value comes from.
 
 Merging: tables merge key by key; any other value (arrays of tables included) replaces the default whole.
 
@@ -91,6 +103,34 @@ class BuildingParams:
     """One line for people."""
 
 
+#: top-level tables that only synthetic buildings have (configs/synthetic.toml): the simulator's
+SYNTHETIC_TABLES = ("synthesize",)
+SYNTHETIC_FILE = "synthetic.toml"
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The ``[run]`` table: how the stages run, never what they compute. No stage's parameters hold these,
+    so doit's ``config_changed`` and train_gs's checkpoint fingerprint never see them: changing one reruns
+    nothing and keeps a checkpoint (a run begun on the CPU resumes on a GPU)."""
+
+    device: Literal["cpu", "cuda", "auto"]
+    """where train_gs trains and evaluate renders (``auto``: CUDA when available)"""
+    raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
+    """the rasterizer's implementation (``splatting.render_2dgs``), in training and in every render"""
+    log_every: Count
+    """iterations between train_gs's training-log lines (0: none)"""
+    checkpoint_every: Count
+    """iterations between train_gs's checkpoints (0: only at the end)"""
+    overlay_scale: Positive
+    """rectify's and segment_panels' overlay images are drawn this many times the view's size"""
+
+
+def default_run_settings(directory: Path | None = None) -> RunSettings:
+    """``[run]`` of ``default.toml`` alone: what a stage runs with when no building says otherwise."""
+    return default_params("run", RunSettings, directory)
+
+
 @dataclass(frozen=True)
 class BuildingConfig:
     """The merged configuration of one building, with the files it came from."""
@@ -99,31 +139,43 @@ class BuildingConfig:
     tables: dict[str, Any]
     """The merged tables."""
     default_tables: dict[str, Any]
-    """default.toml alone, to tell which file a bad value came from."""
-    files: tuple[Path, Path]
-    """(default.toml, buildings/<name>.toml)"""
+    """default.toml (merged with synthetic.toml for a synthetic building) alone, to tell which file a bad
+    value came from."""
+    files: tuple[Path, ...]
+    """(default.toml, [synthetic.toml,] buildings/<name>.toml)"""
 
     @property
     def building(self) -> BuildingParams:
         return self.section("building", BuildingParams)
 
+    @property
+    def run(self) -> RunSettings:
+        """The ``[run]`` table: how the stages run, never what they compute."""
+        return self.section("run", RunSettings)
+
     def section(self, name: str, cls: type[T]) -> T:
         """Section ``name`` (dotted for a nested table: ``evaluate.align``) as an instance of the frozen
         dataclass ``cls``."""
         default, merged = self.default_tables, self.tables
+        base_file = self._base_file(name.split(".")[0])
         for key in name.split("."):
             if not isinstance(default.get(key), dict):
-                raise ConfigError(self.files[0], f"a [{name}] section", "none")
+                raise ConfigError(base_file, f"a [{name}] section", "none")
             default, merged = default[key], merged[key]
-        _build(cls, default, name, (self.files[0],))
-        # default.toml is valid on its own, so whatever fails now came from the building's file
+        _build(cls, default, name, (base_file,))
+        # the base files are valid on their own, so whatever fails now came from the building's file
         # (a dataclass's own cross-field check raises without a file: name it here).
         try:
-            return _build(cls, merged, name, (self.files[1],))
+            return _build(cls, merged, name, (self.files[-1],))
         except ConfigError as e:
             if e.path is not None:
                 raise
-            raise ConfigError(self.files[1], e.expected, e.found) from None
+            raise ConfigError(self.files[-1], e.expected, e.found) from None
+
+    def _base_file(self, table: str) -> Path:
+        """The base file that defines top-level ``table``: synthetic.toml for [synthesize], else
+        default.toml."""
+        return self.files[1] if table in SYNTHETIC_TABLES and len(self.files) == 3 else self.files[0]
 
 
 def available_buildings(directory: Path | None = None) -> list[str]:
@@ -132,17 +184,52 @@ def available_buildings(directory: Path | None = None) -> list[str]:
 
 
 def load_building_config(building: str, directory: Path | None = None) -> BuildingConfig:
-    """Read ``default.toml`` and ``buildings/<building>.toml`` and merge them (building wins)."""
+    """Read ``default.toml``, for a synthetic building ``synthetic.toml`` over it, and
+    ``buildings/<building>.toml`` over both (building wins)."""
     directory = directory or config_dir()
     default_file = directory / "default.toml"
     building_file = directory / "buildings" / f"{building}.toml"
     if not building_file.is_file():
         names = ", ".join(available_buildings(directory)) or "none"
         raise ConfigError(building_file, f"a config for building {building!r} (one of: {names})", "no file")
-    default = _read_toml(default_file)
+    base = _read_toml(default_file)
     override = _read_toml(building_file)
-    _check_known_keys(override, default, building_file, "")
-    return BuildingConfig(building, _merge(default, override), default, (default_file, building_file))
+    synthetic_file = directory / SYNTHETIC_FILE
+    synthetic = _read_toml(synthetic_file)
+    files: tuple[Path, ...] = (default_file, building_file)
+    if _declared_kind(override) == "synthetic":
+        base = _merge(base, synthetic)
+        files = (default_file, synthetic_file, building_file)
+    else:
+        key = _first_key_only_in(override, synthetic, base, "")
+        if key is not None:
+            raise ConfigError(
+                building_file,
+                f"simulator keys ([synthesize], the metrics against gt/: {SYNTHETIC_FILE}) only in a "
+                'building with [building] kind = "synthetic"',
+                f"'{key}' in a real building's file",
+            )
+    _check_known_keys(override, base, building_file, "")
+    return BuildingConfig(building, _merge(base, override), base, files)
+
+
+def _first_key_only_in(override: dict, synthetic: dict, default: dict, prefix: str) -> str | None:
+    """The first key of ``override`` that synthetic.toml defines and default.toml does not."""
+    for key, value in override.items():
+        if key not in synthetic:
+            continue
+        if key not in default:
+            return prefix + key
+        if isinstance(value, dict) and isinstance(synthetic[key], dict) and isinstance(default[key], dict):
+            found = _first_key_only_in(value, synthetic[key], default[key], f"{prefix}{key}.")
+            if found is not None:
+                return found
+    return None
+
+
+def _declared_kind(override: dict[str, Any]) -> Any:
+    table = override.get("building")
+    return table.get("kind") if isinstance(table, dict) else None
 
 
 def _read_toml(path: Path) -> dict[str, Any]:
@@ -155,7 +242,8 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(path, "valid TOML", f"a syntax error ({e})") from None
 
 
-# Keys that were replaced, with what replaces them: a config that still has one gets the replacement named.
+# Keys that were replaced or moved, with what replaces them: a config that still has one gets the
+# replacement named (one mechanism for every old key).
 RENAMED = {
     "rectify.warp.planar_shift_px": "none: every view is rectified (rectify.metres_per_px sets the scale)",
     "segment_panels.min_partial_px": "segment_panels.min_partial_m (metres on the facade)",
@@ -206,7 +294,68 @@ RENAMED = {
         )
         for key in keys
     },
+    # run-only settings live in [run], where no stage's parameters (and so no rerun) can see them
+    "train_gs.device": "run.device",
+    "train_gs.raster_backend": "run.raster_backend",
+    "train_gs.log_every": "run.log_every",
+    "train_gs.checkpoint_every": "run.checkpoint_every",
+    "evaluate.device": "run.device",
+    "rectify.overlay_scale": "run.overlay_scale",
+    "segment_panels.overlay_scale": "run.overlay_scale",
+    # fixed choices and benchmark yardsticks, no longer parameters
+    "correct_mesh.removal": "none: a coarse triangle with any vertex in a panel's cuboid is removed",
+    "correct_mesh.target_normal_error_deg": "none: the target is benchmarks/bench_bake.py's",
+    "correct_mesh.target_distance_fraction": "none: the target is benchmarks/bench_bake.py's",
+    "segment_panels.grid.weak_edge_floor": "none: both edges of an inner frame bar count as seen "
+    "(segment_panels.grid.outer_edge_floor sets the outer bars')",
+    "regularize_corners.depth_refinement": "none: the glass depth is always the coarse points' mode, "
+    "else the coarse mesh's median",
 }
+#: parameters that no building moved, now constants beside their use, by the file that holds them
+FIXED = {
+    "facade_pipeline/io/colmap.py": (
+        "import_photogrammetry.undistort_blank_pixels",
+        "import_photogrammetry.undistort_min_scale",
+        "import_photogrammetry.undistort_max_scale",
+    ),
+    "stages/import_photogrammetry.py": (
+        "import_photogrammetry.georef_threshold_m",
+        "import_photogrammetry.auto_up_snap_deg",
+    ),
+    "facade_pipeline/geometry/cylinder.py": (
+        "rectify.fit.ransac_iterations",
+        "rectify.fit.seed",
+        "rectify.fit.min_sagitta_rms",
+    ),
+    "facade_pipeline/geometry/rectification.py": ("rectify.warp.samples_per_side",),
+    "facade_pipeline/segmentation/panels.py": (
+        "segment_panels.min_segment_px",
+        "segment_panels.orientation_search_deg",
+        "segment_panels.orientation_tolerance_deg",
+        "segment_panels.lsd_sigma_px",
+        "segment_panels.parallax_min_bars",
+        "segment_panels.min_edge_support",
+    ),
+    "facade_pipeline/segmentation/grid.py": (
+        "segment_panels.grid.sigma_min_px",
+        "segment_panels.grid.lsd_scale",
+        "segment_panels.grid.edge_search_px",
+    ),
+    "facade_pipeline/geometry/panel_grid.py": (
+        "regularize_corners.part_link_factor",
+        "regularize_corners.cluster_gap_factor",
+        "regularize_corners.footprint_shrink",
+        "regularize_corners.border_margin_px",
+    ),
+    "facade_pipeline/geometry/regularize.py": ("regularize_corners.outlier_mad_factor",),
+    "stages/regularize_corners.py": (
+        "regularize_corners.mask_min_region_px",
+        "regularize_corners.mask_refit_iou",
+    ),
+    "facade_pipeline/evaluation/video.py": ("evaluate.video.clip_frames", "evaluate.video.clip_width_px"),
+    "stages/evaluate.py": ("evaluate.report_views",),
+}
+RENAMED |= {key: f"none: a constant in {where}" for where, keys in FIXED.items() for key in keys}
 
 
 def _check_known_keys(override: dict, default: dict, file: Path, prefix: str) -> None:
@@ -239,13 +388,6 @@ def from_dict(cls: type[T], table: dict[str, Any], where: str = "", file: Path |
 def to_dict(params: Any) -> dict[str, Any]:
     """The plain-dict form of a params dataclass (tuples become lists), for manifests and doit."""
     return _plain(dataclasses.asdict(params))
-
-
-def result_dict(params: Any, run_only: tuple[str, ...] = ()) -> dict[str, Any]:
-    """``to_dict(params)`` without the keys that only say how a run goes (where it runs, how often it
-    logs or saves): what a result depends on, so changing one of those neither reruns a stage nor drops
-    a checkpoint."""
-    return {k: v for k, v in to_dict(params).items() if k not in run_only}
 
 
 def _plain(x: Any) -> Any:

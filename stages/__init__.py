@@ -4,9 +4,10 @@
 - ``UPSTREAM``: the stages whose outputs it reads (its code version is derived from its imports);
 - ``inputs(layout, params)``: the exact files it reads, validated (missing ones raise ``InputError``);
 - ``targets(layout, params)``: the outputs whose names are known before it runs;
-- ``run(layout, params) -> StageReport``: does the work, writing every output atomically;
+- ``run(layout, params, settings) -> StageReport``: does the work, writing every output atomically;
+  ``settings`` is the ``[run]`` table (``config.RunSettings``: device, logging, checkpoints, overlay
+  size), which no ``Params`` holds, so that changing one reruns nothing;
 - optionally ``EDITABLE``: layout entries of its outputs that a person may edit (not taken for damage);
-- optionally ``RUN_ONLY``: parameters that change how it runs, not its result (a change reruns nothing);
 - a CLI: ``python -m stages <name> --building NAME`` (or ``python -m stages.<name>``).
 
 ``stages._runner.execute`` wraps ``run`` with the contract (manifest last, stale files removed) and is

@@ -19,7 +19,7 @@ from types import ModuleType
 from typing import Any
 
 import facade_pipeline
-from facade_pipeline.config import load_building_config, to_dict
+from facade_pipeline.config import RunSettings, default_run_settings, load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.atomic import remove_stale_temporaries, write_json
 from facade_pipeline.io.lock import acquire, release
@@ -100,8 +100,16 @@ def load_params(stage: ModuleType, building: str) -> Any:
     return load_building_config(building).section(stage.NAME, stage.Params)
 
 
-def execute(stage: ModuleType, layout: BuildingLayout, params: Any) -> dict[str, Any]:
-    """Run ``stage`` under the contract and return its manifest."""
+def load_settings(building: str) -> RunSettings:
+    return load_building_config(building).run
+
+
+def execute(
+    stage: ModuleType, layout: BuildingLayout, params: Any, settings: RunSettings | None = None
+) -> dict[str, Any]:
+    """Run ``stage`` under the contract and return its manifest. ``settings``: the ``[run]`` table (how it
+    runs; default.toml's when None), kept out of the manifest's parameters as out of doit's."""
+    settings = settings or default_run_settings()
     manifest_path = layout.manifest(stage.NAME)
     previous = _previous_outputs(layout, stage.NAME)
     manifest_path.unlink(missing_ok=True)
@@ -110,7 +118,7 @@ def execute(stage: ModuleType, layout: BuildingLayout, params: Any) -> dict[str,
         remove_stale_temporaries(folder)
     inputs = stage.inputs(layout, params)
     t0 = time.perf_counter()
-    report: StageReport = stage.run(layout, params)
+    report: StageReport = stage.run(layout, params, settings)
     wall = time.perf_counter() - t0
     outputs = {layout.relative(p) for p in report.outputs}
     _remove_stale_outputs(layout, stage.NAME, folders, previous, outputs)
@@ -185,8 +193,9 @@ def main(stage: ModuleType, argv: list[str] | None = None) -> int:
     try:
         layout = BuildingLayout.for_building(args.building, args.data_root)
         params = load_params(stage, args.building)
+        settings = load_settings(args.building)
         lock = acquire(layout.lock) if layout.root.is_dir() else None
-        manifest = execute(stage, layout, params)
+        manifest = execute(stage, layout, params, settings)
     except PipelineError as e:
         print(f"{stage.NAME}: {e}", file=sys.stderr)
         return 2

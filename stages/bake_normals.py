@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.bake.maps import BakedPrior, bake_view
-from facade_pipeline.config import PosInt
+from facade_pipeline.config import PosInt, RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.meshes import read_mesh
@@ -75,7 +75,7 @@ def _truth(
     return err, float(iou), float(iou_f)
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.path("correct_mesh"))
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))

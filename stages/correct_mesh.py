@@ -14,11 +14,11 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import numpy as np
 
-from facade_pipeline.config import Degrees, Fraction, NonNeg, PosInt, Positive, Range
+from facade_pipeline.config import Fraction, NonNeg, PosInt, Positive, Range, RunSettings
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import write_image
 from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
@@ -49,8 +49,6 @@ class Params:
     1 puts the whole glass back, running on under the kept frames, so no gap is left around it."""
     cuboid_half_depth_m: Positive
     """The coarse mesh within this distance (m) of a shrunk panel along its normal is removed."""
-    removal: Literal["any_vertex", "centroid", "all_vertices"]
-    """A coarse triangle is inside a cuboid when any vertex, its centroid, or all vertices are."""
     max_facet_deg: Annotated[float, Range(0.0, 180.0, low_open=True)]
     """Panels on cylindrical parts are split into flat facets spanning at most this angle (deg)."""
     panel_color: tuple[Fraction, Fraction, Fraction]
@@ -58,14 +56,11 @@ class Params:
     frame_half_depth_m: NonNeg
     """Kept coarse triangles inside a part's facade outline and within this distance (m) of the glass
     surface are labelled frame (the rest: other)."""
-    metric_samples: PosInt
-    """Points sampled on a mesh for the metrics against gt/ (synthetic buildings) (-)."""
-    metric_max_match_m: Positive
+    metric_samples: PosInt | None = None
+    """Points sampled on a mesh for the metrics against gt/ (-). Synthetic buildings only (configs/
+    synthetic.toml); None: no truth to measure against."""
+    metric_max_match_m: Positive | None = None
     """Samples farther than this (m) from every true surface are left out of the metrics."""
-    target_normal_error_deg: Degrees
-    """Target: mean normal error on glass (deg) of the corrected mesh."""
-    target_distance_fraction: NonNeg
-    """Target: mean surface distance on glass as a fraction of the median panel width (-)."""
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -82,6 +77,8 @@ def truth_metrics(
     panel_width_m: float,
 ) -> dict:
     """Coarse vs corrected against gt/ (synthetic buildings only; metrics, never used to build a mesh)."""
+    if params.metric_samples is None or params.metric_max_match_m is None:
+        return {}
     if not SyntheticTruth.available(layout, "glass_mesh", "frame_mesh"):
         return {}
     gt = SyntheticTruth.load(layout)
@@ -90,16 +87,7 @@ def truth_metrics(
         name: surface_errors(v, f, *truth, params.metric_samples, params.metric_max_match_m)
         for name, (v, f) in meshes.items()
     }
-    c = out["corrected"]
-    out["panel_width_m"] = round(panel_width_m, 4)
-    out["target_glass_normal_met"] = bool(
-        c["glass_normal_error_mean_deg"] is not None
-        and c["glass_normal_error_mean_deg"] <= params.target_normal_error_deg
-    )
-    out["target_glass_distance_met"] = bool(
-        c["glass_distance_mean_m"] is not None
-        and c["glass_distance_mean_m"] <= params.target_distance_fraction * panel_width_m
-    )
+    out["panel_width_m"] = round(panel_width_m, 4)  # the scale of benchmarks/bench_bake.py's targets
     return {"truth": out}
 
 
@@ -117,7 +105,7 @@ def _overlay(layout: BuildingLayout, coarse: tuple, fixed: tuple, labels) -> Non
 NO_PANELS = "no panels: no mesh correction (the coarse mesh is the facade)"
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     coarse = read_mesh(layout.import_coarse_mesh)
     panels = PanelSet.load(layout.path("regularize_panels"))
     v, f = np.asarray(coarse.vertices), np.asarray(coarse.triangles)
@@ -128,7 +116,6 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
         params.shrink_factor,
         params.cuboid_half_depth_m,
         params.max_facet_deg,
-        params.removal,
         params.insert_factor,
     )
     labels = label_triangles(

@@ -18,13 +18,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.building import (
     EvaluateParams,
     evaluate_split,
     facade_masker,
     gaussian_geometry,
-    is_synthetic,
+    measures_geometry,
     metrics_header,
     renderer,
     scene_geometry,
@@ -49,8 +50,6 @@ from stages._runner import StageReport, main
 NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
 UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
-#: where the renders run changes no figure beyond rounding: a change reruns nothing
-RUN_ONLY: tuple[str, ...] = ("device",)
 Params = EvaluateParams
 
 
@@ -68,7 +67,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
                 files += view_files(layout, view)
     if params.video.frames > 0:  # each frame's facade mask is cast from the corrected mesh
         files += [layout.path("correct_mesh"), layout.path("correct_mesh_labels")]
-    if is_synthetic(layout):
+    if measures_geometry(layout, params):
         files += [
             layout.import_coarse_mesh,
             layout.path("correct_mesh"),
@@ -86,13 +85,17 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
     return [layout.path(k) for k in ("eval_metrics", "eval_report_md", "eval_report_html", *video)]
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # an earlier run's report must not pass for this one's while it runs, or after it is killed
     for path in targets(layout, params):
         path.unlink(missing_ok=True)
     scene = ImportedScene.load(layout)
-    device = resolve_device(params.device)
-    truth = load_truth(*truth_files(layout), scene.georef_from_local) if is_synthetic(layout) else None
+    device = resolve_device(settings.device)
+    truth = (
+        load_truth(*truth_files(layout), scene.georef_from_local)
+        if measures_geometry(layout, params)
+        else None
+    )
     found = trained_models(layout, params)
     metrics = metrics_header(layout, params, found[0].params["test_every"])
     outputs: list[Path] = []
@@ -103,7 +106,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     n_views = sum(len(views) for j in jobs.values() for _, views in j) + len(path) * len(found)
     with tqdm(total=n_views, desc="evaluate", unit="view", file=sys.stderr) as bar:
         for v in found:
-            tm = load_trained(v, device)
+            tm = load_trained(v, device, settings.raster_backend)
             if path:
                 films.append(render_path(path, renderer(tm), facade_mask, bar.update))
             entry = variant_entry(v, tm)

@@ -17,8 +17,8 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from facade_pipeline.config import Fraction, NonNeg, Positive, Range
-from facade_pipeline.errors import ConfigError, InputError
+from facade_pipeline.config import Fraction, NonNeg, Range, RunSettings
+from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.frames import (
     AXES,
     estimate_up_from_cameras,
@@ -39,35 +39,26 @@ log = logging.getLogger(__name__)
 NAME = "import_photogrammetry"
 DOC = "import the COLMAP model, images, coarse mesh and points into a local z-up frame, undistorted"
 UPSTREAM: tuple[str, ...] = ()
+#: a model with a coordinate beyond this (m) is georeferenced (UTM: z up, far from the origin). UTM
+#: eastings are above 1.6 x 10^5 m and northings above 0 only near the equator; a model in its own
+#: photogrammetric frame spans hundreds of metres at most: 10 km separates the two with room either way
+GEOREF_THRESHOLD_M = 10_000.0
+#: an up direction estimated from the cameras within this angle (deg) of a model axis is snapped to it
+AUTO_UP_SNAP_DEG = 15.0
 
 
 @dataclass(frozen=True)
 class Params:
     up_axis: Literal["auto", "+x", "-x", "+y", "-y", "+z", "-z"]
     """World up in the raw model; ``auto`` uses z for georeferenced models, else the camera orientations."""
-    georef_threshold_m: Positive
-    """A model with a coordinate beyond this (m) is georeferenced (UTM: z up, far from the origin)."""
     recenter: Literal["auto", "always", "never"]
     """Move to a local origin: ``auto`` for georeferenced models only."""
     origin_rounding_m: NonNeg
     """The local origin is rounded to a multiple of this (m)."""
-    auto_up_snap_deg: Annotated[float, Range(0.0, 90.0)]
-    """An estimated up within this angle (deg) of a model axis is snapped to it."""
-    undistort_blank_pixels: Fraction
-    undistort_min_scale: Positive
-    undistort_max_scale: Positive
     max_size_ratio: Annotated[float, Range(1.0)]
     """The coarse mesh's size may differ from the camera layout's by at most this factor (a unit error)."""
     min_views_seeing_mesh: Fraction
     """At least this share of the UAV views must have rays that meet the coarse mesh (0: no check)."""
-
-    def __post_init__(self) -> None:
-        if self.undistort_min_scale > self.undistort_max_scale:
-            raise ConfigError(
-                None,
-                "'import_photogrammetry.undistort_min_scale' <= undistort_max_scale",
-                f"{self.undistort_min_scale} > {self.undistort_max_scale}",
-            )
 
 
 @dataclass(frozen=True)
@@ -162,14 +153,14 @@ def _local_frame(
     """``local_from_model`` [4, 4] and how up was found."""
     centres = np.array([im.projection_center() for im in colmap.registered_images(rec)])
     extent = max(np.abs(centres).max(), np.abs(mesh_vertices).max())
-    georeferenced = extent > params.georef_threshold_m
+    georeferenced = extent > GEOREF_THRESHOLD_M
     if params.up_axis != "auto":
         up, method = np.array(AXES[params.up_axis]), f"configured ({params.up_axis})"
     elif georeferenced:
         up, method = np.array(AXES["+z"]), "georeferenced model (z up)"
     else:
         R = np.array([im.cam_from_world().rotation.matrix() for im in colmap.registered_images(rec)])
-        est = estimate_up_from_cameras(R, params.auto_up_snap_deg)
+        est = estimate_up_from_cameras(R, AUTO_UP_SNAP_DEG)
         up, method = est.up, est.method
     recenter = params.recenter == "always" or (params.recenter == "auto" and georeferenced)
     T = local_from_model(up, centres.mean(axis=0), recenter, params.origin_rounding_m)
@@ -179,9 +170,7 @@ def _local_frame(
 def _import_views(
     src: _Source, rec: pycolmap.Reconstruction, layout: BuildingLayout, params: Params, bar: tqdm
 ) -> tuple[list[View], list[colmap.ColmapView]]:
-    opts = colmap.undistort_options(
-        params.undistort_blank_pixels, params.undistort_min_scale, params.undistort_max_scale
-    )
+    opts = colmap.undistort_options()
     pinhole: dict[int, pycolmap.Camera] = {}
     views, model_views = [], []
     for im in colmap.registered_images(rec):
@@ -241,7 +230,7 @@ def _check_scene(layout: BuildingLayout, params: Params, views: list[View], mesh
     return check
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     sources = _sources(layout)
     recs = [colmap.read_reconstruction(s.model_dir) for s in sources]
     mesh, cleaned = clean_mesh(read_mesh(_coarse_mesh_path(layout)))

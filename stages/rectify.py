@@ -25,7 +25,7 @@ from typing import Annotated, Literal
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import Positive, Range
+from facade_pipeline.config import Range, RunSettings
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json
@@ -57,8 +57,6 @@ class Params(RectifyParams):
     """``auto`` fits a plane or a cylinder per view; ``planar`` declares the facade flat: planes only."""
     fit: SurfaceFitParams
     """The robust surface fit (``[rectify.fit]``)."""
-    overlay_scale: Positive
-    """The overlay is drawn at this many times the view's size (-)."""
     occlusion_margin_m: Annotated[float, Range(0.0, infinite=True)]
     """A coarse point whose line of sight meets the coarse mesh more than this (m) before it is hidden and
     left out of the fit (the ground and surroundings behind the facade); inf: every point is kept. Scales
@@ -81,7 +79,12 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
 
 
 def rectify_one(
-    layout: BuildingLayout, view: View, points: np.ndarray, params: Params, mesh: MeshRaycaster
+    layout: BuildingLayout,
+    view: View,
+    points: np.ndarray,
+    params: Params,
+    mesh: MeshRaycaster,
+    overlay_scale: float,
 ) -> tuple[list[Path], dict]:
     """Fit, rectify and write one view (``mesh``: the coarse mesh, which hides points and gives the scale
     of a view without a surface); returns its outputs and its metrics."""
@@ -117,7 +120,7 @@ def rectify_one(
         rectified = warp_image(image, rect)
         outs += [layout.path("rectify_image", stem=view.stem), layout.path("rectify_overlay", stem=view.stem)]
         write_image(outs[2], rectified)
-        write_image(outs[3], overlay_image(image, rectified, rect, params.overlay_scale))
+        write_image(outs[3], overlay_image(image, rectified, rect, overlay_scale))
     poly = rect.polynomial
     metrics = {
         "kind": rect.kind,
@@ -138,7 +141,7 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     scene = ImportedScene.load(layout)
     points = np.asarray(read_points(layout.import_coarse_points).points)
     coarse = read_mesh(layout.import_coarse_mesh)
@@ -147,7 +150,7 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
     per_view: dict[str, dict] = {}
     views = scene.frontal_views
     for view in tqdm(views, desc="rectify: frontal views", unit="img", file=sys.stderr):
-        outs, per_view[view.stem] = rectify_one(layout, view, points, params, mesh)
+        outs, per_view[view.stem] = rectify_one(layout, view, points, params, mesh, settings.overlay_scale)
         outputs += outs
     kinds = [m["kind"] for m in per_view.values()]
     return StageReport(

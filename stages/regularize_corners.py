@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import image_size, read_image, write_image
@@ -34,6 +35,11 @@ from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages import PIPELINE
 from stages._runner import StageReport, main
 
+#: panel-mask regions smaller than this (px) are specks (a hand edit's stray stroke), not panels: ignored
+MASK_MIN_REGION_PX = 8
+#: a panel whose quadrilateral overlaps its mask region with an IoU below this (0-1) is refitted from the
+#: mask: the mask, which a person may have edited, wins where the two disagree
+MASK_REFIT_IOU = 0.6
 NAME = "regularize_corners"
 DOC = "3D panel models: ray-cast segmented corners onto the coarse mesh, merge, regularise rows and columns"
 # segment_panels writes the corners and masks; until it is part of the pipeline they are read as they are.
@@ -88,7 +94,7 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
         seg = ViewSegmentation.load(layout, v.stem, v.camera.width, v.camera.height)
         observed = tuple(Quad(p.corners_px, p.complete) for p in seg.panels) if seg.facade_found else ()
         found, stats = reconcile_with_mask(
-            observed, seg.mask, params.mask_min_region_px, params.mask_refit_iou
+            observed, seg.mask, MASK_MIN_REGION_PX, MASK_REFIT_IOU
         )
         if stats["merged"]:
             raise InputError(
@@ -126,7 +132,7 @@ def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: l
     return out
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.import_coarse_mesh)
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))

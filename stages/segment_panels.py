@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.config import Positive
+from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import read_image, write_image
@@ -40,10 +39,7 @@ UPSTREAM: tuple[str, ...] = ("rectify", "import_photogrammetry")
 EDITABLE: tuple[str, ...] = ("segment_mask",)
 
 
-@dataclass(frozen=True)
-class Params(SegmentParams):
-    overlay_scale: Positive
-    """The overlay is drawn this many times the view's size (-)."""
+Params = SegmentParams
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -125,7 +121,7 @@ def parallax_centre(rect: ViewRectification, view: View) -> np.ndarray:
 
 
 def segment_one(
-    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster
+    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster, overlay_scale: float
 ) -> tuple[list[Path], dict]:
     """Segment one view and write its three outputs (``mesh``: the coarse mesh, which tells where the
     facade surface is); returns them and the view's metrics."""
@@ -157,7 +153,7 @@ def segment_one(
     out = result.save(layout)
     out.append(layout.path("segment_overlay", stem=view.stem))
     original = read_image(layout.import_frontal_image(view.stem))
-    write_image(out[-1], _overlay(original, panels, rect, params.overlay_scale))
+    write_image(out[-1], _overlay(original, panels, rect, overlay_scale))
     metrics = {
         "facade_found": found,
         "reason": reason,
@@ -171,14 +167,14 @@ def segment_one(
     return out, metrics
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     views = ImportedScene.load(layout).frontal_views
     coarse = read_mesh(layout.import_coarse_mesh)
     mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
     for view in tqdm(views, desc="segment_panels: frontal views", unit="img", file=sys.stderr):
-        outs, per_view[view.stem] = segment_one(layout, view, params, mesh)
+        outs, per_view[view.stem] = segment_one(layout, view, params, mesh, settings.overlay_scale)
         outputs += outs
     return StageReport(
         outputs,

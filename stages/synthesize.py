@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.colmap import ColmapView, write_pinhole_model
@@ -160,7 +161,7 @@ def write_view(layout: BuildingLayout, params: SynthesizeParams, view: View, r: 
     return [raw] + [layout.gt(k, s) for k in PER_VIEW_GT]
 
 
-def run(layout: BuildingLayout, params: SynthesizeParams) -> StageReport:
+def run(layout: BuildingLayout, params: SynthesizeParams, settings: RunSettings) -> StageReport:
     check_raw_is_ours(layout)
     layout.gt_dir.mkdir(parents=True, exist_ok=True)  # first: marks the raw/ about to be written as ours
     t0 = time.perf_counter()

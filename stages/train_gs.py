@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.bake.maps import BakedMap, BakedPrior
-from facade_pipeline.config import result_dict, to_dict
+from facade_pipeline.config import RunSettings, to_dict
 from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
 from facade_pipeline.evaluation.image_eval import LpipsSetting
@@ -31,7 +31,6 @@ from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
-from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.render import splatting_rasterizer
 from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
@@ -49,7 +48,6 @@ NAME = "train_gs"
 DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
 UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
 Params = TrainParams
-RUN_ONLY = TRAINING_RUN_ONLY  # where it runs and how often it logs or saves: a change reruns nothing
 BAKED: tuple[BakedMap, ...] = ("normal_map", "facade_mask", "glass_mask")  # no depth: not trained on
 
 
@@ -135,8 +133,9 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
 
 
 def fingerprint(layout: BuildingLayout, params: Params) -> str:
-    """What a checkpoint must match to be resumed: the parameters, the inputs' contents and the code."""
-    h = hashlib.sha256(json.dumps(result_dict(params, RUN_ONLY), sort_keys=True).encode())
+    """What a checkpoint must match to be resumed: the parameters, the inputs' contents and the code (not
+    the run settings, which ``params`` does not hold: a run begun on the CPU resumes on a GPU)."""
+    h = hashlib.sha256(json.dumps(to_dict(params), sort_keys=True).encode())
     for f in inputs(layout, params):
         h.update(sha256_file(f).encode())
     code = [p for d in ("training", "shading", "splatting") for p in (PACKAGE_DIR / d).rglob("*.py")]
@@ -160,18 +159,18 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list
     return targets(layout, tr.params)
 
 
-def held_out_evaluation(tr: Trainer) -> dict:
+def held_out_evaluation(tr: Trainer, backend: str) -> dict:
     """The held-out views measured by the evaluation core (no LPIPS): the headline means and a row per
     view."""
     views = views_of(tr.data, tr.data.test_idx, tr.params.mask_by_facade)
-    result = evaluate_views(from_trainer(tr, PIPELINE_MODEL), views, LpipsSetting(()))
+    result = evaluate_views(from_trainer(tr, PIPELINE_MODEL, backend), views, LpipsSetting(()))
     return {**headline(result), "views": result["views"]}
 
 
-def run(layout: BuildingLayout, params: Params) -> StageReport:
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     data = load_train_data(layout, params)
-    device = resolve_device(params.device)
-    rasterize = splatting_rasterizer(params.raster_backend, params.lowpass_sigma_px)
+    device = resolve_device(settings.device)
+    rasterize = splatting_rasterizer(settings.raster_backend, params.lowpass_sigma_px)
     fp = fingerprint(layout, params)
     ckpt = layout.path("train_checkpoint")
     tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)
@@ -185,8 +184,15 @@ def run(layout: BuildingLayout, params: Params) -> StageReport:
             bar.update(it - bar.n)
             bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", n=out["n"], refresh=False)
 
-        train(tr, ckpt, fp, progress)
-    metrics = held_out_evaluation(tr)
+        train(
+            tr,
+            ckpt,
+            fp,
+            progress,
+            log_every=settings.log_every,
+            checkpoint_every=settings.checkpoint_every,
+        )
+    metrics = held_out_evaluation(tr, settings.raster_backend)
     outputs = _save_outputs(layout, tr, metrics)
     last = tr.log[-1] if tr.log else {}
     surroundings = getattr(getattr(tr.reflection, "proxy", None), "surroundings", None)

@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import shutil
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import pytest
 
-from facade_pipeline.config import available_buildings, config_dir, from_dict, load_building_config
+from facade_pipeline.config import (
+    RunSettings,
+    available_buildings,
+    config_dir,
+    from_dict,
+    load_building_config,
+)
 from facade_pipeline.errors import ConfigError
 from stages import PIPELINE, load_stage
 
@@ -44,10 +52,11 @@ def test_paper_settings_on_the_paper_buildings():
         )
 
 
-def test_every_default_parameter_has_a_comment():
-    for i, line in enumerate((config_dir() / "default.toml").read_text().splitlines(), 1):
+@pytest.mark.parametrize("name", ["default.toml", "synthetic.toml"])
+def test_every_default_parameter_has_a_comment(name):
+    for i, line in enumerate((config_dir() / name).read_text().splitlines(), 1):
         if re.match(r"^\s*[A-Za-z_][A-Za-z0-9_]*\s*=", line):
-            assert "#" in line.split("=", 1)[1], f"default.toml:{i} has no comment: {line}"
+            assert "#" in line.split("=", 1)[1], f"{name}:{i} has no comment: {line}"
 
 
 @pytest.fixture
@@ -78,13 +87,13 @@ def test_wrong_type_names_key_and_file(cfg_dir):
     p = _write(
         cfg_dir,
         "bad",
-        '[building]\nkind = "real"\ndescription = "x"\n[import_photogrammetry]\ngeoref_threshold_m = "far"\n',
+        '[building]\nkind = "real"\ndescription = "x"\n[import_photogrammetry]\norigin_rounding_m = "far"\n',
     )
     cfg = load_building_config("bad", cfg_dir)
     stage = load_stage("import_photogrammetry")
     with pytest.raises(ConfigError) as e:
         cfg.section("import_photogrammetry", stage.Params)
-    assert "georef_threshold_m" in str(e.value) and str(p) in str(e.value) and "'far'" in str(e.value)
+    assert "origin_rounding_m" in str(e.value) and str(p) in str(e.value) and "'far'" in str(e.value)
 
 
 def test_bad_choice_and_unknown_building(cfg_dir):
@@ -145,8 +154,18 @@ def test_a_nested_section_by_its_dotted_name(cfg_dir):
     ("segment_panels.grid", "max_bar_px", "segment_panels.grid.max_bar_m"),
     ("segment_panels", "min_partial_px", "segment_panels.min_partial_m"),
     ("rectify.warp", "planar_shift_px", "rectify.metres_per_px"),
+    ("train_gs", "device", "run.device"),
+    ("train_gs", "raster_backend", "run.raster_backend"),
+    ("train_gs", "log_every", "run.log_every"),
+    ("train_gs", "checkpoint_every", "run.checkpoint_every"),
+    ("evaluate", "device", "run.device"),
+    ("rectify", "overlay_scale", "run.overlay_scale"),
+    ("segment_panels", "overlay_scale", "run.overlay_scale"),
+    ("correct_mesh", "target_normal_error_deg", "benchmarks/bench_bake.py"),
+    ("regularize_corners", "depth_refinement", "coarse points' mode"),
+    ("rectify.fit", "ransac_iterations", "a constant in facade_pipeline/geometry/cylinder.py"),
 ])
-def test_an_old_pixel_key_names_its_replacement(cfg_dir, section, key, replacement):
+def test_an_old_key_names_its_replacement(cfg_dir, section, key, replacement):
     _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[{section}]\n{key} = 10\n')
     with pytest.raises(ConfigError) as e:
         load_building_config("old", cfg_dir)
@@ -172,3 +191,93 @@ def test_an_old_train_gs_key_names_its_replacement(cfg_dir, key, replacement):
         load_building_config("old", cfg_dir)
     msg = str(e.value)
     assert f"train_gs.{key}" in msg and replacement in msg and "old.toml" in msg and "\n" not in msg
+def test_simulator_keys_only_in_a_synthetic_building(cfg_dir):
+    """synthetic.toml lies under a synthetic building's file and no real one's; a real building that sets
+    a simulator key is one line naming its file and the kind it needs."""
+    p = _write(cfg_dir, "realsim", '[building]\nkind = "real"\n[synthesize.cameras]\nuav_count = 5\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("realsim", cfg_dir)
+    msg = str(e.value)
+    assert str(p) in msg and 'kind = "synthetic"' in msg and "'synthesize'" in msg and "\n" not in msg
+    p = _write(cfg_dir, "realsim", '[building]\nkind = "real"\n[correct_mesh]\nmetric_samples = 5\n')
+    with pytest.raises(ConfigError, match=r"correct_mesh\.metric_samples.*real building"):
+        load_building_config("realsim", cfg_dir)
+    correct_mesh = load_stage("correct_mesh").Params
+    assert load_building_config("shatin").section("correct_mesh", correct_mesh).metric_samples is None
+    _write(cfg_dir, "sim", '[building]\nkind = "synthetic"\n[synthesize.cameras]\nuav_count = 5\n')
+    sim = load_building_config("sim", cfg_dir)
+    assert sim.tables["synthesize"]["cameras"]["uav_count"] == 5  # the building wins
+    assert sim.tables["synthesize"]["seed"] == 0  # synthetic.toml's, under it
+    assert "synthesize" not in load_building_config("shatin").tables
+
+
+def test_a_bad_simulator_default_names_synthetic_toml(cfg_dir):
+    from facade_pipeline.synthetic.params import SynthesizeParams
+
+    text = (cfg_dir / "synthetic.toml").read_text().replace("uav_count = 20", "uav_count = 0")
+    (cfg_dir / "synthetic.toml").write_text(text)
+    _write(cfg_dir, "sim", '[building]\nkind = "synthetic"\n')
+    with pytest.raises(ConfigError) as e:
+        load_building_config("sim", cfg_dir).section("synthesize", SynthesizeParams)
+    assert "synthetic.toml" in str(e.value) and "uav_count" in str(e.value)
+
+
+def test_run_settings_are_their_own_table(cfg_dir):
+    """[run] is read into RunSettings and is no stage's parameter (so it can rerun nothing)."""
+    _write(cfg_dir, "gpu", '[building]\nkind = "real"\n[run]\ndevice = "auto"\nlog_every = 7\n')
+    run = load_building_config("gpu", cfg_dir).run
+    assert (run.device, run.log_every) == ("auto", 7)
+    assert run.checkpoint_every == load_building_config("shatin").run.checkpoint_every  # default.toml's
+    run_keys = {f.name for f in dataclasses.fields(RunSettings)}
+    for name in PIPELINE:
+        assert not run_keys & {f.name for f in dataclasses.fields(load_stage(name).Params)}, name
+
+
+#: the most keys a real building's config may have (default.toml's leaves; synthetic.toml's are not seen):
+#: a config a user can read through
+KEY_BUDGET = 120
+#: its share for [train_gs], and for every other table together (the stages' settings and [run])
+TRAIN_GS_SHARE = 45
+REST_SHARE = KEY_BUDGET - TRAIN_GS_SHARE
+
+
+def _leaf_keys(table: dict) -> int:
+    return sum(_leaf_keys(v) if isinstance(v, dict) else 1 for v in table.values())
+
+
+def _real_building_tables() -> dict:
+    cfg = load_building_config("shatin")
+    assert cfg.building.kind == "real" and len(cfg.files) == 2  # default.toml and its own file only
+    return cfg.default_tables
+
+
+def test_the_keys_outside_train_gs_keep_their_share_of_the_budget():
+    tables = _real_building_tables()
+    per_table = {name: _leaf_keys(t) if isinstance(t, dict) else 1 for name, t in tables.items()}
+    rest = sum(n for name, n in per_table.items() if name != "train_gs")
+    print(f"keys a real building sees: {sum(per_table.values())} ({per_table})")
+    assert rest <= REST_SHARE, f"{rest} keys outside [train_gs], more than {REST_SHARE}: {per_table}"
+
+
+@pytest.mark.xfail(
+    _leaf_keys(load_building_config("shatin").default_tables["train_gs"]) > TRAIN_GS_SHARE,
+    reason=f"[train_gs] alone still has more than {TRAIN_GS_SHARE} keys",
+    strict=True,
+)
+def test_a_real_building_sees_at_most_the_key_budget():
+    count = _leaf_keys(_real_building_tables())
+    print(f"keys a real building sees: {count} (budget {KEY_BUDGET})")
+    assert count <= KEY_BUDGET, f"a real building sees {count} keys, more than the budget of {KEY_BUDGET}"
+
+
+def test_every_replaced_key_is_gone_from_the_defaults():
+    """An old key that default.toml or synthetic.toml still had would be refused from every building."""
+    from facade_pipeline.config import RENAMED
+
+    for name in ("default.toml", "synthetic.toml"):
+        tables = tomllib.loads((config_dir() / name).read_text())
+        for key in RENAMED:
+            node = tables
+            for part in key.split("."):
+                node = node.get(part) if isinstance(node, dict) else None
+            assert node is None, f"{name} still defines {key}"

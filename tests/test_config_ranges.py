@@ -13,9 +13,11 @@ from typing import Annotated, Any, Literal, get_args, get_origin
 import pytest
 
 from facade_pipeline.config import (
+    SYNTHETIC_TABLES,
     BuildingParams,
     PosInt,
     Range,
+    RunSettings,
     available_buildings,
     config_dir,
     load_building_config,
@@ -25,7 +27,8 @@ from stages import PIPELINE, load_stage
 
 
 def _sections() -> list[tuple[str, type]]:
-    return [("building", BuildingParams)] + [(name, load_stage(name).Params) for name in PIPELINE]
+    stages = [(name, load_stage(name).Params) for name in PIPELINE]
+    return [("building", BuildingParams), ("run", RunSettings), *stages]
 
 
 def unranged_numbers(tp: Any, key: str) -> list[str]:
@@ -78,19 +81,25 @@ def test_the_walk_finds_numbers_without_a_range():
 def test_every_building_loads_every_section(building):
     cfg = load_building_config(building)
     for name, cls in _sections():
+        if name in SYNTHETIC_TABLES and cfg.building.kind != "synthetic":
+            assert name not in cfg.tables  # simulator keys only where there is a simulator
+            continue
         cfg.section(name, cls)
 
 
 @pytest.fixture
 def write_building(tmp_path):
-    """Writes ``configs/buildings/bad.toml`` beside a copy of default.toml; returns its path."""
+    """Writes ``configs/buildings/bad.toml`` (a synthetic building for a simulator table) beside a copy of
+    default.toml and synthetic.toml; returns its path."""
     d = tmp_path / "configs"
     (d / "buildings").mkdir(parents=True)
-    shutil.copy(config_dir() / "default.toml", d / "default.toml")
+    for name in ("default.toml", "synthetic.toml"):
+        shutil.copy(config_dir() / name, d / name)
 
     def write(table: str, lines: str) -> Path:
         p = d / "buildings" / "bad.toml"
-        p.write_text(f'[building]\nkind = "real"\ndescription = "x"\n\n[{table}]\n{lines}\n')
+        kind = "synthetic" if table.split(".")[0] in SYNTHETIC_TABLES else "real"
+        p.write_text(f'[building]\nkind = "{kind}"\ndescription = "x"\n\n[{table}]\n{lines}\n')
         return p
 
     return write
@@ -101,7 +110,8 @@ BAD_VALUES = [
     ("train_gs", "iterations = -5", "train_gs.iterations", ">= 1"),
     ("train_gs", "patch_px = -32", "train_gs.patch_px", ">= 0"),
     ("train_gs.densify", "max_gaussians = -1", "train_gs.densify.max_gaussians", ">= 1"),
-    ("train_gs", "checkpoint_every = -1", "train_gs.checkpoint_every", ">= 0"),
+    ("run", "checkpoint_every = -1", "run.checkpoint_every", ">= 0"),
+    ("run", "overlay_scale = 0.0", "run.overlay_scale", "> 0"),
     ("segment_panels", "upsample = 0", "segment_panels.upsample", ">= 1"),
     ("rectify.warp", "degree = -1", "rectify.warp.degree", ">= 1"),
     ("bake_normals", "chunk_rays = 0", "bake_normals.chunk_rays", ">= 1"),
@@ -122,8 +132,6 @@ BAD_VALUES = [
     # a min above its max
     ("segment_panels.grid", "min_pitch_m = 7.0", "segment_panels.grid.min_pitch_m", "max_pitch_m"),
     ("segment_panels.grid", "min_bar_m = 0.5", "segment_panels.grid.min_bar_m", "max_bar_m"),
-    ("import_photogrammetry", "undistort_min_scale = 3.0", "import_photogrammetry.undistort_min_scale",
-     "undistort_max_scale"),
     ("synthesize.environment", "building_width_m = [28.0, 14.0]", "synthesize.environment.building_width_m",
      "low <= high"),
     ("synthesize.environment", "tree_height_m = [9.0, 5.0]", "synthesize.environment.tree_height_m",
@@ -134,10 +142,10 @@ BAD_VALUES = [
 @pytest.mark.parametrize(("table", "lines", "key", "fragment"), BAD_VALUES, ids=[c[1] for c in BAD_VALUES])
 def test_a_value_out_of_range_names_key_file_and_range(write_building, table, lines, key, fragment):
     path = write_building(table, lines)
-    stage = table.split(".")[0]
+    section = table.split(".")[0]
     cfg = load_building_config("bad", path.parents[1])
     with pytest.raises(ConfigError) as e:
-        cfg.section(stage, load_stage(stage).Params)
+        cfg.section(section, dict(_sections())[section])
     message = str(e.value)
     assert f"'{key}'" in message and str(path) in message and fragment in message, message
     assert "\n" not in message

@@ -114,3 +114,21 @@ def test_synthetic_building_hand_edit_reruns_only_downstream(tmp_path):
     toml = cfg / "buildings" / "synthetic64.toml"
     toml.write_text(re.sub(r"(?m)^seed = \d+", "seed = 12345", toml.read_text()))
     assert executed(doit([IMPORT, "building=synthetic64"], env, root)) == ["synthesize", IMPORT]
+
+
+def test_a_run_setting_reruns_nothing(real):
+    """[run] (device, backend, logging, checkpoints, overlay size) is in no stage's parameters, so doit's
+    config_changed never sees it: rectify, which draws its overlay at run.overlay_scale, stays up to date."""
+    layout, env, cfg = real
+    root = layout.data_root
+    assert executed(doit(["rectify", "building=testreal"], env, root)) == [IMPORT, "rectify"]
+    (cfg / "buildings" / "testreal.toml").write_text(
+        '[building]\nkind = "real"\ndescription = "test"\n'
+        '[run]\noverlay_scale = 2.0\ndevice = "auto"\nlog_every = 7\ncheckpoint_every = 3\n'
+    )
+    assert executed(doit(["rectify", "building=testreal"], env, root)) == []
+    # a parameter of the same stage does rerun it
+    (cfg / "buildings" / "testreal.toml").write_text(
+        '[building]\nkind = "real"\ndescription = "test"\n[rectify]\nmax_size_factor = 3.0\n'
+    )
+    assert executed(doit(["rectify", "building=testreal"], env, root)) == ["rectify"]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from facade_pipeline.config import config_dir, default_params
+from facade_pipeline.config import config_dir, default_params, default_run_settings
 from facade_pipeline.io.lock import acquire, release
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import build_manifest, damaged_outputs, read_manifest
@@ -179,6 +179,8 @@ def test_config_errors_are_one_line_with_exit_code_2(real):
     for extra, words in [
         ("[train_gs]\niteratons = 3\n", "unknown key 'train_gs.iteratons'"),
         ("[train_gs]\niterations = -5\n", "'train_gs.iterations' >= 1"),
+        ("[train_gs]\ndevice = \"cuda\"\n", "replaced by run.device"),
+        ("[synthesize]\nseed = 1\n", 'kind = "synthetic"'),
     ]:
         toml.write_text('[building]\nkind = "real"\ndescription = "test"\n' + extra)
         out = _doit(["building=faults"], env, layout.data_root, check=False)
@@ -191,12 +193,13 @@ def test_a_write_that_fails_is_one_line(layout, capsys, monkeypatch):
     """A full disk: the stage names the file and the free space, writes no manifest, exits 2."""
     make_raw(layout)
 
-    def run(layout, params):
+    def run(layout, params, settings):
         raise OSError(errno.ENOSPC, "No space left on device", str(layout.import_scene))
 
     stage = types.SimpleNamespace(**{k: getattr(imp, k) for k in ("NAME", "DOC", "Params", "inputs")})
     stage.run = run
     monkeypatch.setattr("stages._runner.load_params", lambda stage, building: PARAMS)
+    monkeypatch.setattr("stages._runner.load_settings", lambda building: default_run_settings())
     code = main(stage, ["--building", layout.building, "--data-root", str(layout.data_root)])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1
@@ -220,7 +223,7 @@ def test_stage_report_outputs_outside_the_building_are_refused(layout):
     """A stage's output must lie in the building (a programming error, caught before any manifest)."""
     make_raw(layout)
     stage = types.SimpleNamespace(**{k: getattr(imp, k) for k in ("NAME", "DOC", "Params", "inputs")})
-    stage.run = lambda layout, params: StageReport([layout.data_root / "elsewhere.txt"])
+    stage.run = lambda layout, params, settings: StageReport([layout.data_root / "elsewhere.txt"])
     with pytest.raises(ValueError):
         execute(stage, layout, PARAMS)
     assert not layout.manifest("import_photogrammetry").exists()

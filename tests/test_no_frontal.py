@@ -46,6 +46,8 @@ def survey(tmp_path_factory):
     text = re.sub(r"(?m)^uav_count = \d+", "uav_count = 4", text)  # view 0 held out, 3 to train on
     (cfg / "buildings" / "synthetic64.toml").write_text(text)
     real = re.sub(r'(?m)^kind = "synthetic"', 'kind = "real"', text)
+    # a real building has no simulator tables
+    real = "".join(t for t in re.split(r"(?m)^(?=\[)", real) if not re.match(r"\[\[?synthesize", t))
     real = re.sub(r"(?m)^iterations = \d+", "iterations = 20", real)
     real += '\n[evaluate]\nlpips_conventions = ["vgg_3dgs"]\n'
     (cfg / "buildings" / "survey.toml").write_text(real)

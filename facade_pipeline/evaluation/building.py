@@ -11,12 +11,12 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from facade_pipeline.bake.maps import BakedPrior, bake_view
-from facade_pipeline.config import Count, Fraction, PosInt, Positive
+from facade_pipeline.config import Fraction, PosInt, Positive
 from facade_pipeline.errors import ConfigError, InputError
 from facade_pipeline.evaluation.core import EvalView, MeasuredView, evaluate_views
 from facade_pipeline.evaluation.geometry_eval import Truth, mesh_errors, panel_corner_errors, point_errors
@@ -30,7 +30,14 @@ from facade_pipeline.evaluation.lpips import (
 )
 from facade_pipeline.evaluation.render_views import TrainedModel, render_trained
 from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
-from facade_pipeline.evaluation.video import VideoParams, merge_films, write_clip, write_mp4
+from facade_pipeline.evaluation.video import (
+    CLIP_FRAMES,
+    CLIP_WIDTH_PX,
+    VideoParams,
+    merge_films,
+    write_clip,
+    write_mp4,
+)
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json, write_text
@@ -42,16 +49,17 @@ from facade_pipeline.meshing.correct import FRAME, read_labels
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene, View
 from facade_pipeline.training.corrections import AlignParams
-from facade_pipeline.training.params import RUN_ONLY as TRAINING_RUN_ONLY
 from facade_pipeline.training.params import flat_params
 from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
+
+#: comparison images per variant embedded in the report; the others are written as PNG beside it
+REPORT_VIEWS = 4
 
 
 @dataclass(frozen=True)
 class EvaluateParams:
     """``[evaluate]``: what is rendered and measured, and how the report shows it."""
 
-    device: Literal["cpu", "cuda", "auto"]
     render_training_views: bool
     """also render and measure the training views"""
     include_saved_variants: bool
@@ -62,19 +70,18 @@ class EvaluateParams:
     """folder or file of the LPIPS weights; "" searches $FACADE_LPIPS_DIR, then ../shared/lpips"""
     heatmap_max_error: Positive
     """absolute error (0-1, mean over RGB) at the top of the heat-map colour ramp"""
-    report_views: Count
-    """comparison images per variant embedded in the report"""
-    geometry_samples: PosInt
-    """points sampled by area on each mesh for the geometry metrics"""
-    geometry_max_match_m: Positive
-    """samples farther than this (m) from both true glass and frames are left out"""
-    gaussian_min_opacity: Fraction
-    """Gaussians less opaque than this are left out of the geometry metrics"""
     align: AlignParams
     """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
     against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
     video: VideoParams
     """``[evaluate.video]``: the fly-through of each model (frames = 0: none)"""
+    geometry_samples: PosInt | None = None
+    """points sampled by area on each mesh for the geometry metrics against gt/. This and the next two:
+    synthetic buildings only (configs/synthetic.toml); None: no truth to measure against"""
+    geometry_max_match_m: Positive | None = None
+    """samples farther than this (m) from both true glass and frames are left out"""
+    gaussian_min_opacity: Fraction | None = None
+    """Gaussians less opaque than this are left out of the geometry metrics"""
 
     def __post_init__(self) -> None:
         if not self.lpips_conventions:
@@ -97,9 +104,10 @@ def truth_files(layout: BuildingLayout) -> list[Path]:
     return [layout.gt("glass_mesh"), layout.gt("frame_mesh"), layout.gt("panels")]
 
 
-def is_synthetic(layout: BuildingLayout) -> bool:
-    """Whether gt/ holds the truth the geometry metrics need."""
-    return all(p.is_file() for p in truth_files(layout))
+def measures_geometry(layout: BuildingLayout, params: EvaluateParams) -> bool:
+    """Whether the geometry is measured: the config has the metrics' settings (a synthetic building's) and
+    gt/ holds the truth they need."""
+    return params.geometry_samples is not None and all(p.is_file() for p in truth_files(layout))
 
 
 def trained_models(layout: BuildingLayout, params: EvaluateParams) -> list[TrainedModelFiles]:
@@ -223,7 +231,7 @@ def ablation_group(params: dict[str, Any]) -> str:
     """A digest of the training parameters other than the MLP architecture: variants with the same one
     differ only in L, depth, width, skip, the environment proxy and the self hits, and form a Table 3
     ablation."""
-    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS + TRAINING_RUN_ONLY}
+    rest = {k: v for k, v in params.items() if k not in ARCHITECTURE_KEYS}
     return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -279,7 +287,7 @@ def write_fly_through(
     returns what metrics.json says of it."""
     frames = merge_films(films) if len(films) > 1 else films[0]
     write_mp4(layout.path("eval_video"), frames, vp.fps)
-    write_clip(layout.path("eval_clip"), frames, vp.clip_frames, vp.clip_width_px, vp.fps)
+    write_clip(layout.path("eval_clip"), frames, CLIP_FRAMES, CLIP_WIDTH_PX, vp.fps)
     return {
         "variants": names,
         "frames": len(frames),
@@ -306,7 +314,7 @@ def _report_images(layout: BuildingLayout, metrics: dict[str, Any], n: int) -> l
 
 def write_reports(layout: BuildingLayout, params: EvaluateParams, metrics: dict[str, Any]) -> list[Path]:
     """``metrics.json`` and the report (Markdown linking the comparison images, HTML embedding them)."""
-    images = _report_images(layout, metrics, params.report_views)
+    images = _report_images(layout, metrics, REPORT_VIEWS)
     report_dir = layout.path("eval_report_md").parent
     write_json(layout.path("eval_metrics"), metrics)
     write_text(

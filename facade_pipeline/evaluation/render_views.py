@@ -68,8 +68,11 @@ class RenderedView:
     alpha: np.ndarray
 
 
-def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu") -> TrainedModel:
-    """Read a variant's PLY and reflection weights. A damaged file raises ``InputError`` naming it."""
+def load_trained(
+    variant: TrainedModelFiles, device: str | torch.device = "cpu", backend: str = "auto"
+) -> TrainedModel:
+    """Read a variant's PLY and reflection weights, to render with the rasterizer ``backend`` (a run
+    setting, ``run.raster_backend``). A damaged file raises ``InputError`` naming it."""
     device = torch.device(device)
     model = model_from_ply(read_ply(variant.ply), device)
     try:
@@ -92,7 +95,6 @@ def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu")
         module.eval()
     p = variant.params
     shading = ShadingOptions(float(p["refl_threshold"]), lo, hi, supersample=int(p.get("supersample", 1)))
-    backend = str(p.get("raster_backend", "auto"))
     lowpass = float(p.get("lowpass_sigma_px", LOWPASS_SIGMA_PX))  # models saved before the key: 2DGS's
     return TrainedModel(
         variant.name,
@@ -109,7 +111,7 @@ def load_trained(variant: TrainedModelFiles, device: str | torch.device = "cpu")
     )
 
 
-def from_trainer(tr: Trainer, name: str) -> TrainedModel:
+def from_trainer(tr: Trainer, name: str, backend: str = "auto") -> TrainedModel:
     """A model being trained (``training.trainer.Trainer``), ready to render as if it had been saved."""
     p = tr.params
     return TrainedModel(
@@ -120,7 +122,7 @@ def from_trainer(tr: Trainer, name: str) -> TrainedModel:
         tr.shading,
         active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration),
         NEAR_M,
-        p.raster_backend,
+        backend,
         p.lowpass_sigma_px,
         tr.device,
         p.mask_by_facade,

@@ -25,6 +25,10 @@ from facade_pipeline.geometry.camera import PinholeCamera, look_at
 from facade_pipeline.io.atomic import atomic_path
 
 PATH_KEY = "evaluate.video.path"
+#: the report's looping clip: this many frames taken evenly from the video, at most this wide (px), so that
+#: the clip the report embeds stays small whatever the video's length and size (the MP4 has every frame)
+CLIP_FRAMES = 24
+CLIP_WIDTH_PX = 480
 
 
 @dataclass(frozen=True)
@@ -37,10 +41,6 @@ class VideoParams:
     """frames per second of the MP4"""
     scale: Positive
     """frame size as a multiple of the training views' size (-)"""
-    clip_frames: PosInt
-    """frames of the looping clip shown in the report (taken evenly from the video)"""
-    clip_width_px: PosInt
-    """width of the report's clip (px; no wider than the video)"""
     path: Literal["orbit"] | tuple[str, ...] = "orbit"
     """"orbit", or the stems of two or more views that the camera flies through in order"""
 

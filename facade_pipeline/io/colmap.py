@@ -157,11 +157,19 @@ def is_pinhole(camera: pycolmap.Camera) -> bool:
     return camera_model_name(camera) in ("SIMPLE_PINHOLE", "PINHOLE")
 
 
-def undistort_options(
-    blank_pixels: float, min_scale: float, max_scale: float
-) -> pycolmap.UndistortCameraOptions:
+#: How a distorted photo becomes a pinhole image: COLMAP's own image_undistorter defaults, fixed here so
+#: that a pycolmap release cannot change them. No blank border pixels (the image is cropped to pixels that
+#: hold the photo, so no view carries black borders into training), and the undistorted image between 0.2
+#: and 2 times the original's size (bounds against a degenerate distortion model).
+UNDISTORT_BLANK_PIXELS = 0.0
+UNDISTORT_MIN_SCALE = 0.2
+UNDISTORT_MAX_SCALE = 2.0
+
+
+def undistort_options() -> pycolmap.UndistortCameraOptions:
     o = pycolmap.UndistortCameraOptions()
-    o.blank_pixels, o.min_scale, o.max_scale = blank_pixels, min_scale, max_scale
+    o.blank_pixels = UNDISTORT_BLANK_PIXELS
+    o.min_scale, o.max_scale = UNDISTORT_MIN_SCALE, UNDISTORT_MAX_SCALE
     return o
 
 

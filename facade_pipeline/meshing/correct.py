@@ -13,7 +13,6 @@ import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -21,7 +20,6 @@ from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface, part_outline
 
-RemovalRule = Literal["any_vertex", "centroid", "all_vertices"]
 OTHER, FRAME, GLASS = 0, 1, 2  # triangle labels of the corrected mesh (05_correct_mesh/triangle_labels.npy)
 LABEL_NAMES = {OTHER: "other", FRAME: "frame", GLASS: "glass"}
 
@@ -88,14 +86,14 @@ def correct_mesh(
     shrink_factor: float,
     cuboid_half_depth_m: float,
     max_facet_deg: float,
-    removal: RemovalRule,
     insert_factor: float | None = None,
 ) -> CorrectedMesh:
     """Replace the coarse mesh (``vertices`` [V, 3], ``triangles`` [F, 3]) inside each panel's cuboid (the
-    panel shrunk by ``shrink_factor``) by the panel scaled by ``insert_factor`` (default: the shrunk one)
-    (``removal`` decides when a triangle is inside: any vertex, its centroid, all vertices). Inserting the
-    whole panel (1) closes the gap that the removal leaves around the shrunk one: the glass runs on under
-    the kept frames, which stand in front of it, as in the real facade."""
+    panel shrunk by ``shrink_factor``) by the panel scaled by ``insert_factor`` (default: the shrunk one).
+    A coarse triangle with any vertex inside a cuboid is removed, so that no coarse fragment pokes through
+    the inserted glass. Inserting the whole panel (1) closes the gap that the removal leaves around the
+    shrunk one: the glass runs on under the kept frames, which stand in front of it, as in the real
+    facade."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     remove = np.zeros(len(f), bool)
@@ -104,11 +102,7 @@ def correct_mesh(
     for p in panels.panels:
         surf = panels.parts[p.part]
         szh = shrunk_corners(surf, p, shrink_factor)
-        if removal == "centroid":
-            remove |= in_cuboid(surf, szh, cuboid_half_depth_m, v[f].mean(axis=1))
-        else:
-            vin = in_cuboid(surf, szh, cuboid_half_depth_m, v)[f]
-            remove |= vin.any(axis=1) if removal == "any_vertex" else vin.all(axis=1)
+        remove |= in_cuboid(surf, szh, cuboid_half_depth_m, v)[f].any(axis=1)
         ins = szh if insert_factor is None else shrunk_corners(surf, p, insert_factor)
         if insert_factor is not None and insert_factor > shrink_factor:
             # coarse triangles centred over the inserted glass (the smoothed step down from a frame to the

@@ -12,6 +12,7 @@ from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface
 from facade_pipeline.panels3d.regularize import (
     GHOST,
     OK,
+    OUTLIER_MAD_FACTOR,
     STATUS_NAMES,
     CornerRays,
     RegularizeConfig,
@@ -26,6 +27,19 @@ from facade_pipeline.panels3d.regularize import (
     quad_frames,
     robust_inliers,
 )
+
+# Constants of the panel grid, relative to a panel's size or in pixels, so they hold at any facade scale;
+# no building ever needed other values.
+#: two panels belong to one part when their centres are closer than this times the panel size (-):
+#: neighbours in a row or column lie about one pitch (a panel and a frame) apart
+PART_LINK_FACTOR = 1.6
+#: panel centres farther apart than this times the panel size (-) start a new row or column: half a pitch
+CLUSTER_GAP_FACTOR = 0.5
+#: glass evidence is taken inside panels shrunk about their centre by this factor (0-1), away from frames
+FOOTPRINT_SHRINK = 0.8
+#: corners of a quad cut by the image border within this (px) of the border are not panel corners and are
+#: left out (its other corners count like any other)
+BORDER_MARGIN_PX = 1.5
 
 
 def surface_corners(surface: PartSurface, rays: CornerRays, sel: np.ndarray) -> np.ndarray:
@@ -122,7 +136,7 @@ def grid_lines(
         v = v[np.isfinite(v)]
         if not len(v):
             return np.nan
-        keep = robust_inliers(v, cfg.outlier_mad_factor, cfg.outlier_floor_m)
+        keep = robust_inliers(v, OUTLIER_MAD_FACTOR, cfg.outlier_floor_m)
         n_out += int((~keep).sum())
         return float(v[keep].mean())
 
@@ -151,7 +165,7 @@ def part_panels(
     size = panel_size(szh, ok)
     if not np.isfinite(size).all() or min(size) <= 0:
         return [], 0
-    rows, cols = grid_cells(szh, ok, *size, cfg.cluster_gap_factor)
+    rows, cols = grid_cells(szh, ok, *size, CLUSTER_GAP_FACTOR)
     row_lines, col_lines, n_out = grid_lines(szh, ok, rows, cols, size, cfg)
     cells = sorted({(int(a), int(b)) for a, b in zip(rows, cols, strict=True) if a >= 0 and b >= 0})
     r_num = {r: i for i, r in enumerate(sorted({r for r, _ in cells}))}
@@ -227,7 +241,7 @@ def _refit_parts(
         if use.sum() <= 4 * int(anchor[part == p].sum()):
             continue
         surf, _ = fit_surface_robust(points[use], rays.centers[np.unique(rays.view[part == p])], cfg)
-        feet = footprints_of(surface_corners(surf, rays, (part == p) & anchor), cfg.footprint_shrink)
+        feet = footprints_of(surface_corners(surf, rays, (part == p) & anchor), FOOTPRINT_SHRINK)
         delta, _, _ = glass_offset(surf, feet, coarse_points, rc, cfg)
         surfaces[p] = surf.shifted(delta)
         offsets[p].update(
@@ -239,9 +253,9 @@ def glass_support(
     panel: Panel, surface: PartSurface, coarse_points: np.ndarray, cfg: RegularizeConfig
 ) -> int:
     """How many coarse points lie on ``panel``'s glass (within three kernel widths of its surface, inside its
-    footprint shrunk by ``footprint_shrink``): the evidence that the panel is where its part puts it."""
+    footprint shrunk by ``FOOTPRINT_SHRINK``): the evidence that the panel is where its part puts it."""
     szh = surface.coords(coarse_points)
-    feet = footprints_of(surface.coords(panel.corners)[None], cfg.footprint_shrink)[0]
+    feet = footprints_of(surface.coords(panel.corners)[None], FOOTPRINT_SHRINK)[0]
     inside = (szh[:, 0] >= feet[0]) & (szh[:, 0] <= feet[1]) & (szh[:, 1] >= feet[2]) & (szh[:, 1] <= feet[3])
     return int((inside & (np.abs(szh[:, 2]) <= 3 * cfg.depth_bandwidth_m)).sum())
 
@@ -287,7 +301,7 @@ def build_panel_set(
     complete_a = np.asarray(complete, bool)
     anchor = complete_a & (status == OK).all(axis=1)
     anchor[anchor] = quad_flatness(points[anchor]) <= cfg.ghost_max_m / 2
-    part = group_parts(points, anchor, cfg.part_link_factor, cfg.part_max_angle_deg)
+    part = group_parts(points, anchor, PART_LINK_FACTOR, cfg.part_max_angle_deg)
     surfaces, extents, offsets = [], [], []
     for p in range(int(part.max()) + 1):
         sel = part == p
@@ -298,7 +312,7 @@ def build_panel_set(
         status[sel] = st
         szh = surface_corners(surf, rays, sel)
         delta, source, n_ev = glass_offset(
-            surf, footprints_of(szh, cfg.footprint_shrink), coarse_points, rc, cfg
+            surf, footprints_of(szh, FOOTPRINT_SHRINK), coarse_points, rc, cfg
         )
         surfaces.append(surf.shifted(delta))
         offsets.append(
@@ -315,7 +329,7 @@ def build_panel_set(
         span = hi - lo  # quads cut by the border may lie a whole part's size beyond the anchors
         extents.append(np.array([lo[0] - span[0], hi[0] + span[0], lo[1] - span[1], hi[1] + span[1]]))
     part = assign_parts(rays, points, status, part, surfaces, extents, cfg.ghost_max_m)
-    ok = true_corners(quads_px, complete_a, view, cameras, cfg.border_margin_px)
+    ok = true_corners(quads_px, complete_a, view, cameras, BORDER_MARGIN_PX)
     ok = drop_specks(surfaces, rays, part, ok, cfg.min_visible_fraction)
     ok_any = ok.any(axis=1)
     for q in np.flatnonzero(part >= 0):  # hits far from the assigned surface are ghosts too

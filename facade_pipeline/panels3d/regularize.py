@@ -19,11 +19,11 @@ Frames: local (01_import), metres. Surface coordinates (s, z, h): see ``facade_p
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated
 
 import numpy as np
 
-from facade_pipeline.config import Count, Degrees, Fraction, NonNeg, PosInt, Positive, Range
+from facade_pipeline.config import Degrees, Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster, grazing
 from facade_pipeline.panels3d.model import PartSurface
@@ -40,39 +40,22 @@ class RegularizeConfig:
     """A corner ray hitting the mesh more than this angle (deg) from its normal is rejected."""
     ghost_max_m: Positive
     """A hit farther than this (m) from the part's fitted surface is ghost geometry and rejected."""
-    part_link_factor: Positive
-    """Two panels belong to the same part when their centres are closer than this times their size (-)."""
     part_max_angle_deg: Degrees
-    """... and their normals differ by less than this (deg)."""
+    """Two neighbouring panels belong to the same part when their normals differ by less than this (deg)."""
     planar_max_sagitta_m: NonNeg
     """A part is cylindrical when its fitted circle bulges more than this (m) over the part's width."""
-    cluster_gap_factor: Positive
-    """Panel centres farther apart than this times the panel size (-) start a new row or column."""
-    outlier_mad_factor: Positive
-    """A corner farther from its row or column line than this many robust sigmas is an outlier (-)."""
     outlier_floor_m: NonNeg
-    """... but never when it is within this distance (m) of the line."""
-    depth_refinement: Literal["coarse_points_mode", "coarse_mesh_median", "none"]
-    """Where the glass lies along the normal: densest coarse-point offset, median coarse-mesh offset, or
-    the corner hits themselves (the paper's plain ray casting)."""
+    """A corner within this distance (m) of its row or column line (or of its part's surface) is never an
+    outlier, however small the robust sigma (``OUTLIER_MAD_FACTOR``)."""
     depth_window_m: Positive
     """Evidence within this distance (m) of the corner surface is searched for the glass."""
     depth_bandwidth_m: Positive
     """Kernel width (m) of the coarse-point density along the normal."""
     depth_min_points: PosInt
     """Fewer coarse points than this in a part's panels falls back to the coarse mesh median (-)."""
-    footprint_shrink: Annotated[float, Range(0.0, 1.0, low_open=True)]
-    """Evidence is taken inside panels shrunk about their centre by this factor (0-1), away from frames."""
-    border_margin_px: NonNeg
-    """Corners of a quad marked incomplete (cut by the image border) closer than this (px) to the border
-    are not panel corners and are left out; its other corners count like any other."""
     min_visible_fraction: Fraction
     """A quad whose corners span less than this fraction of a panel's width and of its height (a speck
     in the mask, a panel's corner at the image's corner) is left out of the grid (0-1)."""
-    mask_min_region_px: Count
-    """Mask regions smaller than this (px) are ignored."""
-    mask_refit_iou: Fraction
-    """A panel whose quadrilateral overlaps its mask region with IoU below this (0-1) is refitted."""
     require_panels: bool
     """Frontal views that yield no panel at all stop the run (false: go on without mesh correction)."""
 
@@ -208,6 +191,11 @@ def fit_part_surface(points: np.ndarray, cam_centers: np.ndarray, planar_max_sag
     return PartSurface("cylindrical", origin, ref_n, radius, convex, ref)
 
 
+#: a corner (or a hit) more than this many robust sigmas (1.4826 x the median absolute deviation) off its
+#: row or column line (or its part's surface) is an outlier: about 1 in 15,000 of Gaussian scatter is
+OUTLIER_MAD_FACTOR = 4.0
+
+
 def robust_inliers(values: np.ndarray, mad_factor: float, floor: float) -> np.ndarray:
     """[M] bool: values within max(``floor``, ``mad_factor`` robust sigmas) of their median."""
     if len(values) == 0:
@@ -226,7 +214,7 @@ def fit_surface_robust(
     for _ in range(3):
         surf = fit_part_surface(points[keep], cam_centers, cfg.planar_max_sagitta_m)
         h = surf.coords(points)[:, 2]
-        new = (np.abs(h) <= cfg.ghost_max_m) & robust_inliers(h, cfg.outlier_mad_factor, cfg.outlier_floor_m)
+        new = (np.abs(h) <= cfg.ghost_max_m) & robust_inliers(h, OUTLIER_MAD_FACTOR, cfg.outlier_floor_m)
         if new.sum() < 3 or (new == keep).all():
             break
         keep = new
@@ -243,9 +231,9 @@ def glass_offset(
     """Offset (m, along the outward normal) of the glass from ``surface``, from the coarse evidence inside
     the panel ``footprints`` [P, 4] (s0, s1, z0, z1, shrunk away from frames): the density mode of the
     coarse points' offsets, else the median offset of the coarse mesh. Returns (offset, source, count)."""
-    if cfg.depth_refinement == "none" or len(footprints) == 0:
+    if len(footprints) == 0:
         return 0.0, "none", 0
-    if cfg.depth_refinement == "coarse_points_mode" and len(coarse_points):
+    if len(coarse_points):
         szh = surface.coords(coarse_points)
         inside = _in_footprints(szh, footprints) & (np.abs(szh[:, 2]) <= cfg.depth_window_m)
         h = szh[inside, 2]

@@ -31,12 +31,21 @@ import open3d as o3d
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from facade_pipeline.config import AnyInt, Count, NonNeg, PosInt, Positive, Range
+from facade_pipeline.config import Count, NonNeg, PosInt, Positive, Range
 from facade_pipeline.errors import PipelineError
 
 
 class SurfaceFitError(PipelineError):
     """The points cannot define a surface (too few, or all on one line)."""
+
+#: RANSAC plane hypotheses of the robust fit, drawn by a generator seeded with RANSAC_SEED so that a view's
+#: fit is the same on every run. With a third of the points on the facade (the rest ground, ghosts and
+#: clutter), 300 draws of 3 all miss an all-inlier sample with a probability of (1 - 1/27)^300, about 1e-5.
+RANSAC_ITERATIONS = 300
+RANSAC_SEED = 0
+#: a cylinder bulging (its sagitta, |kappa| width^2 / 8) less than this many times the fit's RMS residual
+#: over the view's points is not told from a plane by them: a plane is fitted instead (-).
+MIN_SAGITTA_RMS = 3.0
 
 
 @dataclass(frozen=True)
@@ -47,8 +56,6 @@ class SurfaceFitParams:
     """Points must spread at least this much (m, standard deviation) in two directions: else on one line."""
     ransac_threshold_m: Positive
     """Distance (m) within which a point supports a RANSAC plane: generous, it only drops far outliers."""
-    ransac_iterations: PosInt
-    """RANSAC plane hypotheses (-)."""
     max_normal_angle_deg: Annotated[float, Range(0.0, 90.0)]
     """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera
     (and, with ``normal_knn``, each fitted point's normal within it of the optical axis)."""
@@ -58,12 +65,6 @@ class SurfaceFitParams:
     """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
     viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out
     before the fit (the ground before a facade seen from a low camera); 0: every point is kept."""
-    min_sagitta_rms: NonNeg
-    """A cylinder whose bulge over the view's points (its sagitta, |kappa| width^2 / 8) is less than this
-    many times the fit's RMS residual is not told from a plane by the points: a plane is fitted instead
-    (-)."""
-    seed: AnyInt
-    """Seed of the RANSAC sampler (-)."""
     max_tilt_deg: Annotated[float, Range(0.0, 90.0)]
     """A facade stands upright: a cylinder's axis within this angle (deg) of up, a plane's normal within it
     of horizontal; a fit beyond is not the facade (a floor, a table) and the view gets no surface."""
@@ -215,7 +216,7 @@ def ransac_plane(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPa
     direction to ``viewpoint``) and it is the first surface seen (points well in front of a plane count
     against it; ghost points mirrored behind the glass lie behind the facade). Score = inliers - in front."""
     n, thr = len(points), params.ransac_threshold_m
-    idx = rng.integers(0, n, size=(params.ransac_iterations, 3))
+    idx = rng.integers(0, n, size=(RANSAC_ITERATIONS, 3))
     p = points[idx]  # [I, 3, 3]
     normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     norm = np.linalg.norm(normals, axis=1)
@@ -325,7 +326,7 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     surface faces it are fitted (``facing_points``); ``n_points`` counts the points given.
 
     ``curved = False`` fits a plane only; a cylinder whose sagitta over its inliers is under
-    ``min_sagitta_rms`` times its RMS residual is replaced by the plane as well.
+    ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well.
 
     Raises ``SurfaceFitError`` naming ``source`` for too few points or points on one line."""
     points = np.asarray(points, dtype=np.float64)
@@ -338,7 +339,7 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
                                   f"the camera (normal within {angle:g} deg of the optical axis)",
                                   f"{len(points)} of {n_given}")
     check_points(points, params, source)
-    rng = np.random.default_rng(params.seed)
+    rng = np.random.default_rng(RANSAC_SEED)
     keep = ransac_plane(points, np.asarray(viewpoint, float), params, rng)
     check_points(points[keep], params, source)
     viewpoint = np.asarray(viewpoint, float)
@@ -348,7 +349,7 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
         keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
         check_points(points[keep], params, source)
     rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
-    if not curved or sagitta_m(surface, points[keep]) < params.min_sagitta_rms * rms:
+    if not curved or sagitta_m(surface, points[keep]) < MIN_SAGITTA_RMS * rms:
         surface = fit_plane(points[keep], viewpoint, params.inlier_scale_m)
         keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
         check_points(points[keep], params, source)

@@ -46,12 +46,14 @@ from facade_pipeline.rectification.cylinder import Surface
 
 Kind = Literal["plane", "cylinder", "unrectified", "skipped"]
 WORLD_UP = np.array([0.0, 0.0, 1.0])
+#: Samples along each side of a view, borders included, for the canvas extent, the scale and the recorded
+#: polynomial: 25 x 25 points over-determine the paper's degree-7 polynomial (36 coefficients per coordinate)
+#: about seventeen times. No building ever needed another number: a method constant, not a parameter.
+WARP_SAMPLES_PER_SIDE = 25
 
 
 @dataclass(frozen=True)
 class WarpParams:
-    samples_per_side: Annotated[int, Range(2)]
-    """Samples along each side of the view for the canvas extent, the scale and the polynomial fit (-)."""
     degree: PosInt
     """Total degree of the polynomial recorded for a cylinder, both directions (-); the paper uses 7."""
 
@@ -255,7 +257,7 @@ def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams)
     chart = Chart.of(surface)
     kind: Kind = "plane" if surface.curvature_per_m == 0.0 else "cylinder"
     unit = ViewRectification(kind, 1, 1, 1.0, camera, chart)  # 1 m per px from (0, 0): s, h = x, -y
-    px = image_grid(W, H, params.warp.samples_per_side)
+    px = image_grid(W, H, WARP_SAMPLES_PER_SIDE)
     sh = unit.to_rectified(px) * [1.0, -1.0]
     hit = np.isfinite(sh).all(axis=1)
     if hit.mean() < 0.5:

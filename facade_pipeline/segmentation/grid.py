@@ -6,20 +6,21 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
 
 - prior (structural regularities of curtain walls): repeated spacing, ``c_k = c_0 + k p + delta_k`` with
   one pitch ``p`` (panels of equal size) and small deviations ``delta_k ~ N(0, sigma^2)``,
-  ``sigma = max(sigma_min_px, sigma_frac p)``; the lines of the family run across the whole grid (corners
+  ``sigma = max(SIGMA_MIN_PX, sigma_frac p)``; the lines of the family run across the whole grid (corners
   aligned in rows and columns); ``p`` uniform in [min_pitch_m, max_pitch_m] (in pixels of the image at its
   scale, at most the image size); the bars form one contiguous
   run of indices ``k`` (no holes in a facade); each line costs ``line_cost`` nats (prior odds against a
   line, which also picks the number of lines);
 - likelihood (line and edge evidence): a frame bar has two parallel edges ``w`` apart along its whole
   length, usually of opposite polarity. Per row (for mullions), with gL, gR the colour gradients across
-  the bar at c - w/2 and c + w/2, the bar response is sqrt(|gL| |gR| (1 - cos(gL, gR)) / 2) (the weaker
-  edge counted at least ``weak_edge_floor`` of the stronger); its mean over the grid's rows is E_g(c).
+  the bar at c - w/2 and c + w/2, the bar response is sqrt(|gL| |gR| (1 - cos(gL, gR)) / 2) (for an outer
+  frame bar, the weaker edge counted at least ``outer_edge_floor`` of the stronger); its mean over the
+  grid's rows is E_g(c).
   LSD segments of the family give the line support S(x) (summed length near x);
   E_l(c) = sqrt(S(c - w/2) S(c + w/2)) / length.
   A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
   is small (glass reflects a varying scene). The log-likelihood ratio of a bar at c is
-  ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / lsd_scale) - v(c) / uniformity_scale``,
+  ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / LSD_SCALE) - v(c) / uniformity_scale``,
   ``w`` the best width in [min_bar_m, max_bar_m] (in pixels at the image's scale).
 
 MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) - line_cost]`` over ``p``,
@@ -47,6 +48,16 @@ from facade_pipeline.config import Fraction, NonNeg, Positive
 from facade_pipeline.errors import ConfigError
 
 STEP_PX = 0.5  # lattice of bar-centre hypotheses (px)
+# Image-precision constants of the grid model, which hold at any facade scale since the view is segmented
+# at a fixed bar width in pixels (``SegmentParams.work_bar_px``); no building ever needed other values, and
+# the segmentation benchmarks (benchmarks/RESULTS.md) were measured with these.
+#: a bar's deviation from the regular grid has a std of at least this (px): the lattice step, whatever the
+#: pitch
+SIGMA_MIN_PX = 0.5
+#: LSD line support (fraction of the grid's length covered by segments) that counts as strong (-)
+LSD_SCALE = 0.25
+#: a bar edge is searched this far (px) around its MAP position: the lattice step and one pixel
+EDGE_SEARCH_PX = 1.5
 
 
 @dataclass(frozen=True)
@@ -57,8 +68,6 @@ class GridParams:
     """Largest panel pitch (m on the facade) considered."""
     sigma_frac: NonNeg
     """Std of a bar's deviation from the regular grid, as a fraction of the pitch (-)."""
-    sigma_min_px: Positive
-    """... but at least this (px)."""
     line_cost: NonNeg
     """Prior cost of one grid line (nats): the evidence a bar must bring to be accepted."""
     min_bar_m: Positive
@@ -67,14 +76,9 @@ class GridParams:
     """Widest frame bar (m on the facade)."""
     lsd_weight: NonNeg
     """Weight of the LSD line-support term against the gradient term (-)."""
-    lsd_scale: Positive
-    """Line support (fraction of the grid's length covered by LSD segments) that counts as strong (-)."""
-    edge_search_px: Positive
-    """A bar edge is searched this far (px) around its MAP position."""
-    weak_edge_floor: Fraction
-    """The weaker edge of a bar counts at least this fraction of the stronger (-)."""
     outer_edge_floor: Fraction
-    """... and of an outer frame bar, one pitch beyond either end of the MAP run, at least this (-)."""
+    """The weaker edge of an outer frame bar, one pitch beyond either end of the MAP run, counts at least
+    this fraction of the stronger (an outer frame may meet a background of its colour) (-)."""
     uniformity_scale: Positive
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
     frame_colour_scale: NonNeg
@@ -171,14 +175,15 @@ class Gradients:
 
 
 def bar_evidence(
-    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes, weak_edge_floor: float | None = None
+    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes, weak_edge_floor: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px).
 
     Per row, edges gL, gR (colour vectors) at the two sides of the bar give sqrt((|gL||gR| - gL.gR) / 2):
     |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
-    agree, 0 for equal changes (a ramp, not a bar). ``weak_edge_floor`` overrides the parameter's."""
-    floor = params.weak_edge_floor if weak_edge_floor is None else weak_edge_floor
+    agree, 0 for equal changes (a ramp, not a bar). The weaker edge counts at least ``weak_edge_floor``
+    of the stronger: 0 inside the grid, where both edges must be seen; ``outer_edge_floor`` for the outer
+    frame bars."""
     g = grad.on_lattice()[rows]
     mag = np.linalg.norm(g, axis=2)
     M = g.shape[1]
@@ -191,7 +196,7 @@ def bar_evidence(
         cos = (gl * gr).sum(axis=2) / np.maximum(ml * mr, 1e-12)
         # the weaker edge counts at least ``weak_edge_floor`` of the stronger: an outer frame may border a
         # background of its own colour on one side
-        weak = np.maximum(np.minimum(ml, mr), floor * np.maximum(ml, mr))
+        weak = np.maximum(np.minimum(ml, mr), weak_edge_floor * np.maximum(ml, mr))
         e = np.pad(np.sqrt(np.maximum(ml, mr) * weak * np.clip(1 - cos, 0, 2) / 2).mean(axis=0), (h, h))
         better = e > best
         best[better], width[better] = e[better], w
@@ -217,7 +222,7 @@ def log_likelihood(
     background = float(np.median(e_grad)) + 1e-6
     ll = (
         np.log1p(e_grad / background)
-        + params.lsd_weight * np.log1p(e_lsd / params.lsd_scale)
+        + params.lsd_weight * np.log1p(e_lsd / LSD_SCALE)
         - uniformity / params.uniformity_scale
     )
     if colour_distance is not None and params.frame_colour_scale > 0:
@@ -275,7 +280,7 @@ def map_family(
     M = len(ll)
     best: tuple[float, np.ndarray, float] | None = None
     for pitch in np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX):
-        sigma = max(params.sigma_min_px, params.sigma_frac * pitch)
+        sigma = max(SIGMA_MIN_PX, params.sigma_frac * pitch)
         relaxed, delta = _relaxed(ll, sigma)
         k = np.arange(int(size / pitch) + 2)
         phases = np.arange(0.0, pitch, STEP_PX)
@@ -306,7 +311,7 @@ def _with_outer_frames(
     background of its own colour: its edge on the glass side only) one pitch beyond the end, relaxed as
     in the prior, pays for the line (module docstring)."""
     M = len(ll_outer)
-    sigma = max(params.sigma_min_px, params.sigma_frac * fit.pitch)
+    sigma = max(SIGMA_MIN_PX, params.sigma_frac * fit.pitch)
     relaxed, delta = _relaxed(ll_outer, sigma)
     centres, widths, score = list(fit.centres), list(fit.widths), fit.score
     for end, sign in ((-1, 1.0), (0, -1.0)):

@@ -10,7 +10,7 @@ Panels cut by the image border: the strip between the outermost bar and the bord
 into it (by their frame colour or their edges, where the facade surface is there: ``_continues``); otherwise
 the facade ends at that bar. Partly occluded panels: a panel whose frame bars are present (their centre
 line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its colour whatever the glass
-beside it reflects, an object in front of it does not) over less than ``min_edge_support`` of any side's
+beside it reflects, an object in front of it does not) over less than ``MIN_EDGE_SUPPORT`` of any side's
 length is kept, with ``complete = False``.
 
 Parallax of proud frames: frames stand d in front of the glass, so in a view from distance Z the front face
@@ -35,14 +35,14 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
-from typing import Annotated
 
 import cv2
 import numpy as np
 
-from facade_pipeline.config import Fraction, NonNeg, PosInt, Positive, Range
+from facade_pipeline.config import Fraction, NonNeg, PosInt, Positive
 from facade_pipeline.segmentation.edges import EdgeLine, bar_edges, frame_presence
 from facade_pipeline.segmentation.grid import (
+    EDGE_SEARCH_PX,
     STEP_PX,
     FamilyFit,
     Gradients,
@@ -55,22 +55,29 @@ from facade_pipeline.segmentation.grid import (
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
 
-HalfQuadrant = Annotated[float, Range(0.0, 45.0)]
-"""an angle about a family's direction (deg): beyond 45 the vertical and horizontal families overlap"""
+# Image-precision constants of the segmentation. The view is resampled so that the narrowest frame bar spans
+# ``work_bar_px`` pixels (SegmentParams), so these hold at any facade scale and photo size; no building ever
+# needed other values, and the segmentation benchmarks (benchmarks/RESULTS.md) were measured with them.
+#: shortest LSD segment kept (px of the view): shorter ones are texture and noise, not frame edges
+MIN_SEGMENT_PX = 3.0
+#: the dominant vertical and horizontal angles are searched this far (deg) from 90 and 0 deg: rectified
+#: views are fronto-parallel, so only a small residual tilt is left
+ORIENTATION_SEARCH_DEG = 10.0
+#: a segment belongs to a family within this angle (deg) of its dominant angle
+ORIENTATION_TOLERANCE_DEG = 3.0
+#: smoothing of the LSD line-support profile (px)
+LSD_SIGMA_PX = 0.75
+#: a family with fewer whole frame bars than this is not corrected for parallax: three points are the
+#: fewest that tell a slope from one bar's error
+PARALLAX_MIN_BARS = 3
+#: a panel side whose frame is present over less than this fraction of its length marks the panel occluded
+MIN_EDGE_SUPPORT = 0.6
 
 
 @dataclass(frozen=True)
 class SegmentParams:
     upsample: PosInt
     """LSD runs on the image upsampled by this factor (-)."""
-    min_segment_px: NonNeg
-    """Shortest LSD segment kept (px of the view)."""
-    orientation_search_deg: HalfQuadrant
-    """The dominant vertical and horizontal angles are searched this far (deg) from 90 and 0 deg."""
-    orientation_tolerance_deg: HalfQuadrant
-    """A segment belongs to a family within this angle (deg) of its dominant angle."""
-    lsd_sigma_px: Positive
-    """Smoothing of the LSD line-support profile (px)."""
     grid: GridParams
     """The MAP grid model (``[segment_panels.grid]``)."""
     min_partial_m: NonNeg
@@ -88,12 +95,8 @@ class SegmentParams:
     the rectified surface: border strips beyond the facade's end hold no partial panel."""
     frame_colour_tol: NonNeg
     """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
-    min_edge_support: Fraction
-    """A panel side supported over less than this fraction of its length is occluded (-)."""
     parallax_max_slope: NonNeg
     """Largest frame parallax d / (Z - d) accepted (frames d proud of glass seen from Z); 0: no correction."""
-    parallax_min_bars: PosInt
-    """Fewer bars than this in a family leave its parallax uncorrected (-)."""
 
 
 @dataclass(frozen=True)
@@ -142,7 +145,7 @@ def _family(
     lo, hi, _ = span.indices(grad.d.shape[0])
     t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
     inside = segments[(t >= lo) & (t <= hi)]
-    support = support_profile(inside, axis, grad.size, STEP_PX, params.lsd_sigma_px)[: len(e_grad)]
+    support = support_profile(inside, axis, grad.size, STEP_PX, LSD_SIGMA_PX)[: len(e_grad)]
     uniformity = grad.uniformity(span)
     dist = None
     if frame_colour is not None:
@@ -177,7 +180,7 @@ def _span(fit: FamilyFit | None, size: int) -> slice:
 
 def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> _Bars | None:
     found = [
-        bar_edges(grad, c, w, span, params.grid.edge_search_px)
+        bar_edges(grad, c, w, span, EDGE_SEARCH_PX)
         for c, w in zip(fit.centres, fit.widths, strict=True)
     ]
     edges = []
@@ -268,9 +271,9 @@ def find_bars(
     ``centre`` (x, y) (the principal point in this image; None: not corrected)."""
     H, W = image.shape[:2]
     fam = group_segments(
-        detect_segments(image, params.upsample, params.min_segment_px),
-        params.orientation_tolerance_deg,
-        params.orientation_search_deg,
+        detect_segments(image, params.upsample, MIN_SEGMENT_PX),
+        ORIENTATION_TOLERANCE_DEG,
+        ORIENTATION_SEARCH_DEG,
     )
     vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
     v, _ = _family(image, valid, vseg, 0, slice(0, H), params, sizes)
@@ -301,7 +304,7 @@ def find_bars(
     )
     if centre is not None and params.parallax_max_slope > 0:
         fits = {
-            name: fit_parallax(bars, c, params.parallax_min_bars, params.parallax_max_slope)
+            name: fit_parallax(bars, c, PARALLAX_MIN_BARS, params.parallax_max_slope)
             for name, bars, c in (("x", bars_v, centre[0]), ("y", bars_h, centre[1]))
             if bars is not None
         }
@@ -435,7 +438,7 @@ def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: 
                 _supported(top, x0, x1),
                 _supported(bottom, x0, x1),
             )
-            reason = "border" if cut_r or cut_c else ("occluded" if support < params.min_edge_support else "")
+            reason = "border" if cut_r or cut_c else ("occluded" if support < MIN_EDGE_SUPPORT else "")
             panels.append(Panel(len(rows) - 1 - i, j, c, reason == "", reason))
     return panels
 

@@ -182,13 +182,13 @@ class CameraParams:
     """Distance of frontal views from the glass along its local normal (m)."""
     frontal_margin_px: NonNeg
     """Every panel of a frontal view's block lies this far inside its image (px)."""
-    frontal_oblique_deg: tuple[Oblique, Oblique] = (0.0, 0.0)
+    frontal_oblique_deg: tuple[Oblique, Oblique]
     """Largest yaw (about the up axis) and pitch (about the facade's horizontal) of frontal views from the
     local normal (deg): view k turns by a fixed low-discrepancy fraction of each, either sign, about the
     centre of its block (0, 0: fronto-parallel). Oblique views may cut the block's panels at the border."""
-    frontal_width_px: Count = 0
+    frontal_width_px: Count
     """Width of frontal views (px); 0: ``width_px`` (the UAV views')."""
-    frontal_height_px: Count = 0
+    frontal_height_px: Count
     """Height of frontal views (px); 0: ``height_px``."""
 
     @property
@@ -207,7 +207,7 @@ class RenderParams:
     """Rays cast per batch: bounds memory by this, not by image or view count."""
     ray_offset_m: Positive
     """Offset of secondary ray origins along the normal, against self-intersection (m)."""
-    frontal_supersample: Count = 0
+    frontal_supersample: Count
     """The same for frontal views; 0: ``supersample``. An odd grid has a ray through the pixel centre, as
     the truth maps do, so a panel edge crossing a pixel is on the same side of its centre in both."""
 

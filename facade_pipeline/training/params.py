@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, TypeVar
 
 from facade_pipeline.config import AnyInt, Count, Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.shading.reflection import ReflectionModel, ReflectionParams
@@ -52,19 +52,12 @@ class DensifyParams:
     """no densification beyond this many splats (bounds CPU time and memory)"""
 
 
-#: settings that change how a run goes, not what it trains (where it runs, how often it logs or saves):
-#: changing one neither reruns train_gs nor drops its checkpoint (a run begun on the CPU resumes on a GPU)
-RUN_ONLY: tuple[str, ...] = ("device", "raster_backend", "log_every", "checkpoint_every")
-
-
 @dataclass(frozen=True)
 class TrainParams:
     """``[train_gs]``: every number that changes the trained model."""
 
     iterations: PosInt
     seed: AnyInt
-    device: Literal["cpu", "cuda", "auto"]
-    raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
     lowpass_sigma_px: Positive
     """sigma of the renderer's screen-space low-pass filter (``splatting.render_2dgs``), in training and in
     every later render of the model"""
@@ -96,8 +89,6 @@ class TrainParams:
     init_reflectivity: Fraction
     init_reflectivity_glass: Fraction
     init_f0: Fraction
-    checkpoint_every: Count
-    log_every: Count
     lr: LearningRates
     densify: DensifyParams
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facade_pipeline.config import result_dict
+from facade_pipeline.config import to_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
@@ -44,7 +44,7 @@ from facade_pipeline.training.densify import (
 from facade_pipeline.training.exposure import ExposureEstimate, ExposureParams, estimate_exposures
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
-from facade_pipeline.training.params import RUN_ONLY, TrainParams
+from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.render import (
     Camera,
     Rasterizer,
@@ -119,7 +119,7 @@ def resolve_device(choice: str) -> torch.device:
     if choice == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if choice == "cuda" and not torch.cuda.is_available():
-        raise PipelineError(None, 'a CUDA device (train_gs.device = "cuda")', 'none; use "cpu" or "auto"')
+        raise PipelineError(None, 'a CUDA device (run.device = "cuda")', 'none; use "cpu" or "auto"')
     return torch.device(choice)
 
 
@@ -498,7 +498,7 @@ def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
     state = {
         "format": CHECKPOINT_FORMAT,
         "fingerprint": fingerprint,
-        "params": result_dict(tr.params, RUN_ONLY),  # to tell, when it does not match, what changed
+        "params": to_dict(tr.params),  # to tell, when it does not match, what changed
         "iteration": tr.iteration,
         "model": tr.model.state(),
         "opt": tr.opt.state_dict(),
@@ -598,7 +598,7 @@ def _mismatch(state: dict[str, Any], p: TrainParams) -> str:
     saved = state.get("params")
     if not isinstance(saved, dict):
         return "it was made with other parameters, inputs or code"
-    old, new = _dotted(saved), _dotted(result_dict(p, RUN_ONLY))
+    old, new = _dotted(saved), _dotted(to_dict(p))
     keys = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     changed = [f"{k} {old.get(k, '(none)')!r} -> {new.get(k, '(none)')!r}" for k in keys]
     if not changed:
@@ -626,15 +626,19 @@ def train(
     fingerprint: str = "",
     progress: ProgressCallback | None = None,
     stop_at: int | None = None,
+    *,
+    log_every: int = 0,
+    checkpoint_every: int = 0,
 ) -> Trainer:
-    """Step until ``params.iterations`` (or ``stop_at``), logging every ``log_every`` iterations and saving
-    a checkpoint every ``checkpoint_every`` (and at the end) when ``checkpoint`` is given."""
+    """Step until ``params.iterations`` (or ``stop_at``), logging every ``log_every`` iterations (0: never)
+    and saving a checkpoint every ``checkpoint_every`` (0: only at the end) when ``checkpoint`` is given.
+    Both are run settings (``[run]``): they change how a run goes, never what it trains."""
     p = tr.params
     end = p.iterations if stop_at is None else min(stop_at, p.iterations)
     start = tr.iteration
     while tr.iteration < end:
         out = step(tr)
-        if p.log_every > 0 and (tr.iteration % p.log_every == 0 or tr.iteration == p.iterations):
+        if log_every > 0 and (tr.iteration % log_every == 0 or tr.iteration == p.iterations):
             tr.log.append(
                 {
                     "iteration": tr.iteration,
@@ -642,11 +646,11 @@ def train(
                     **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in out.items()},
                 }
             )
-        if checkpoint is not None and p.checkpoint_every > 0 and tr.iteration % p.checkpoint_every == 0:
+        if checkpoint is not None and checkpoint_every > 0 and tr.iteration % checkpoint_every == 0:
             save_checkpoint(tr, checkpoint, fingerprint)
         if progress is not None:
             progress(tr.iteration, p.iterations, {**out, "n": tr.model.n})
-    saved = p.checkpoint_every > 0 and tr.iteration % p.checkpoint_every == 0
+    saved = checkpoint_every > 0 and tr.iteration % checkpoint_every == 0
     if checkpoint is not None and tr.iteration > start and not saved:
         save_checkpoint(tr, checkpoint, fingerprint)
     return tr

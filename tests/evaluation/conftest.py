@@ -77,7 +77,7 @@ def tiny(tmp_path_factory):
         execute(s, layout, load_params(s, "synthetic64"))
     data = gt_train_data(layout, test_every=4, max_views=5)
     p = small_params(iterations=10)
-    tr = build_trainer(p, data, splatting_rasterizer(p.raster_backend), "cpu")
+    tr = build_trainer(p, data, splatting_rasterizer("auto"), "cpu")
     train(tr)
     for v in data.views:  # the gt masks stand in for bake_normals' masks
         BakedPrior(v.stem, facade=v.facade_mask, glass=v.glass_mask).save(layout)

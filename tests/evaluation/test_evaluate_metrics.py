@@ -220,8 +220,9 @@ def test_table3_only_for_an_mlp_ablation():
     assert [r[2] for r in table3_rows(_metrics(three))] == ["29.00", "30.00"]
     from facade_pipeline.evaluation.building import ablation_group
 
-    base = {"iterations": 10, "seed": 0, "device": "cpu", **arch}
-    assert ablation_group(base) == ablation_group({**base, "mlp_width": 64, "device": "cuda"})
+    base = {"iterations": 10, "seed": 0, **arch}
+    assert ablation_group(base) == ablation_group({**base, "mlp_width": 64})
+    assert ablation_group(base) != ablation_group({**base, "seed": 1})
     assert ablation_group(base) == ablation_group({**base, "mlp_self_hits": True})
     full = {**arch, "mlp_proxy_channels": 8, "mlp_self_hits": True}
     label = architecture_label(full)

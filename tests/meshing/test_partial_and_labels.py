@@ -94,7 +94,7 @@ def corrected():
     pts = surf.points(np.c_[np.random.default_rng(1).uniform([-3, 1.3], [3, 4.6], (400, 2)), np.zeros(400)])
     ps, _ = build_panel_set(quads, complete, view, cams, MeshRaycaster(v, f), pts, cfg())
     p = params_of("correct_mesh")
-    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg, p.removal, 1.0)
+    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg, 1.0)
     labels = label_triangles(out.vertices, out.triangles, out.is_panel, ps, p.frame_half_depth_m)
     return surf, ps, out, labels
 

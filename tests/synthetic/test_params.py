@@ -82,7 +82,8 @@ def test_unknown_effect_and_wrong_type_name_the_key():
 
 
 def test_bad_building_file_is_reported_with_its_key(tmp_path):
-    shutil.copy(config_dir() / "default.toml", tmp_path / "default.toml")
+    for name in ("default.toml", "synthetic.toml"):
+        shutil.copy(config_dir() / name, tmp_path / name)
     (tmp_path / "buildings").mkdir()
     (tmp_path / "buildings" / "bad.toml").write_text(
         '[building]\nkind = "synthetic"\n[synthesize.cameras]\nfov_deg = "wide"\n'
@@ -90,7 +91,8 @@ def test_bad_building_file_is_reported_with_its_key(tmp_path):
     with pytest.raises(ConfigError) as e:
         load_building_config("bad", tmp_path).section("synthesize", SynthesizeParams)
     assert "synthesize.cameras.fov_deg" in str(e.value) and "bad.toml" in str(e.value)
-    (tmp_path / "buildings" / "bad.toml").write_text("[synthesize.cameras]\nfov = 50.0\n")
+    text = '[building]\nkind = "synthetic"\n[synthesize.cameras]\nfov = 50.0\n'
+    (tmp_path / "buildings" / "bad.toml").write_text(text)
     with pytest.raises(ConfigError, match=r"synthesize\.cameras\.fov"):
         load_building_config("bad", tmp_path)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from facade_pipeline.config import load_building_config
+from facade_pipeline.config import RunSettings, default_run_settings, load_building_config
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import TrainParams
@@ -82,8 +82,6 @@ def small_params(**changes) -> TrainParams:
         init_mesh_samples=150,
         patch_px=16,
         mlp_max_pixels=128,
-        checkpoint_every=5,
-        log_every=5,
         exposure_estimate=False,  # one exposure unless a test asks (synthetic64 has no exposure change)
     )
     tables = {
@@ -106,6 +104,11 @@ def small_params(**changes) -> TrainParams:
     )
     p = dataclasses.replace(p, densify=dataclasses.replace(p.densify, **tables["densify"]), reflection=refl)
     return dataclasses.replace(p, **changes)
+
+
+def run_settings(**changes) -> RunSettings:
+    """default.toml's [run], logging and saving every 5 iterations (the tiny runs' checkpoints)."""
+    return dataclasses.replace(default_run_settings(), **({"log_every": 5, "checkpoint_every": 5} | changes))
 
 
 @pytest.fixture(autouse=True)

@@ -20,12 +20,12 @@ from tests.training.conftest import gt_train_data, small_params
 def main(data_root: str, checkpoint: str, out: str, iterations: str) -> None:
     torch.set_num_threads(1)
     data = gt_train_data(BuildingLayout(Path(data_root), "synthetic64"))
-    p = small_params(iterations=int(iterations), checkpoint_every=2)
+    p = small_params(iterations=int(iterations))
     raster = splatting_rasterizer("auto")
     tr = load_checkpoint(checkpoint, p, data, raster, "cpu", "worker")
     print(f"resumed from {0 if tr is None else tr.iteration}", flush=True)
     tr = tr or build_trainer(p, data, raster)
-    train(tr, Path(checkpoint), "worker")
+    train(tr, Path(checkpoint), "worker", log_every=5, checkpoint_every=2)
     torch.save(
         {
             "model": tr.model.state(),

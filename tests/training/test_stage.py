@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from facade_pipeline.bake.maps import BakedPrior
-from facade_pipeline.config import available_buildings, load_building_config
+from facade_pipeline.config import RunSettings, available_buildings, load_building_config
 from facade_pipeline.errors import InputError, UpstreamMissingError
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.images import write_mask
@@ -26,7 +26,7 @@ from facade_pipeline.training.params import TrainParams, replace_keys
 from facade_pipeline.training.ply import read_ply
 from stages import train_gs
 from stages._runner import execute
-from tests.training.conftest import small_params
+from tests.training.conftest import run_settings, small_params
 
 
 def _fake_manifest(layout: BuildingLayout, stage: str) -> None:
@@ -65,8 +65,8 @@ def test_every_building_has_valid_train_gs_params():
 
 
 def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
-    p = small_params(iterations=6, raster_backend="auto")
-    manifest = execute(train_gs, upstream, p)
+    p, run = small_params(iterations=6), run_settings(raster_backend="auto")
+    manifest = execute(train_gs, upstream, p, run)
     m = read_manifest(upstream, "train_gs")
     assert set(m.outputs) == {upstream.relative(t) for t in train_gs.targets(upstream, p)}
     metrics = m.metrics
@@ -85,20 +85,21 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     assert refl["model"] == "mlp" and refl["config"]["width"] == p.reflection.mlp.width and refl["state_dict"]
     ply_bytes = upstream.path("train_ply").read_bytes()
     # a rerun with the same parameters and inputs resumes from the final checkpoint: same outputs
-    again = execute(train_gs, upstream, p)
+    again = execute(train_gs, upstream, p, run)
     assert again["metrics"]["resumed_from_iteration"] == 6
     assert upstream.path("train_ply").read_bytes() == ply_bytes
     assert again["outputs"] == manifest["outputs"]
-    # settings of how the run goes (backend, logging, saving) keep the checkpoint: it resumes
-    run_only = dataclasses.replace(p, raster_backend="torch", log_every=3, checkpoint_every=2)
-    assert train_gs.fingerprint(upstream, run_only) == train_gs.fingerprint(upstream, p)
-    assert execute(train_gs, upstream, run_only)["metrics"]["resumed_from_iteration"] == 6
+    # settings of how the run goes ([run]: backend, logging, saving) are no parameter, so neither the
+    # checkpoint's fingerprint nor doit's config_changed sees them: the checkpoint is resumed
+    assert not {f.name for f in dataclasses.fields(RunSettings)} & set(manifest["params"])
+    other_run = run_settings(raster_backend="torch", log_every=3, checkpoint_every=2)
+    assert execute(train_gs, upstream, p, other_run)["metrics"]["resumed_from_iteration"] == 6
     # any setting that changes the result changes the fingerprint, in the nested tables too
     for change in ({"reflection.model": "envmap"}, {"reflection.proxy.cell_m": 2.0}, {"lr.proxy": 0.2},
                    {"densify.grad_threshold": 1e-3}, {"hf_steps": 2}):  # fmt: skip
         assert train_gs.fingerprint(upstream, replace_keys(p, change)) != train_gs.fingerprint(upstream, p)
     # other parameters: the old checkpoint is not trusted, training starts over
-    other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3, exposure_estimate=True))
+    other = execute(train_gs, upstream, dataclasses.replace(p, iterations=3, exposure_estimate=True), run)
     assert other["metrics"]["resumed_from_iteration"] == 0 and other["metrics"]["iterations"] == 3
     gains = json.loads(upstream.path("train_split").read_text())["exposure_gain"]
     assert sorted(gains) == sorted(split["train"]) and all(len(g) == 3 and g[0] > 0 for g in gains.values())

@@ -212,8 +212,8 @@ def test_hard_scene_stays_finite(model, refl):
         terms["loss"].backward()
         assert all(q.grad is None or torch.isfinite(q.grad).all() for q in tr.model.params().values())
         tr.opt.zero_grad()
-    train(tr)
-    assert _finite_state(tr) and all(np.isfinite(rec["loss"]) for rec in tr.log)
+    train(tr, log_every=5)
+    assert tr.log and _finite_state(tr) and all(np.isfinite(rec["loss"]) for rec in tr.log)
     assert np.isfinite(_mean_psnr(tr, (0,)))
 
 
@@ -364,19 +364,17 @@ def _states_equal(a, b) -> None:
 def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     p = small_params(  # densification every 5 falls between checkpoints
         iterations=14,
-        checkpoint_every=3,
         pose_refinement=refine == "pose",
         exposure_estimate=refine == "estimate",
     )
-    ref = train(build_trainer(p, data64, RASTER))
+    every = {"log_every": 5, "checkpoint_every": 3}
+    ref = train(build_trainer(p, data64, RASTER), **every)
     ckpt = tmp_path / "ckpt.pt"
-    part = train(
-        build_trainer(p, data64, RASTER), ckpt, "fp", stop_at=7
-    )  # saves at 3, 6 and where it stopped
+    part = train(build_trainer(p, data64, RASTER), ckpt, "fp", stop_at=7, **every)  # saves at 3, 6 and 7
     assert part.iteration == 7
     resumed = load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp")
     assert resumed.iteration == 7 and resumed.model.n == part.model.n
-    train(resumed, ckpt, "fp")
+    train(resumed, ckpt, "fp", **every)
     _states_equal(ref, resumed)
     assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "other") is None  # other parameters or inputs
     assert load_checkpoint(tmp_path / "none.pt", p, data64, RASTER, "cpu", "fp") is None
