@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from facade_pipeline.config import default_run_settings
 from facade_pipeline.evaluation import metrics
 from facade_pipeline.evaluation.building import evaluate_split
 from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
@@ -58,7 +59,7 @@ def _ref_view(tr, index: int, align: AlignParams | None) -> dict:
     """One held-out view measured as the trainer did: render whole (aligned first, the gain applied before
     the clip), then PSNR over the facade, glass and glass interior, masked SSIM, normal error on glass."""
     p, v = tr.params, tr.data.views[index]
-    raster = splatting_rasterizer(p.raster_backend, p.lowpass_sigma_px)
+    raster = splatting_rasterizer(default_run_settings().raster_backend, p.lowpass_sigma_px)
     f32 = {"dtype": torch.float32}
     cam = Camera(torch.as_tensor(v.camera.K, **f32), torch.as_tensor(v.camera.cam_from_world, **f32),
                  v.camera.width, v.camera.height)  # fmt: skip
@@ -120,7 +121,7 @@ def test_core_equals_the_trainer_formulas_for_both_callers(tiny, align):
         assert means[key] == pytest.approx(float(np.mean(vals)), abs=2e-4), key
     assert means["ssim"] == pytest.approx(float(np.mean([r["ssim"] for r in refs])), abs=1e-6)
     if align is None:
-        stage_check = train_gs.held_out_evaluation(tr)
+        stage_check = train_gs.held_out_evaluation(tr, default_run_settings().raster_backend)
         assert {k: stage_check[k] for k in means} == means and stage_check["views"] == result["views"]
 
     # the evaluate stage's split, from the photos and masks on disk
@@ -157,7 +158,8 @@ def test_core_aligns_a_held_out_view_whose_pose_is_off(data64):  # noqa: F811
     """A held-out view's imported pose turned by 0.05 rad: measured as imported it scores worse than after
     the core aligns it to the frozen model, which finds most of the turn; the model is untouched."""
     p = small_params(iterations=60, patch_px=0)
-    tr = train(build_trainer(p, data64, splatting_rasterizer(p.raster_backend, p.lowpass_sigma_px)))
+    raster = splatting_rasterizer(default_run_settings().raster_backend, p.lowpass_sigma_px)
+    tr = train(build_trainer(p, data64, raster))
     tm = from_trainer(tr, "t")
     before = {n: t.detach().clone() for n, t in tr.model.params().items()}
     (true_view,) = views_of(data64, (data64.test_idx[1],))
