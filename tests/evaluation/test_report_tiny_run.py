@@ -192,7 +192,7 @@ def test_a_path_through_views_shows_each_view_at_its_key_frame(tiny):
     tm = from_trainer(tr, "tiny_path")
     views = [(v.stem, v.camera) for v in data.views]
     names = [views[1][0], views[3][0], views[2][0]]
-    params = VideoParams(frames=9, fps=8, scale=1.0, clip_frames=4, clip_width_px=32, path=tuple(names))
+    params = VideoParams(frames=9, fps=8, scale=1.0, path=tuple(names))
     path = video_path(params, views)
     frames = render_path(path, lambda c, m: render_trained(tm, c, m).rgb, lambda c: None)
     assert len(frames) == 9

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from facade_pipeline.config import default_params
+from facade_pipeline.config import default_params, default_run_settings
 from facade_pipeline.errors import PipelineError
 from stages import evaluate
 
@@ -18,5 +18,5 @@ def test_the_old_report_is_gone_before_evaluate_reads_anything(layout):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("figures of an earlier run")
     with pytest.raises(PipelineError):
-        evaluate.run(layout, params)  # no imported scene: it stops at its first read
+        evaluate.run(layout, params, default_run_settings())  # no imported scene: it stops at its first read
     assert not any(p.exists() for p in old)

@@ -34,7 +34,7 @@ def _views() -> list[tuple[str, PinholeCamera]]:
 
 
 def _params(**kw) -> VideoParams:
-    table = {"frames": 40, "fps": 8, "scale": 1.0, "clip_frames": 8, "clip_width_px": 64, "path": "orbit"}
+    table = {"frames": 40, "fps": 8, "scale": 1.0, "path": "orbit"}
     return from_dict(VideoParams, table | kw, "evaluate.video")
 
 
