@@ -276,9 +276,17 @@ RENAMED = {
             ("the loss is on from the start", ("normal_prior_start_fraction", "hf_start_fraction")),
             ("a constant of Eq. 12 (training/losses.py)", ("hf_eps",)),
             (
+                "2DGS's value, a constant of facade_pipeline/training/losses.py",
+                ("lambda_dssim", "normal_start_fraction"),
+            ),
+            (
                 "2DGS's value, a constant of facade_pipeline/training/trainer.py",
-                ("lambda_dssim", "normal_start_fraction", "divergence_extent_factor", "lr.position_final",
-                 "lr.sh_dc", "lr.sh_rest", "lr.opacity", "lr.scaling", "lr.rotation"),
+                ("divergence_extent_factor",),
+            ),
+            ("2DGS's value, a constant of facade_pipeline/training/schedule.py", ("lr.position_final",)),
+            (
+                "2DGS's value, a constant of facade_pipeline/training/optimizers.py",
+                ("lr.sh_dc", "lr.sh_rest", "lr.opacity", "lr.scaling", "lr.rotation"),
             ),
             ("2DGS's value, a constant of facade_pipeline/splatting/types.py", ("near_m",)),
             ("3DGS's value, a constant of facade_pipeline/training/init.py", ("init_opacity", "init_knn")),

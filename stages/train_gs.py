@@ -30,6 +30,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.training.batches import exposure_gains
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.render import splatting_rasterizer
@@ -37,7 +38,6 @@ from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
 from facade_pipeline.training.trainer import (
     Trainer,
     build_trainer,
-    exposure_gains,
     load_checkpoint,
     resolve_device,
     train,

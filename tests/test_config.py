@@ -182,7 +182,7 @@ def test_an_old_key_names_its_replacement(cfg_dir, section, key, replacement):
     ("mlp_self_hits", "removed"),
     ("mlp_proxy_surroundings", "surroundings"),
     ("near_m", "splatting/types.py"),
-    ("lambda_dssim", "training/trainer.py"),
+    ("lambda_dssim", "training/losses.py"),
     ("exposure", "ExposureParams"),
 ])
 def test_an_old_train_gs_key_names_its_replacement(cfg_dir, key, replacement):

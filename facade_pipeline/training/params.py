@@ -19,7 +19,7 @@ T = TypeVar("T")
 @dataclass(frozen=True)
 class LearningRates:
     """Adam learning rates of what 2DGS does not have, and its position rate at the start (times the
-    scene extent); its other rates are constants of ``training.trainer``."""
+    scene extent); its other rates are constants of ``training.optimizers`` and ``training.schedule``."""
 
     position_init: Positive
     reflectivity: Positive

@@ -1,8 +1,19 @@
-"""Schedules expressed as fractions of the run, so that short runs keep the shape of long ones."""
+"""Schedules expressed as fractions of the run, so that short runs keep the shape of long ones: the
+generic shapes (steps, a log-linear decay, the SH bands in use) and the learning rates that follow them
+during training (``position_lr``, ``reflection_lr``; the optimisers that take them are
+``training.optimizers``)."""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: the generic shapes need no parameters
+    from facade_pipeline.training.params import TrainParams
+
+#: Where the position rate decays to, times the scene extent, from ``lr.position_init``: 3DGS's training
+#: default (DESIGN.md), never tuned here, like the other splat rates of ``training.optimizers``.
+POSITION_LR_FINAL = 1.6e-6
 
 
 def at_fraction(fraction: float, iterations: int) -> int:
@@ -35,3 +46,19 @@ def active_sh_degree(sh_degree: int, interval: int, iteration: int) -> int:
     if interval <= 0:
         return sh_degree
     return min(sh_degree, iteration // interval)
+
+
+def position_lr(p: TrainParams, extent: float, it: int) -> float:
+    """The splat positions' rate at iteration ``it``: from ``lr.position_init`` to ``POSITION_LR_FINAL``,
+    both times the scene extent ``extent`` (m), log-linearly (3DGS)."""
+    return exp_decay(p.lr.position_init * extent, POSITION_LR_FINAL * extent, it, p.iterations)
+
+
+def reflection_lr(p: TrainParams, it: int, group: str) -> float:
+    """A reflection parameter group's rate at iteration ``it``: the MLP's decays; the environment map's and
+    the proxy feature maps' are fixed."""
+    if group == "proxy":
+        return p.lr.proxy
+    if p.reflection.model == "envmap":
+        return p.lr.envmap
+    return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)

@@ -25,9 +25,9 @@ from facade_pipeline.io.atomic import write_json
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.shading.reflection import ReflectionModel, reflection_record
+from facade_pipeline.training.checkpoints import save_torch
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.ply import write_ply
-from facade_pipeline.training.trainer import save_torch
 
 #: the files of a saved variant, in the order of ``TrainedModelFiles``' fields
 VARIANT_FILES = ("gaussians.ply", "reflection.pt", "split.json", "params.json")

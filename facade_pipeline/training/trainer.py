@@ -1,36 +1,42 @@
-"""The trainer: ``build_trainer``, ``step``, ``save_checkpoint`` / ``load_checkpoint`` and
-``train`` (the loop that ties them together with checkpoints and a progress callback).
+"""The training loop: the ``Trainer`` (everything that changes during training), ``build_trainer`` (at
+iteration 0) and ``load_checkpoint`` (from a checkpoint), ``step`` (one optimisation step: draw a window,
+render it, the losses, update, check for divergence, densify when due) and ``train`` (steps with
+checkpoints and a progress callback).
 
-Losses (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf, with L_c = 0.8 L1
-+ 0.2 D-SSIM, the 2DGS normal consistency L_n, the normal prior L_np (Eq. 11) and the high-frequency loss
-L_hf (Eq. 12), all over the facade mask. Every random draw comes from one ``torch.Generator`` that is saved
-in checkpoints, so a resumed run equals an uninterrupted one.
+What a step uses lives beside it: the window and data of a view (``training.batches``), the losses
+(``training.losses``, Eq. 13), the optimisers and their rates (``training.optimizers``,
+``training.schedule``) and the checkpoint file (``training.checkpoints``). Every random draw comes from one
+``torch.Generator`` that is saved in checkpoints, so a resumed run equals an uninterrupted one.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import io
 import logging
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
-from facade_pipeline.config import to_dict
 from facade_pipeline.errors import PipelineError
-from facade_pipeline.io.atomic import write_bytes
 from facade_pipeline.shading.reflection import build_reflection_module
 from facade_pipeline.splatting.types import NEAR_M
-from facade_pipeline.training import losses
+from facade_pipeline.training.batches import (
+    ViewTensors,
+    camera,
+    estimate_view_exposures,
+    exposure_gain,
+    random_int,
+    random_window,
+    view_tensors,
+)
+from facade_pipeline.training.checkpoints import read_checkpoint, save_checkpoint
 from facade_pipeline.training.corrections import ViewCorrections
-from facade_pipeline.training.data import TrainData, TrainView
+from facade_pipeline.training.data import TrainData
 from facade_pipeline.training.densify import (
     DENSIFY_END_FRACTION,
     DENSIFY_START_FRACTION,
@@ -41,9 +47,11 @@ from facade_pipeline.training.densify import (
     reset_opacity,
     view_space_grad,
 )
-from facade_pipeline.training.exposure import ExposureEstimate, ExposureParams, estimate_exposures
+from facade_pipeline.training.exposure import ExposureEstimate
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
-from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
+from facade_pipeline.training.losses import compute_losses, psnr
+from facade_pipeline.training.model import GaussianModel
+from facade_pipeline.training.optimizers import gaussian_optimizer, reflection_optimizer, set_learning_rates
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.render import (
     Camera,
@@ -54,31 +62,12 @@ from facade_pipeline.training.render import (
     random_subset,
     render_view,
 )
-from facade_pipeline.training.schedule import active_sh_degree, at_fraction, exp_decay, step_schedule
+from facade_pipeline.training.schedule import active_sh_degree, at_fraction
 
 log = logging.getLogger(__name__)
-CHECKPOINT_FORMAT = 2
-
-# Adam rates of the splat attributes that 2DGS shares with 3DGS (their training defaults; DESIGN.md). They
-# are per-attribute rates on activation-space parameters, not tied to a scene's size, and were never tuned
-# here: the splat geometry and colour train as the reference does. The position rate decays from
-# ``lr.position_init`` to this, times the scene extent, as in 3DGS.
-POSITION_LR_FINAL = 1.6e-6
-SH_DC_LR = 2.5e-3
-SH_REST_LR = SH_DC_LR / 20.0  # 3DGS: the higher SH bands at a twentieth of the DC rate
-OPACITY_LR = 0.05
-SCALING_LR = 5e-3
-ROTATION_LR = 1e-3
-#: Weight of D-SSIM in L_c = (1 - w) L1 + w D-SSIM: the paper's (Eq. 13, after 2DGS), never tuned here.
-LAMBDA_DSSIM = 0.2
-#: Normal consistency from this fraction of the run: 2DGS's 7k of 30k iterations (a fraction, so that short
-#: runs keep its schedule), never tuned here.
-NORMAL_START_FRACTION = 0.2333
 #: A splat this many scene extents from the facade means the run diverged: a sanity bound, far beyond any
 #: real splat (the surroundings are within a few extents).
 DIVERGENCE_EXTENT_FACTOR = 100.0
-#: How the per-view exposure gains are estimated before training (``training.exposure``): its defaults.
-EXPOSURE_ESTIMATE = ExposureParams()
 
 
 class TrainingDivergedError(PipelineError):
@@ -123,22 +112,6 @@ def resolve_device(choice: str) -> torch.device:
     return torch.device(choice)
 
 
-def _gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> torch.optim.Adam:
-    lr = p.lr
-    rates = {
-        "means": lr.position_init * extent,
-        "quats": ROTATION_LR,
-        "log_scales": SCALING_LR,
-        "opacity_logits": OPACITY_LR,
-        "sh_dc": SH_DC_LR,
-        "sh_rest": SH_REST_LR,
-        "refl_logits": lr.reflectivity,
-        "f0_logits": lr.f0,
-    }
-    groups = [{"params": [getattr(model, n)], "lr": rates[n], "name": n} for n in PARAM_NAMES]
-    return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
-
-
 def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: GaussianModel):
     lo, hi = data.bounds
     f32 = dict(dtype=torch.float32, device=device)
@@ -156,8 +129,8 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
         reflection = build_reflection_module(
             p.reflection_strategy(), device, (shading.bounds_lo, shading.bounds_hi), data.init.points
         )
-    opt = _gaussian_optimizer(model, p, data.extent)
-    opt_refl = None if reflection is None else _reflection_optimizer(p, reflection)
+    opt = gaussian_optimizer(model, p, data.extent)
+    opt_refl = None if reflection is None else reflection_optimizer(p, reflection)
     cameras = [
         Camera(
             torch.as_tensor(v.camera.K, **f32),
@@ -177,54 +150,6 @@ def _build_corrections(
         return None, None
     corr = ViewCorrections(n_views, device, pose=True)
     return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, lr_exposure=0.0)
-
-
-def _estimate_exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
-    if not p.exposure_estimate:
-        return None
-    m = data.init
-    est = estimate_exposures(
-        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, EXPOSURE_ESTIMATE, p.seed
-    )
-    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < EXPOSURE_ESTIMATE.min_samples]
-    if few:
-        shown = ", ".join(few[:5]) + (f" and {len(few) - 5} more" if len(few) > 5 else "")
-        log.warning(
-            "exposure estimate: %d of %d training views have fewer than %d usable samples of the facade's "
-            "opaque parts (non-glass points of the corrected mesh inside their facade mask) (%s); their gain "
-            "stays 1. Expected where the mesh covers little of a view",
-            len(few), len(data.train_idx), EXPOSURE_ESTIMATE.min_samples, shown,
-        )  # fmt: skip
-    return est
-
-
-def exposure_gain(tr: Trainer, index: int) -> Tensor | None:
-    """View ``index``'s exposure gain per colour channel [3] as estimated before training
-    (``exposure_estimate``), relative to the training views' geometric mean so that the splats keep the
-    mean exposure; None for held-out views and without the estimate."""
-    if index not in tr.data.train_idx or tr.exposure is None:
-        return None
-    return torch.as_tensor(tr.exposure.log_gain[index], device=tr.device).exp()
-
-
-@torch.no_grad()
-def exposure_gains(tr: Trainer) -> dict[str, list[float]]:
-    """Each training view's exposure gain per colour channel as trained (stem -> [r, g, b]); empty when
-    training assumed one exposure for all views."""
-    out = {}
-    for i in tr.data.train_idx:
-        gain = exposure_gain(tr, i)
-        if gain is not None:
-            out[tr.data.views[i].stem] = [round(float(x), 5) for x in gain]
-    return out
-
-
-def camera(tr: Trainer, index: int) -> Camera:
-    """View ``index``'s camera as training sees it: with its pose correction when poses are refined."""
-    cam = tr.cameras[index]
-    if tr.corrections is None:
-        return cam
-    return Camera(cam.K, tr.corrections.cam_from_world(index, cam.cam_from_world), cam.width, cam.height)
 
 
 def build_trainer(
@@ -268,122 +193,56 @@ def build_trainer(
         cameras,
         corrections=corrections,
         opt_corrections=opt_corrections,
-        exposure=_estimate_exposure(p, data),
+        exposure=estimate_view_exposures(p, data),
     )
 
 
-def _randint(gen: torch.Generator, high: int) -> int:
-    return int(torch.randint(high, (1,), generator=gen))
-
-
-def _window(tr: Trainer, index: int) -> Window:
-    """The whole image, or a random patch of ``patch_px`` centred on a random facade pixel (patches off the
-    facade would teach nothing when the loss is masked by it)."""
-    cam, p = tr.cameras[index], tr.params.patch_px
-    if p <= 0 or (p >= cam.width and p >= cam.height):
-        return (0, 0, cam.width, cam.height)
-    pw, ph = min(p, cam.width), min(p, cam.height)
-    mask = tr.data.views[index].facade_mask
-    ys, xs = np.nonzero(mask) if tr.params.mask_by_facade else (np.zeros(0), np.zeros(0))
-    if len(xs) == 0:
-        return (
-            _randint(tr.generator, cam.width - pw + 1),
-            _randint(tr.generator, cam.height - ph + 1),
-            pw,
-            ph,
-        )
-    k = _randint(tr.generator, len(xs))
-    x0 = int(np.clip(xs[k] - pw // 2, 0, cam.width - pw))
-    y0 = int(np.clip(ys[k] - ph // 2, 0, cam.height - ph))
-    return (x0, y0, pw, ph)
-
-
-@dataclass
-class ViewTensors:
-    """A window of a view's data on the device."""
-
-    image: Tensor  # [H, W, 3]
-    mask: Tensor  # [H, W] bool: facade mask (all True when not masking)
-    glass: Tensor  # [H, W] bool
-    prior: Tensor  # [H, W, 3]
-    prior_valid: Tensor  # [H, W] bool
-
-
-def view_tensors(view: TrainView, window: Window, mask_by_facade: bool, device: torch.device) -> ViewTensors:
-    x0, y0, w, h = window
-    sl = (slice(y0, y0 + h), slice(x0, x0 + w))
-
-    def t(a: np.ndarray, dtype=torch.float32) -> Tensor:
-        return torch.as_tensor(np.ascontiguousarray(a[sl]), dtype=dtype, device=device)
-
-    mask = (
-        t(view.facade_mask, torch.bool)
-        if mask_by_facade
-        else torch.ones(h, w, dtype=torch.bool, device=device)
+def load_checkpoint(
+    path: str | Path,
+    p: TrainParams,
+    data: TrainData,
+    rasterize: Rasterizer,
+    device: torch.device | str,
+    fingerprint: str,
+) -> Trainer | None:
+    """The trainer saved at ``path``, or None when ``checkpoints.read_checkpoint`` finds none to resume
+    (none there, other parameters or inputs, an older format, a damaged file moved aside: the log says)."""
+    state = read_checkpoint(path, p, fingerprint)
+    if state is None:
+        return None
+    device = torch.device(device)
+    model = GaussianModel.from_state(state["model"], device)
+    reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
+    opt.load_state_dict(state["opt"])
+    if reflection is not None:
+        reflection.load_state_dict(state["reflection"])
+        opt_refl.load_state_dict(state["opt_refl"])
+    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
+    if corrections is not None:
+        corrections.load_state_dict(state["corrections"])
+        opt_corrections.load_state_dict(state["opt_corrections"])
+    gen = torch.Generator(device="cpu")
+    gen.set_state(state["generator"])
+    stats = DensifyStats(state["stats"]["grad_accum"].to(device), state["stats"]["count"].to(device))
+    return Trainer(
+        p,
+        data,
+        device,
+        rasterize,
+        model,
+        reflection,
+        opt,
+        opt_refl,
+        gen,
+        stats,
+        shading,
+        cameras,
+        state["iteration"],
+        list(state["log"]),
+        corrections,
+        opt_corrections,
+        estimate_view_exposures(p, data),
     )
-    return ViewTensors(
-        t(view.image),
-        mask,
-        t(view.glass_mask, torch.bool),
-        t(view.normal_prior),
-        t(view.normal_valid, torch.bool),
-    )
-
-
-def _set_learning_rates(tr: Trainer) -> None:
-    p, it = tr.params, tr.iteration
-    for g in tr.opt.param_groups:
-        if g["name"] == "means":
-            g["lr"] = exp_decay(
-                p.lr.position_init * tr.extent, POSITION_LR_FINAL * tr.extent, it, p.iterations
-            )
-    if tr.opt_refl is not None:
-        for g in tr.opt_refl.param_groups:
-            g["lr"] = _reflection_lr(p, it, g["name"])
-
-
-def _reflection_optimizer(p: TrainParams, module: nn.Module) -> torch.optim.Adam:
-    """Adam over the reflection module, one group per rate: the proxy feature maps (``proxy``) apart from
-    the network's weights (``reflection``)."""
-    proxy = [prm for name, prm in module.named_parameters() if name.startswith("proxy.")]
-    rest = [prm for name, prm in module.named_parameters() if not name.startswith("proxy.")]
-    groups = [{"params": rest, "name": "reflection"}]
-    if proxy:
-        groups.append({"params": proxy, "name": "proxy"})
-    for g in groups:
-        g["lr"] = _reflection_lr(p, 0, g["name"])
-    return torch.optim.Adam(groups)
-
-
-def _reflection_lr(p: TrainParams, it: int, group: str) -> float:
-    """A reflection parameter group's rate at iteration ``it``: the MLP's decays; the environment map's and
-    the proxy feature maps' are fixed."""
-    if group == "proxy":
-        return p.lr.proxy
-    if p.reflection.model == "envmap":
-        return p.lr.envmap
-    return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
-
-
-def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -> dict[str, Tensor]:
-    """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``)."""
-    zero = r.rgb.new_zeros(())
-    loss_mask = vt.mask & ~r.skipped
-    terms = {"color": losses.color_loss(r.rgb, vt.image, loss_mask, LAMBDA_DSSIM)}
-    total = terms["color"]
-    if p.lambda_normal > 0 and iteration >= at_fraction(NORMAL_START_FRACTION, p.iterations):
-        terms["normal"] = losses.normal_consistency_loss(r.normal, losses.depth_normals(r.points), loss_mask)
-        total = total + p.lambda_normal * terms["normal"]
-    if p.lambda_normal_prior > 0:
-        terms["normal_prior"] = losses.normal_prior_loss(r.normal, vt.prior, vt.prior_valid & vt.mask)
-        total = total + p.lambda_normal_prior * terms["normal_prior"]
-    tau = step_schedule(p.hf_tau_start, p.hf_tau_end, p.hf_steps, iteration, p.iterations)
-    lam = step_schedule(p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, iteration, p.iterations)
-    if lam > 0:
-        terms["hf"] = losses.high_frequency_loss(r.rgb, vt.image, loss_mask, tau)
-        total = total + lam * terms["hf"]
-    terms["loss"] = total + zero
-    return terms
 
 
 def _check_finite(tr: Trainer, what: str, tensors: dict[str, Tensor | None]) -> None:
@@ -440,10 +299,10 @@ def step(tr: Trainer) -> dict[str, float]:
     """One optimisation step on a random training view (or patch). Returns the loss terms and the PSNR of
     the window over its loss mask. Raises ``TrainingDivergedError`` on NaN/Inf or runaway splats."""
     p = tr.params
-    _set_learning_rates(tr)
-    index = tr.data.train_idx[_randint(tr.generator, len(tr.data.train_idx))]
+    set_learning_rates(tr)
+    index = tr.data.train_idx[random_int(tr.generator, len(tr.data.train_idx))]
     cam = tr.cameras[index]  # the imported pose: the view-space gradients for densification
-    window = _window(tr, index)
+    window = random_window(tr, index)
     r, vt = render_window(
         tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.generator)
     )
@@ -475,7 +334,7 @@ def step(tr: Trainer) -> dict[str, float]:
     tr.iteration += 1
     _densify_if_due(tr)
     out = {k: float(v.detach()) for k, v in terms.items()}
-    out["psnr"] = losses.psnr(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
+    out["psnr"] = psnr(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
     return out
 
 
@@ -491,130 +350,6 @@ def _densify_if_due(tr: Trainer) -> None:
         log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.model.n)
     if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
         reset_opacity(tr.model, tr.opt, OPACITY_RESET_VALUE)
-
-
-def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
-    """Everything needed to continue exactly, written atomically."""
-    state = {
-        "format": CHECKPOINT_FORMAT,
-        "fingerprint": fingerprint,
-        "params": to_dict(tr.params),  # to tell, when it does not match, what changed
-        "iteration": tr.iteration,
-        "model": tr.model.state(),
-        "opt": tr.opt.state_dict(),
-        "reflection": None if tr.reflection is None else tr.reflection.state_dict(),
-        "opt_refl": None if tr.opt_refl is None else tr.opt_refl.state_dict(),
-        "corrections": None if tr.corrections is None else tr.corrections.state_dict(),
-        "opt_corrections": None if tr.opt_corrections is None else tr.opt_corrections.state_dict(),
-        "generator": tr.generator.get_state(),
-        "stats": {"grad_accum": tr.stats.grad_accum, "count": tr.stats.count},
-        "log": tr.log,
-    }
-    save_torch(path, state)
-
-
-def save_torch(path: str | Path, obj: Any) -> None:
-    """``torch.save`` atomically and reproducibly (through memory: torch names the archive after the file,
-    and the temporary name is random)."""
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    write_bytes(path, buf.getvalue())
-
-
-def load_checkpoint(
-    path: str | Path,
-    p: TrainParams,
-    data: TrainData,
-    rasterize: Rasterizer,
-    device: torch.device | str,
-    fingerprint: str,
-) -> Trainer | None:
-    """The trainer saved at ``path``, or None when there is none or it belongs to other parameters or
-    inputs (its fingerprint differs) or an older format, which the log says (naming the parameters that
-    changed when the checkpoint records them). A damaged file is moved aside to ``<name>.bad`` (kept for a
-    person to look at) and training starts afresh."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(state, dict):
-            raise TypeError(f"a {type(state).__name__}, not a dict")
-    except Exception as e:  # torch raises several types for truncated or foreign files
-        bad = path.with_name(path.name + ".bad")
-        os.replace(path, bad)
-        log.warning(
-            "%s: unreadable checkpoint (%s: %s), moved to %s; training starts from iteration 0",
-            path, type(e).__name__, str(e).splitlines()[0] if str(e) else "", bad.name,
-        )  # fmt: skip
-        return None
-    if state.get("format") != CHECKPOINT_FORMAT or state.get("fingerprint") != fingerprint:
-        log.warning(
-            "%s: checkpoint of iteration %s not resumed: %s; training starts from iteration 0",
-            path, state.get("iteration", "?"), _mismatch(state, p),
-        )  # fmt: skip
-        return None
-    log.info("%s: resuming from the checkpoint of iteration %s", path, state["iteration"])
-    device = torch.device(device)
-    model = GaussianModel.from_state(state["model"], device)
-    reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
-    opt.load_state_dict(state["opt"])
-    if reflection is not None:
-        reflection.load_state_dict(state["reflection"])
-        opt_refl.load_state_dict(state["opt_refl"])
-    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
-    if corrections is not None:
-        corrections.load_state_dict(state["corrections"])
-        opt_corrections.load_state_dict(state["opt_corrections"])
-    gen = torch.Generator(device="cpu")
-    gen.set_state(state["generator"])
-    stats = DensifyStats(state["stats"]["grad_accum"].to(device), state["stats"]["count"].to(device))
-    return Trainer(
-        p,
-        data,
-        device,
-        rasterize,
-        model,
-        reflection,
-        opt,
-        opt_refl,
-        gen,
-        stats,
-        shading,
-        cameras,
-        state["iteration"],
-        list(state["log"]),
-        corrections,
-        opt_corrections,
-        _estimate_exposure(p, data),
-    )
-
-
-def _mismatch(state: dict[str, Any], p: TrainParams) -> str:
-    """Why a checkpoint's fingerprint differs, as far as it records: its format, the parameters that
-    changed (dotted [train_gs] keys, old -> new, the first few), or else the inputs or the code."""
-    if state.get("format") != CHECKPOINT_FORMAT:
-        return f"it has format {state.get('format')!r}, this version reads {CHECKPOINT_FORMAT}"
-    saved = state.get("params")
-    if not isinstance(saved, dict):
-        return "it was made with other parameters, inputs or code"
-    old, new = _dotted(saved), _dotted(to_dict(p))
-    keys = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
-    changed = [f"{k} {old.get(k, '(none)')!r} -> {new.get(k, '(none)')!r}" for k in keys]
-    if not changed:
-        return "same parameters, other inputs or code (an upstream output or facade_pipeline changed)"
-    more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
-    return "other parameters: " + ", ".join(changed[:3]) + more
-
-
-def _dotted(table: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in table.items():
-        if isinstance(value, dict):
-            out |= _dotted(value, f"{prefix}{key}.")
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 ProgressCallback = Callable[[int, int, dict[str, float]], None]

@@ -16,8 +16,8 @@ from facade_pipeline.training.densify import (
 )
 from facade_pipeline.training.init import initial_model, sample_mesh
 from facade_pipeline.training.model import GaussianModel, quat_from_normal, quat_to_rotmat
+from facade_pipeline.training.optimizers import gaussian_optimizer
 from facade_pipeline.training.ply import model_columns, model_from_ply, read_ply, write_ply
-from facade_pipeline.training.trainer import _gaussian_optimizer
 from tests.training.conftest import small_params
 
 
@@ -97,7 +97,7 @@ def _model(n: int = 6, seed: int = 0) -> GaussianModel:
 
 def test_select_rows_keeps_adam_moments_with_their_rows():
     m = _model()
-    opt = _gaussian_optimizer(m, small_params(), 1.0)
+    opt = gaussian_optimizer(m, small_params(), 1.0)
     for p in m.params().values():
         p.grad = torch.randn_like(p)
     opt.step()
@@ -120,7 +120,7 @@ def test_densify_clones_small_splits_large_and_prunes_transparent():
             torch.tensor([[0.001, 0.001], [0.001, 0.001], [1.0, 0.5], [0.001, 0.001]])
         )
         m.opacity_logits[3] = -10.0  # transparent: pruned
-    opt = _gaussian_optimizer(m, p, 1.0)
+    opt = gaussian_optimizer(m, p, 1.0)
     stats = DensifyStats(torch.tensor([1.0, 0.0, 1.0, 0.0]), torch.tensor([1.0, 1.0, 1.0, 1.0]))
     counts = densify_and_prune(m, opt, stats, d, 10.0, False, torch.Generator().manual_seed(0))
     assert counts == {"cloned": 1, "split": 1, "pruned": 1}
@@ -136,7 +136,7 @@ def test_densify_clones_small_splits_large_and_prunes_transparent():
 def test_densify_respects_the_splat_budget():
     p = small_params(densify_max_gaussians=5)
     m = _model(4)
-    opt = _gaussian_optimizer(m, p, 1.0)
+    opt = gaussian_optimizer(m, p, 1.0)
     stats = DensifyStats(torch.ones(4), torch.ones(4))
     densify_and_prune(m, opt, stats, p.densify, 1000.0, False, torch.Generator().manual_seed(0))
     assert m.n <= 5
@@ -144,7 +144,7 @@ def test_densify_respects_the_splat_budget():
 
 def test_opacity_reset_clamps_and_zeroes_moments():
     m = _model()
-    opt = _gaussian_optimizer(m, small_params(), 1.0)
+    opt = gaussian_optimizer(m, small_params(), 1.0)
     for q in m.params().values():
         q.grad = torch.randn_like(q)
     opt.step()

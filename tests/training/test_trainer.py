@@ -13,18 +13,17 @@ import torch
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.splatting.types import NEAR_M
-from facade_pipeline.training import losses
-from facade_pipeline.training import trainer as trainer_module
+from facade_pipeline.training import batches, losses
+from facade_pipeline.training.batches import camera
+from facade_pipeline.training.checkpoints import save_checkpoint
 from facade_pipeline.training.exposure import ExposureParams
+from facade_pipeline.training.losses import compute_losses
 from facade_pipeline.training.render import Camera, random_subset, render_view, splatting_rasterizer
 from facade_pipeline.training.trainer import (
     TrainingDivergedError,
     build_trainer,
-    camera,
-    compute_losses,
     load_checkpoint,
     render_window,
-    save_checkpoint,
     train,
 )
 from tests.splatting.dense_reference import render_dense
@@ -281,7 +280,7 @@ def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkey
     views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
     data = dataclasses.replace(data64, views=tuple(views))
     est = ExposureParams(samples=40000, min_samples=10)  # small photos
-    monkeypatch.setattr(trainer_module, "EXPOSURE_ESTIMATE", est)
+    monkeypatch.setattr(batches, "EXPOSURE_ESTIMATE", est)
     tr = build_trainer(small_params(exposure_estimate=True), data, RASTER)
     assert tr.corrections is None
     g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
@@ -389,7 +388,7 @@ def test_a_checkpoint_not_resumed_says_why_in_the_log(data64, tmp_path, caplog):
     p = small_params(iterations=4)
     ckpt = tmp_path / "ckpt.pt"
     train(build_trainer(p, data64, RASTER), ckpt, "fp")
-    caplog.set_level(logging.INFO, logger="facade_pipeline.training.trainer")
+    caplog.set_level(logging.INFO, logger="facade_pipeline.training.checkpoints")
     assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp").iteration == 4
     assert "resuming from the checkpoint of iteration 4" in caplog.text
     caplog.clear()

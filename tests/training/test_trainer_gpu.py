@@ -8,15 +8,10 @@ import pytest
 import torch
 
 from facade_pipeline.splatting import gsplat_backend
+from facade_pipeline.training.checkpoints import save_checkpoint
+from facade_pipeline.training.losses import compute_losses
 from facade_pipeline.training.render import splatting_rasterizer
-from facade_pipeline.training.trainer import (
-    build_trainer,
-    compute_losses,
-    load_checkpoint,
-    render_window,
-    save_checkpoint,
-    train,
-)
+from facade_pipeline.training.trainer import build_trainer, load_checkpoint, render_window, train
 from tests.training.conftest import small_params
 from tests.training.scenes import hard_scene
 
