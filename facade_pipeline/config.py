@@ -330,12 +330,12 @@ FIXED = {
         "import_photogrammetry.georef_threshold_m",
         "import_photogrammetry.auto_up_snap_deg",
     ),
-    "facade_pipeline/geometry/cylinder.py": (
+    "facade_pipeline/rectification/cylinder.py": (
         "rectify.fit.ransac_iterations",
         "rectify.fit.seed",
         "rectify.fit.min_sagitta_rms",
     ),
-    "facade_pipeline/geometry/rectification.py": ("rectify.warp.samples_per_side",),
+    "facade_pipeline/rectification/surface_map.py": ("rectify.warp.samples_per_side",),
     "facade_pipeline/segmentation/panels.py": (
         "segment_panels.min_segment_px",
         "segment_panels.orientation_search_deg",
@@ -349,13 +349,13 @@ FIXED = {
         "segment_panels.grid.lsd_scale",
         "segment_panels.grid.edge_search_px",
     ),
-    "facade_pipeline/geometry/panel_grid.py": (
+    "facade_pipeline/panels3d/grid.py": (
         "regularize_corners.part_link_factor",
         "regularize_corners.cluster_gap_factor",
         "regularize_corners.footprint_shrink",
         "regularize_corners.border_margin_px",
     ),
-    "facade_pipeline/geometry/regularize.py": ("regularize_corners.outlier_mad_factor",),
+    "facade_pipeline/panels3d/regularize.py": ("regularize_corners.outlier_mad_factor",),
     "stages/regularize_corners.py": (
         "regularize_corners.mask_min_region_px",
         "regularize_corners.mask_refit_iou",

@@ -97,7 +97,7 @@ def rectify_one(
     if fit is not None:
         rect = rectify_view(cam, fit.surface, params)
         if rect.kind != "skipped":  # edge-on or too large says more than the displacement it implies
-            displacement = warp_displacement_px(cam, fit.surface, params.warp.samples_per_side)
+            displacement = warp_displacement_px(cam, fit.surface)
             why = implausible_displacement(displacement, cam.width, cam.height, params.fit)
             if why is not None:
                 fit, status, rect = None, f"no surface: implausible fit, {why}", None

@@ -163,7 +163,7 @@ def test_a_nested_section_by_its_dotted_name(cfg_dir):
     ("segment_panels", "overlay_scale", "run.overlay_scale"),
     ("correct_mesh", "target_normal_error_deg", "benchmarks/bench_bake.py"),
     ("regularize_corners", "depth_refinement", "coarse points' mode"),
-    ("rectify.fit", "ransac_iterations", "a constant in facade_pipeline/geometry/cylinder.py"),
+    ("rectify.fit", "ransac_iterations", "a constant in facade_pipeline/rectification/cylinder.py"),
 ])
 def test_an_old_key_names_its_replacement(cfg_dir, section, key, replacement):
     _write(cfg_dir, "old", f'[building]\nkind = "real"\n\n[{section}]\n{key} = 10\n')

@@ -276,15 +276,15 @@ def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams)
     return rect
 
 
-def warp_displacement_px(camera: PinholeCamera, surface: Surface, samples_per_side: int) -> float:
+def warp_displacement_px(camera: PinholeCamera, surface: Surface) -> float:
     """Largest distance (px) by which the rectification onto ``surface`` moves a pixel of the view beyond
     a rotation, scale and shift of the whole view, at the view's own ground sample distance (so that neither
     ``metres_per_px`` nor the camera's roll counts): 0 for a view straight on to a plane, a fraction of the
-    view's size for an oblique one (its far side stretched). Over a ``samples_per_side`` grid of the view;
-    NaN when no ray meets the surface."""
+    view's size for an oblique one (its far side stretched). Over a ``WARP_SAMPLES_PER_SIDE`` grid of the
+    view; NaN when no ray meets the surface."""
     kind: Kind = "plane" if surface.curvature_per_m == 0.0 else "cylinder"
     unit = ViewRectification(kind, 1, 1, 1.0, camera, Chart.of(surface))
-    px = image_grid(camera.width, camera.height, samples_per_side)
+    px = image_grid(camera.width, camera.height, WARP_SAMPLES_PER_SIDE)
     sh = unit.to_rectified(px)  # (s, -h) in metres
     hit = np.isfinite(sh).all(axis=1)
     if not hit.any():
