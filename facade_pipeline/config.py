@@ -299,6 +299,19 @@ RENAMED = {
                 ),
             ),
             ("the estimate's numbers are fixed (ExposureParams, training/exposure.py)", ("exposure",)),
+            (
+                "no building tuned it: a constant of facade_pipeline/training/params.py",
+                ("refl_threshold", "init_bounds_margin_m", "init_f0"),
+            ),
+            (
+                "no building tuned it: a constant of facade_pipeline/training/schedule.py",
+                ("lr.reflection_final", "lr.envmap"),
+            ),
+            ("no building tuned it: a constant of facade_pipeline/training/optimizers.py", ("lr.f0",)),
+            (
+                "no building tuned it: a constant of facade_pipeline/training/trainer.py",
+                ("lr.pose_rotation", "lr.pose_translation"),
+            ),
         )
         for key in keys
     },

@@ -236,38 +236,19 @@ def test_run_settings_are_their_own_table(cfg_dir):
 #: the most keys a real building's config may have (default.toml's leaves; synthetic.toml's are not seen):
 #: a config a user can read through
 KEY_BUDGET = 120
-#: its share for [train_gs], and for every other table together (the stages' settings and [run])
-TRAIN_GS_SHARE = 45
-REST_SHARE = KEY_BUDGET - TRAIN_GS_SHARE
 
 
 def _leaf_keys(table: dict) -> int:
     return sum(_leaf_keys(v) if isinstance(v, dict) else 1 for v in table.values())
 
 
-def _real_building_tables() -> dict:
+def test_a_real_building_sees_at_most_the_key_budget():
     cfg = load_building_config("shatin")
     assert cfg.building.kind == "real" and len(cfg.files) == 2  # default.toml and its own file only
-    return cfg.default_tables
-
-
-def test_the_keys_outside_train_gs_keep_their_share_of_the_budget():
-    tables = _real_building_tables()
-    per_table = {name: _leaf_keys(t) if isinstance(t, dict) else 1 for name, t in tables.items()}
-    rest = sum(n for name, n in per_table.items() if name != "train_gs")
-    print(f"keys a real building sees: {sum(per_table.values())} ({per_table})")
-    assert rest <= REST_SHARE, f"{rest} keys outside [train_gs], more than {REST_SHARE}: {per_table}"
-
-
-@pytest.mark.xfail(
-    _leaf_keys(load_building_config("shatin").default_tables["train_gs"]) > TRAIN_GS_SHARE,
-    reason=f"[train_gs] alone still has more than {TRAIN_GS_SHARE} keys",
-    strict=True,
-)
-def test_a_real_building_sees_at_most_the_key_budget():
-    count = _leaf_keys(_real_building_tables())
-    print(f"keys a real building sees: {count} (budget {KEY_BUDGET})")
-    assert count <= KEY_BUDGET, f"a real building sees {count} keys, more than the budget of {KEY_BUDGET}"
+    per_table = {name: _leaf_keys(t) if isinstance(t, dict) else 1 for name, t in cfg.default_tables.items()}
+    count = sum(per_table.values())
+    assert "synthesize" not in per_table
+    assert count <= KEY_BUDGET, f"a real building sees {count} keys, more than {KEY_BUDGET}: {per_table}"
 
 
 def test_every_replaced_key_is_gone_from_the_defaults():

@@ -153,11 +153,11 @@ def test_a_value_out_of_range_names_key_file_and_range(write_building, table, li
 
 def test_the_bounds_themselves_are_allowed(write_building):
     """Closed ends are in range: a fraction of 0 and of 1, a count of 0; inf where a limit may be off."""
-    lines = "init_reflectivity = 1.0\ninit_f0 = 0.0\nmlp_max_pixels = 0"
+    lines = "init_reflectivity = 1.0\ninit_reflectivity_glass = 0.0\nmlp_max_pixels = 0"
     path = write_building("train_gs", lines)
     cfg = load_building_config("bad", path.parents[1])
     p = cfg.section("train_gs", load_stage("train_gs").Params)
-    assert (p.init_reflectivity, p.init_f0, p.mlp_max_pixels) == (1.0, 0.0, 0)
+    assert (p.init_reflectivity, p.init_reflectivity_glass, p.mlp_max_pixels) == (1.0, 0.0, 0)
     path = write_building("rectify", "occlusion_margin_m = inf")
     cfg = load_building_config("bad", path.parents[1])
     assert cfg.section("rectify", load_stage("rectify").Params).occlusion_margin_m == float("inf")

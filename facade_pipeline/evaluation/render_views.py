@@ -24,6 +24,7 @@ from facade_pipeline.shading.reflection import (
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, NEAR_M
 from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
 from facade_pipeline.training.model import GaussianModel
+from facade_pipeline.training.params import REFL_THRESHOLD
 from facade_pipeline.training.ply import model_from_ply, read_ply
 from facade_pipeline.training.render import (
     Camera,
@@ -94,7 +95,8 @@ def load_trained(
             raise InputError(variant.reflection, f"weights of a {strategy}", str(e).splitlines()[0]) from None
         module.eval()
     p = variant.params
-    shading = ShadingOptions(float(p["refl_threshold"]), lo, hi, supersample=int(p.get("supersample", 1)))
+    refl_threshold = float(p.get("refl_threshold", REFL_THRESHOLD))  # a key when older models were saved
+    shading = ShadingOptions(refl_threshold, lo, hi, supersample=int(p.get("supersample", 1)))
     lowpass = float(p.get("lowpass_sigma_px", LOWPASS_SIGMA_PX))  # models saved before the key: 2DGS's
     return TrainedModel(
         variant.name,

@@ -81,7 +81,7 @@ class ReflectionMLP:
     ``ReflectionParams.strategy`` fills it from [train_gs.reflection.proxy]"""
     proxy_margin_m: NonNeg = 1.0
     """coarse points farther than this outside the facade bounds (horizontally) make the proxy's surface
-    model of the surroundings (m; ``train_gs.init_bounds_margin_m``)"""
+    model of the surroundings (m; ``training.params.INIT_BOUNDS_MARGIN_M``)"""
 
 
 ReflectionModel = SHOnly | EnvMap | ReflectionMLP

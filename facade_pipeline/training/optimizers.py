@@ -26,6 +26,8 @@ SH_REST_LR = SH_DC_LR / 20.0  # 3DGS: the higher SH bands at a twentieth of the 
 OPACITY_LR = 0.05
 SCALING_LR = 5e-3
 ROTATION_LR = 1e-3
+#: Adam rate of the splats' Fresnel F0 logits: this pipeline's, at the reflectivity's default, never tuned
+LR_F0 = 0.01
 
 
 def gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> torch.optim.Adam:
@@ -40,7 +42,7 @@ def gaussian_optimizer(model: GaussianModel, p: TrainParams, extent: float) -> t
         "sh_dc": SH_DC_LR,
         "sh_rest": SH_REST_LR,
         "refl_logits": lr.reflectivity,
-        "f0_logits": lr.f0,
+        "f0_logits": LR_F0,
     }
     groups = [{"params": [getattr(model, n)], "lr": rates[n], "name": n} for n in PARAM_NAMES]
     return torch.optim.Adam(groups, lr=0.0, eps=1e-15)

@@ -16,6 +16,17 @@ from facade_pipeline.shading.reflection import ReflectionModel, ReflectionParams
 T = TypeVar("T")
 
 
+#: Numbers of the method that no building tuned, fixed here so that the config holds what a user tunes.
+#: R is evaluated only on facade pixels whose rendered reflectivity exceeds this (0-1): below it the
+#: specular term cannot show, and the MLP's cost goes to the pixels where it does.
+REFL_THRESHOLD = 0.01
+#: coarse points farther than this (m) outside the corrected mesh's bounds do not become splats, and the
+#: reflection proxy's surroundings reach this far beyond the facade's bounds
+INIT_BOUNDS_MARGIN_M = 1.0
+#: initial Fresnel F0 of every splat, all channels: coated facade glass reflects strongly (0-1)
+INIT_F0 = 0.5
+
+
 @dataclass(frozen=True)
 class LearningRates:
     """Adam learning rates of what 2DGS does not have, and its position rate at the start (times the
@@ -23,18 +34,10 @@ class LearningRates:
 
     position_init: Positive
     reflectivity: Positive
-    f0: Positive
     reflection_init: Positive
     """of the reflection MLP's weights, decayed exponentially to ..."""
-    reflection_final: Positive
-    envmap: Positive
-    """of the environment map's texel logits (constant): each texel sees few pixels, like a splat colour"""
     proxy: Positive
     """of the reflection MLP's proxy feature maps (constant), for the same reason"""
-    pose_rotation: Positive
-    """of the per-view pose corrections' rotations (rad, constant)"""
-    pose_translation: Positive
-    """of their translations (m, constant)"""
 
 
 @dataclass(frozen=True)
@@ -64,7 +67,6 @@ class TrainParams:
     reflection: ReflectionParams
     sh_degree: Annotated[int, Range(0, 3)]
     sh_degree_interval: Count
-    refl_threshold: Fraction
     reflection_normal_grad: bool
     supersample: PosInt
     """sub-pixel samples per pixel side in every render (``ShadingOptions.supersample``)"""
@@ -85,16 +87,14 @@ class TrainParams:
     hf_steps: PosInt
     init_max_points: Count
     init_mesh_samples: Count
-    init_bounds_margin_m: NonNeg
     init_reflectivity: Fraction
     init_reflectivity_glass: Fraction
-    init_f0: Fraction
     lr: LearningRates
     densify: DensifyParams
 
     def reflection_strategy(self) -> ReflectionModel:
         """The reflection model strategy these parameters select."""
-        return self.reflection.strategy(self.init_bounds_margin_m)
+        return self.reflection.strategy(INIT_BOUNDS_MARGIN_M)
 
 
 def flat_params(params: dict[str, Any]) -> dict[str, Any]:

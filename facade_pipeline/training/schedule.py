@@ -14,6 +14,12 @@ if TYPE_CHECKING:  # annotations only: the generic shapes need no parameters
 #: Where the position rate decays to, times the scene extent, from ``lr.position_init``: 3DGS's training
 #: default (DESIGN.md), never tuned here, like the other splat rates of ``training.optimizers``.
 POSITION_LR_FINAL = 1.6e-6
+#: the reflection MLP's rate decays log-linearly from ``lr.reflection_init`` to this at the end of the run
+#: (never tuned: no building moved it)
+LR_REFLECTION_FINAL = 1e-5
+#: Adam rate of the environment map's texel logits (constant): each texel sees few pixels, like a splat
+#: colour, so it takes a splat colour's order of rate
+LR_ENVMAP = 1e-2
 
 
 def at_fraction(fraction: float, iterations: int) -> int:
@@ -60,5 +66,5 @@ def reflection_lr(p: TrainParams, it: int, group: str) -> float:
     if group == "proxy":
         return p.lr.proxy
     if p.reflection.model == "envmap":
-        return p.lr.envmap
-    return exp_decay(p.lr.reflection_init, p.lr.reflection_final, it, p.iterations)
+        return LR_ENVMAP
+    return exp_decay(p.lr.reflection_init, LR_REFLECTION_FINAL, it, p.iterations)

@@ -52,7 +52,12 @@ from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
 from facade_pipeline.training.losses import compute_losses, psnr
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.optimizers import gaussian_optimizer, reflection_optimizer, set_learning_rates
-from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.params import (
+    INIT_BOUNDS_MARGIN_M,
+    INIT_F0,
+    REFL_THRESHOLD,
+    TrainParams,
+)
 from facade_pipeline.training.render import (
     Camera,
     Rasterizer,
@@ -68,6 +73,10 @@ log = logging.getLogger(__name__)
 #: A splat this many scene extents from the facade means the run diverged: a sanity bound, far beyond any
 #: real splat (the surroundings are within a few extents).
 DIVERGENCE_EXTENT_FACTOR = 100.0
+#: Adam rates of the per-view pose corrections (``pose_refinement``, constant): rotation (rad) and
+#: translation (m), small against the centimetre pose errors they correct; never tuned
+LR_POSE_ROTATION = 1e-5
+LR_POSE_TRANSLATION = 3e-4
 
 
 class TrainingDivergedError(PipelineError):
@@ -118,7 +127,7 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     if p.supersample < 1:
         raise PipelineError(None, "train_gs.supersample of at least 1", str(p.supersample))
     shading = ShadingOptions(
-        p.refl_threshold,
+        REFL_THRESHOLD,
         torch.as_tensor(lo, **f32),
         torch.as_tensor(hi, **f32),
         p.reflection_normal_grad,
@@ -149,7 +158,7 @@ def _build_corrections(
     if not p.pose_refinement:
         return None, None
     corr = ViewCorrections(n_views, device, pose=True)
-    return corr, corr.optimizer(p.lr.pose_rotation, p.lr.pose_translation, lr_exposure=0.0)
+    return corr, corr.optimizer(LR_POSE_ROTATION, LR_POSE_TRANSLATION, lr_exposure=0.0)
 
 
 def build_trainer(
@@ -164,12 +173,12 @@ def build_trainer(
         data.bounds,
         p.init_max_points,
         p.init_mesh_samples,
-        p.init_bounds_margin_m,
+        INIT_BOUNDS_MARGIN_M,
         INIT_KNN,
         INIT_OPACITY,
         p.init_reflectivity,
         p.init_reflectivity_glass,
-        p.init_f0,
+        INIT_F0,
         p.sh_degree,
         p.seed,
         device,

@@ -14,6 +14,7 @@ import torch
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training import batches, losses
+from facade_pipeline.training import trainer as trainer_module
 from facade_pipeline.training.batches import camera
 from facade_pipeline.training.checkpoints import save_checkpoint
 from facade_pipeline.training.exposure import ExposureParams
@@ -145,8 +146,9 @@ def test_reflection_models_train_and_only_mlp_envmap_use_reflectivity(data64, mo
 
 
 def test_mlp_runs_only_on_selected_reflective_facade_pixels(data64):
-    p = small_params(mlp_max_pixels=50, refl_threshold=0.05)
+    p = small_params(mlp_max_pixels=50)
     tr = build_trainer(p, data64, RASTER)
+    tr.shading = dataclasses.replace(tr.shading, refl_threshold=0.05)
     calls = []
     inner = tr.reflection
 
@@ -253,11 +255,12 @@ def test_reflection_normal_grad_switch(data64, normal_grad):
     assert moved == normal_grad
 
 
-def test_pose_corrections_move_training_views_only(data64):
+def test_pose_corrections_move_training_views_only(data64, monkeypatch):
     """Training views' pose corrections move; held-out views keep the imported pose exactly; without
     refinement the trainer renders the imported poses as they are, and nothing corrects exposure."""
-    lr = dataclasses.replace(small_params().lr, pose_rotation=1e-3, pose_translation=1e-2)
-    tr = build_trainer(small_params(iterations=10, pose_refinement=True, lr=lr), data64, RASTER)
+    monkeypatch.setattr(trainer_module, "LR_POSE_ROTATION", 1e-3)  # faster than the default, to see moves
+    monkeypatch.setattr(trainer_module, "LR_POSE_TRANSLATION", 1e-2)
+    tr = build_trainer(small_params(iterations=10, pose_refinement=True), data64, RASTER)
     train(tr)
     c = tr.corrections
     train_idx, test_idx = list(data64.train_idx), list(data64.test_idx)
