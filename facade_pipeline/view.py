@@ -327,10 +327,19 @@ class Viewer:
         img = render_image(self.scene, viser_camera(position, wxyz, fov, aspect, width_px), self.mode.value)
         with self._lock:
             photo = self._photo.get(client_id)
-            if photo is not None and not np.allclose(position, photo[1], atol=1e-4):
-                self._photo.pop(client_id, None)  # moved away from it
-                photo = None
+        if photo is not None and not np.allclose(position, photo[1], atol=1e-4):
+            # ``position`` may have been read just before a click moved the camera onto the selected one:
+            # the photo goes only once the browser's camera itself has left it
+            if not np.allclose(self._position_now(client_id, position), photo[1], atol=1e-4):
+                with self._lock:
+                    self._photo.pop(client_id, None)
+            photo = None
         return img if photo is None else _beside(photo[0], img)
+
+    def _position_now(self, client_id: int, default) -> np.ndarray:
+        """Where ``client_id``'s camera is now (``default`` for a client that has left)."""
+        client = self.server.get_clients().get(client_id)
+        return np.asarray(default if client is None else client.camera.position, dtype=float)
 
     def _touch(self, client_id: int) -> None:
         with self._lock:
