@@ -311,8 +311,8 @@ class Viewer:
 
     def _look_through(self, client, vc: ViewCamera) -> None:
         """A frustum was clicked: the browser looks through ``vc``, its photo beside the render."""
+        self._set_pose(client, vc.camera)  # first: a frame of the old pose must not see the new selection
         self.select(client.client_id, vc)
-        self._set_pose(client, vc.camera)
         self._touch(client.client_id)
 
     def select(self, client_id: int, vc: ViewCamera) -> None:
