@@ -10,12 +10,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from facade_pipeline.config import default_params
+from facade_pipeline.config import default_params, default_run_settings
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import write_image
 from facade_pipeline.rectification.cylinder import Surface, implausible_displacement
-from facade_pipeline.rectification.surface_map import warp_displacement_px
+from facade_pipeline.rectification.surface_map import WARP_SAMPLES_PER_SIDE, warp_displacement_px
 from facade_pipeline.scene import View
 from stages import rectify
 
@@ -40,7 +40,7 @@ def plane() -> Surface:
 
 
 def test_displacement_is_zero_straight_on_whatever_the_roll_and_grows_with_obliquity():
-    n = PARAMS.warp.samples_per_side
+    n = WARP_SAMPLES_PER_SIDE
     assert warp_displacement_px(camera(), plane(), n) < 1e-6
     assert warp_displacement_px(camera(roll_deg=90.0), plane(), n) < 1e-6  # a portrait photo
     assert warp_displacement_px(camera(roll_deg=180.0), plane(), n) < 1e-6
@@ -89,7 +89,7 @@ def test_a_fit_whose_map_moves_pixels_too_far_gets_no_surface_with_the_reason(la
         PARAMS, metres_per_px=0.5, fit=dataclasses.replace(PARAMS.fit, max_displacement_size=limit)
     )
     view, pts, mesh = _scene(layout, camera(yaw_deg))
-    _, metrics = rectify.rectify_one(layout, view, pts, params, mesh)
+    _, metrics = rectify.rectify_one(layout, view, pts, params, mesh, default_run_settings().overlay_scale)
     assert metrics["kind"] == kind, metrics
     shift = metrics["displacement_px"]
     assert shift is not None and shift > 5.0
