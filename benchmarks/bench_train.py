@@ -37,7 +37,6 @@ from facade_pipeline.evaluation.image_eval import INTERIOR_MARGIN_PX, LpipsSetti
 from facade_pipeline.evaluation.render_views import from_trainer  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX  # noqa: E402
-from facade_pipeline.training.corrections import AlignParams  # noqa: E402
 from facade_pipeline.training.data import (  # noqa: E402
     InitGeometry,
     TrainData,
@@ -46,7 +45,7 @@ from facade_pipeline.training.data import (  # noqa: E402
     save_bundle,
     split_views,
 )
-from facade_pipeline.training.params import TrainParams, replace_keys  # noqa: E402
+from facade_pipeline.training.params import AlignParams, TrainParams, replace_keys  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
 from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
 

@@ -10,6 +10,11 @@
 - optionally ``EDITABLE``: layout entries of its outputs that a person may edit (not taken for damage);
 - a CLI: ``python -m stages <name> --building NAME`` (or ``python -m stages.<name>``).
 
+doit imports every stage module to build its task list (``doit list`` too), so what a module holds at its
+top (the names above, ``Params`` from a light ``params`` module of the library) imports no heavy library
+(torch, open3d, pycolmap, OpenCV): ``run``, its helpers and ``inputs`` import the algorithms where they
+use them. The stage's code version (``_runner.source_files``) follows those imports too.
+
 ``stages._runner.execute`` wraps ``run`` with the contract (manifest last, stale files removed) and is
 the one way a stage runs, from doit or from the command line.
 """

@@ -15,21 +15,21 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.bake.maps import BakedPrior, bake_view
 from facade_pipeline.config import PosInt, RunSettings
 from facade_pipeline.errors import InputError
-from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages._runner import StageReport, main
+
+if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    from facade_pipeline.synthetic.truth import SyntheticTruth
 
 NAME = "bake_normals"
 DOC = "bake world-space normal and depth maps (EXR) and facade/glass masks (PNG) for every training view"
@@ -76,6 +76,12 @@ def _truth(
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.bake.maps import BakedPrior, bake_view
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.io.meshes import read_mesh
+    from facade_pipeline.synthetic.truth import SyntheticTruth
+
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.path("correct_mesh"))
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))

@@ -19,17 +19,11 @@ from typing import Annotated
 import numpy as np
 
 from facade_pipeline.config import Fraction, NonNeg, PosInt, Positive, Range, RunSettings
-from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.images import write_image
-from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, LABEL_NAMES, correct_mesh, label_triangles, write_labels
-from facade_pipeline.meshing.metrics import surface_errors
-from facade_pipeline.meshing.overlay import scaled_camera, shaded_render, side_by_side, upscale_factor
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages._runner import StageReport, main
 
 NAME = "correct_mesh"
@@ -77,6 +71,10 @@ def truth_metrics(
     panel_width_m: float,
 ) -> dict:
     """Coarse vs corrected against gt/ (synthetic buildings only; metrics, never used to build a mesh)."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.meshing.metrics import surface_errors
+    from facade_pipeline.synthetic.truth import SyntheticTruth
+
     if params.metric_samples is None or params.metric_max_match_m is None:
         return {}
     if not SyntheticTruth.available(layout, "glass_mesh", "frame_mesh"):
@@ -93,6 +91,11 @@ def truth_metrics(
 
 def _overlay(layout: BuildingLayout, coarse: tuple, fixed: tuple, labels) -> None:
     """Shaded coarse (left) and corrected (right, by label) renders from the first frontal (else UAV) view."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.io.images import write_image
+    from facade_pipeline.meshing.overlay import scaled_camera, shaded_render, side_by_side, upscale_factor
+
     scene = ImportedScene.load(layout)
     views = scene.frontal_views or scene.uav_views
     cam = views[0].camera
@@ -106,6 +109,9 @@ NO_PANELS = "no panels: no mesh correction (the coarse mesh is the facade)"
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
+
     coarse = read_mesh(layout.import_coarse_mesh)
     panels = PanelSet.load(layout.path("regularize_panels"))
     v, f = np.asarray(coarse.vertices), np.asarray(coarse.triangles)

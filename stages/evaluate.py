@@ -20,31 +20,11 @@ from tqdm import tqdm
 
 from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
-from facade_pipeline.evaluation.building import (
-    EvaluateParams,
-    evaluate_split,
-    facade_masker,
-    gaussian_geometry,
-    measures_geometry,
-    metrics_header,
-    renderer,
-    scene_geometry,
-    split_views,
-    summary,
-    trained_models,
-    truth_files,
-    variant_entry,
-    view_files,
-    write_fly_through,
-    write_reports,
-)
-from facade_pipeline.evaluation.geometry_eval import load_truth
-from facade_pipeline.evaluation.render_views import load_trained
+from facade_pipeline.evaluation.params import EvaluateParams
 from facade_pipeline.evaluation.video import render_path, video_path
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.training.trainer import resolve_device
 from stages._runner import StageReport, main
 
 NAME = "evaluate"
@@ -56,6 +36,15 @@ Params = EvaluateParams
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     """The trained variants, the imported scene, the photos and baked masks of the views they are
     measured on; on synthetic buildings the meshes, panels and gt/ truth. Missing files raise."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.evaluation.building import (
+        measures_geometry,
+        split_views,
+        trained_models,
+        truth_files,
+        view_files,
+    )
+
     for stage in ("bake_normals", "correct_mesh", "regularize_corners"):
         read_manifest(layout, stage)
     scene = ImportedScene.load(layout)
@@ -87,6 +76,27 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # an earlier run's report must not pass for this one's while it runs, or after it is killed
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.evaluation.building import (
+        evaluate_split,
+        facade_masker,
+        gaussian_geometry,
+        measures_geometry,
+        metrics_header,
+        renderer,
+        scene_geometry,
+        split_views,
+        summary,
+        trained_models,
+        truth_files,
+        variant_entry,
+        write_fly_through,
+        write_reports,
+    )
+    from facade_pipeline.evaluation.geometry_eval import load_truth
+    from facade_pipeline.evaluation.render_views import load_trained
+    from facade_pipeline.training.trainer import resolve_device
+
     for path in targets(layout, params):
         path.unlink(missing_ok=True)
     scene = ImportedScene.load(layout)

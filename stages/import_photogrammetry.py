@@ -11,10 +11,9 @@ import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
-import pycolmap
 from tqdm import tqdm
 
 from facade_pipeline.config import Fraction, NonNeg, Range, RunSettings
@@ -26,14 +25,15 @@ from facade_pipeline.geometry.frames import (
     local_from_model,
     transform_points,
 )
-from facade_pipeline.importing.checks import SceneCheck, check_scene, units_hint
-from facade_pipeline.io import colmap
-from facade_pipeline.io.images import image_size, read_image, write_image
-from facade_pipeline.io.meshes import make_points, read_mesh, read_points, write_mesh, write_points
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.meshing.clean import clean_mesh
 from facade_pipeline.scene import ImportedScene, Role, View
 from stages._runner import StageReport, main
+
+if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    import pycolmap
+
+    from facade_pipeline.importing.checks import SceneCheck
+    from facade_pipeline.io import colmap
 
 log = logging.getLogger(__name__)
 NAME = "import_photogrammetry"
@@ -107,6 +107,10 @@ def _checked_name(name: str, src: _Source) -> str:
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     """Every raw file the stage reads, after checking the models, images and sizes."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io import colmap
+    from facade_pipeline.io.images import image_size
+
     if not layout.raw_dir.is_dir():
         raise InputError(layout.raw_dir, "the folder of raw data (see data_layout.md)", "no folder")
     files: list[Path] = []
@@ -151,6 +155,9 @@ def _local_frame(
     rec: pycolmap.Reconstruction, mesh_vertices: np.ndarray, params: Params
 ) -> tuple[np.ndarray, str]:
     """``local_from_model`` [4, 4] and how up was found."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io import colmap
+
     centres = np.array([im.projection_center() for im in colmap.registered_images(rec)])
     extent = max(np.abs(centres).max(), np.abs(mesh_vertices).max())
     georeferenced = extent > GEOREF_THRESHOLD_M
@@ -170,6 +177,10 @@ def _local_frame(
 def _import_views(
     src: _Source, rec: pycolmap.Reconstruction, layout: BuildingLayout, params: Params, bar: tqdm
 ) -> tuple[list[View], list[colmap.ColmapView]]:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io import colmap
+    from facade_pipeline.io.images import read_image, write_image
+
     opts = colmap.undistort_options()
     pinhole: dict[int, pycolmap.Camera] = {}
     views, model_views = [], []
@@ -190,6 +201,9 @@ def _import_views(
 
 def _check_scene(layout: BuildingLayout, params: Params, views: list[View], mesh) -> SceneCheck:
     """The cameras and the coarse mesh in one frame and one unit, or one line saying which is off."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.importing.checks import check_scene, units_hint
+
     mesh_path = _coarse_mesh_path(layout)
     cams = {f"{v.role}:{v.stem}": v.camera for v in views}
     uav = [k for k in cams if k.startswith("uav:")]
@@ -231,6 +245,13 @@ def _check_scene(layout: BuildingLayout, params: Params, views: list[View], mesh
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    import pycolmap
+
+    from facade_pipeline.io import colmap
+    from facade_pipeline.io.meshes import make_points, read_mesh, read_points, write_mesh, write_points
+    from facade_pipeline.meshing.clean import clean_mesh
+
     sources = _sources(layout)
     recs = [colmap.read_reconstruction(s.model_dir) for s in sources]
     mesh, cleaned = clean_mesh(read_mesh(_coarse_mesh_path(layout)))

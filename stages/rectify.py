@@ -20,30 +20,21 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.config import Range, RunSettings
 from facade_pipeline.errors import UpstreamMissingError
-from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.atomic import write_json
-from facade_pipeline.io.images import read_image, write_image
-from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.rectification.cylinder import SurfaceFitParams, implausible_displacement
-from facade_pipeline.rectification.surface_map import (
-    RectifyParams,
-    ViewRectification,
-    mesh_scale_m,
-    rectify_view,
-    warp_displacement_px,
-    warp_image,
-)
-from facade_pipeline.rectification.views import fit_view, overlay_image
+from facade_pipeline.rectification.params import RectifyParams, SurfaceFitParams
 from facade_pipeline.scene import ImportedScene, View
 from stages._runner import StageReport, main
+
+if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    from facade_pipeline.geometry.raycast import MeshRaycaster
 
 NAME = "rectify"
 DOC = "fit a plane or cylinder to each frontal view's points and resample the view as a metric facade image"
@@ -88,6 +79,18 @@ def rectify_one(
 ) -> tuple[list[Path], dict]:
     """Fit, rectify and write one view (``mesh``: the coarse mesh, which hides points and gives the scale
     of a view without a surface); returns its outputs and its metrics."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image, write_image
+    from facade_pipeline.rectification.cylinder import implausible_displacement
+    from facade_pipeline.rectification.surface_map import (
+        ViewRectification,
+        mesh_scale_m,
+        rectify_view,
+        warp_displacement_px,
+        warp_image,
+    )
+    from facade_pipeline.rectification.views import fit_view, overlay_image
+
     t0 = time.perf_counter()
     source = layout.import_coarse_points
     margin = params.occlusion_margin_m
@@ -142,6 +145,10 @@ def _finite(x: float) -> float | None:
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.io.meshes import read_mesh, read_points
+
     scene = ImportedScene.load(layout)
     points = np.asarray(read_points(layout.import_coarse_points).points)
     coarse = read_mesh(layout.import_coarse_mesh)

@@ -19,19 +19,10 @@ from tqdm import tqdm
 
 from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
-from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.images import image_size, read_image, write_image
-from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.meshing.metrics import corner_errors
-from facade_pipeline.meshing.overlay import panels_over_view, upscale_factor
-from facade_pipeline.panels3d.grid import build_panel_set
-from facade_pipeline.panels3d.observations import Quad, reconcile_with_mask
-from facade_pipeline.panels3d.regularize import RegularizeConfig
+from facade_pipeline.panels3d.params import RegularizeConfig
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.segmentation.result import ViewSegmentation
-from facade_pipeline.synthetic.truth import SyntheticTruth
 from stages import PIPELINE
 from stages._runner import StageReport, main
 
@@ -71,6 +62,9 @@ def _segment_files(layout: BuildingLayout, scene: ImportedScene) -> list[tuple[P
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import image_size
+
     scene = ImportedScene.load(layout)
     files = [layout.import_scene, layout.import_coarse_mesh, layout.import_coarse_points]
     files += [layout.root / v.image for v in scene.frontal_views]
@@ -86,6 +80,10 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
 
 def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
     """The reconciled panel quads of every frontal view and the mask reconciliation counts."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.panels3d.observations import Quad, reconcile_with_mask
+    from facade_pipeline.segmentation.result import ViewSegmentation
+
     quads, complete, view = [], [], []
     counts = {"dropped": 0, "refit": 0, "added": 0}
     views = scene.frontal_views
@@ -114,6 +112,10 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
 
 def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels) -> dict:
     """Corner error against gt/panels.json on synthetic buildings (metrics only)."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.meshing.metrics import corner_errors
+    from facade_pipeline.synthetic.truth import SyntheticTruth
+
     if not SyntheticTruth.available(layout, "panels"):
         return {}
     true = SyntheticTruth.load(layout, scene.georef_from_local).panel_corners()
@@ -122,6 +124,10 @@ def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels) -> dict
 
 def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: list, panels) -> list[Path]:
     """Write one overlay per frontal view; returns their paths."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image, write_image
+    from facade_pipeline.meshing.overlay import panels_over_view, upscale_factor
+
     out = []
     for i, v in enumerate(scene.frontal_views):
         factor = upscale_factor(v.camera.width, OVERLAY_MIN_WIDTH_PX)
@@ -133,6 +139,11 @@ def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: l
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.io.meshes import read_mesh, read_points
+    from facade_pipeline.panels3d.grid import build_panel_set
+
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.import_coarse_mesh)
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))

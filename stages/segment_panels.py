@@ -14,23 +14,24 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import UpstreamMissingError
-from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.io.images import read_image, write_image
-from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.segmentation.panels import Panel, SegmentParams, segment_image
-from facade_pipeline.segmentation.result import SegmentedPanel, ViewSegmentation, panel_labels
+from facade_pipeline.segmentation.params import SegmentParams
 from stages._runner import StageReport, main
+
+if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.rectification.surface_map import ViewRectification
+    from facade_pipeline.segmentation.panels import Panel
+    from facade_pipeline.segmentation.result import SegmentedPanel
 
 NAME = "segment_panels"
 DOC = "find the glass panels of each frontal view (MAP panel grid): corners, panel mask, overlay"
@@ -75,12 +76,18 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
 
 def _to_view(panel: Panel, rect: ViewRectification, width: int, height: int) -> SegmentedPanel:
     """The panel with its corners mapped back to the original view and kept inside it."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.segmentation.result import SegmentedPanel
+
     back = np.clip(rect.to_original(panel.corners), [0.0, 0.0], [float(width), float(height)])
     return SegmentedPanel(panel.row, panel.col, back, panel.corners, panel.complete)
 
 
 def _overlay(image: np.ndarray, panels: list[Panel], rect: ViewRectification, scale: float) -> np.ndarray:
     """The view with each panel's outline (mapped back: curved where the facade is) and corners."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    import cv2
+
     H, W = image.shape[:2]
     size = (max(1, round(W * scale)), max(1, round(H * scale)))
     out = cv2.resize(image, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_NEAREST)
@@ -125,6 +132,12 @@ def segment_one(
 ) -> tuple[list[Path], dict]:
     """Segment one view and write its three outputs (``mesh``: the coarse mesh, which tells where the
     facade surface is); returns them and the view's metrics."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image, write_image
+    from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
+    from facade_pipeline.segmentation.panels import segment_image
+    from facade_pipeline.segmentation.result import ViewSegmentation, panel_labels
+
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     W, H = view.camera.width, view.camera.height
@@ -168,6 +181,10 @@ def segment_one(
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+    from facade_pipeline.io.meshes import read_mesh
+
     views = ImportedScene.load(layout).frontal_views
     coarse = read_mesh(layout.import_coarse_mesh)
     mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))

@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -16,27 +17,18 @@ from tqdm import tqdm
 from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_json
-from facade_pipeline.io.colmap import ColmapView, write_pinhole_model
-from facade_pipeline.io.exr import write_exr
-from facade_pipeline.io.images import to_uint8, write_image, write_mask
-from facade_pipeline.io.meshes import make_mesh, make_points, write_mesh, write_points
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.synthetic.cameras import View, view_stem
+from facade_pipeline.synthetic.cameras import View, planned_frontal_views, view_stem
 from facade_pipeline.synthetic.coarse import coarse_mesh, coarse_points
 from facade_pipeline.synthetic.mesh import Material, TriMesh
 from facade_pipeline.synthetic.noise import rng_for
 from facade_pipeline.synthetic.params import SynthesizeParams
-from facade_pipeline.synthetic.render import ViewRender
 from facade_pipeline.synthetic.scene import panels_description, scene_description
-from facade_pipeline.synthetic.simulate import (
-    Simulator,
-    build_simulator,
-    planned_frontal_views,
-    raw_camera,
-    render_all,
-    sensor_image,
-)
 from stages._runner import StageReport, main
+
+if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    from facade_pipeline.synthetic.render import ViewRender
+    from facade_pipeline.synthetic.simulate import Simulator
 
 NAME = "synthesize"
 DOC = "Make a synthetic building: ray-traced glass facade images, COLMAP models, coarse mesh, truth"
@@ -98,11 +90,17 @@ def targets(layout: BuildingLayout, params: SynthesizeParams) -> list[Path]:
 
 
 def _mesh(m: TriMesh, colors: np.ndarray | None = None):
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.meshes import make_mesh
+
     return make_mesh(m.vertices, m.triangles, colors)
 
 
 def write_truth(layout: BuildingLayout, sim: Simulator) -> list[Path]:
     """gt/ files that do not depend on views: scene.json, panels.json, true meshes."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.meshes import write_mesh
+
     scene = sim.scene
     write_json(layout.gt("scene"), scene_description(scene))
     write_json(layout.gt("panels"), panels_description(scene))
@@ -114,6 +112,10 @@ def write_truth(layout: BuildingLayout, sim: Simulator) -> list[Path]:
 
 def write_coarse(layout: BuildingLayout, sim: Simulator) -> tuple[list[Path], np.ndarray, np.ndarray, dict]:
     """raw/coarse_mesh.ply and raw/coarse_points.ply; returns the points kept for the COLMAP models."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import to_uint8
+    from facade_pipeline.io.meshes import make_points, write_mesh, write_points
+
     p = sim.scene.params
     mesh, colors = coarse_mesh(sim.scene)
     write_mesh(layout.raw_coarse_mesh_candidates[0], _mesh(mesh, colors))
@@ -131,6 +133,10 @@ def write_coarse(layout: BuildingLayout, sim: Simulator) -> tuple[list[Path], np
 
 def write_models(layout: BuildingLayout, sim: Simulator, xyz: np.ndarray, rgb: np.ndarray) -> list[Path]:
     """COLMAP models: raw/ with the declared pose noise, gt/ with the true poses."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.colmap import ColmapView, write_pinhole_model
+    from facade_pipeline.synthetic.simulate import raw_camera
+
     p = sim.scene.params
     out = []
     for kind, raw_dir, gt_dir in (
@@ -146,6 +152,11 @@ def write_models(layout: BuildingLayout, sim: Simulator, xyz: np.ndarray, rgb: n
 
 def write_view(layout: BuildingLayout, params: SynthesizeParams, view: View, r: ViewRender) -> list[Path]:
     """The raw image and every gt map of one view."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.exr import write_exr
+    from facade_pipeline.io.images import to_uint8, write_image, write_mask
+    from facade_pipeline.synthetic.simulate import sensor_image
+
     raw = layout.raw_image(view.name) if view.kind == "uav" else layout.raw_frontal_image(view.name)
     write_image(raw, sensor_image(params, view, r.image))
     s = view.stem
@@ -162,6 +173,9 @@ def write_view(layout: BuildingLayout, params: SynthesizeParams, view: View, r: 
 
 
 def run(layout: BuildingLayout, params: SynthesizeParams, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.synthetic.simulate import build_simulator, render_all
+
     check_raw_is_ours(layout)
     layout.gt_dir.mkdir(parents=True, exist_ok=True)  # first: marks the raw/ about to be written as ours
     t0 = time.perf_counter()

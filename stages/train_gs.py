@@ -13,36 +13,26 @@ import hashlib
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
 
-from facade_pipeline.bake.maps import BakedMap, BakedPrior
 from facade_pipeline.config import RunSettings, to_dict
 from facade_pipeline.errors import InputError
-from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
-from facade_pipeline.evaluation.image_eval import LpipsSetting
-from facade_pipeline.evaluation.render_views import from_trainer
+from facade_pipeline.evaluation.params import LpipsSetting
 from facade_pipeline.io.atomic import write_text
-from facade_pipeline.io.images import read_image
-from facade_pipeline.io.meshes import read_mesh, read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.training.batches import exposure_gains
 from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
 from facade_pipeline.training.params import TrainParams
-from facade_pipeline.training.render import splatting_rasterizer
-from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
-from facade_pipeline.training.trainer import (
-    Trainer,
-    build_trainer,
-    load_checkpoint,
-    resolve_device,
-    train,
-)
 from stages._runner import PACKAGE_DIR, StageReport, main
+
+if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    from facade_pipeline.bake.maps import BakedMap
+    from facade_pipeline.training.trainer import Trainer
 
 NAME = "train_gs"
 DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
@@ -52,6 +42,9 @@ BAKED: tuple[BakedMap, ...] = ("normal_map", "facade_mask", "glass_mask")  # no 
 
 
 def _baked(layout: BuildingLayout, stem: str) -> dict[str, Path]:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.bake.maps import BakedPrior
+
     return BakedPrior.paths(layout, stem, BAKED)
 
 
@@ -91,6 +84,10 @@ def _checked(path: Path, arr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 def load_view(layout: BuildingLayout, view: View) -> TrainView:
     """One view's image, masks and normal prior, checked against its camera's size."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.bake.maps import BakedPrior
+    from facade_pipeline.io.images import read_image
+
     cam = view.camera
     hw = (cam.height, cam.width)
     img_path = layout.root / view.image
@@ -100,6 +97,9 @@ def load_view(layout: BuildingLayout, view: View) -> TrainView:
 
 
 def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.meshes import read_mesh, read_points
+
     scene = ImportedScene.load(layout)
     views = tuple(load_view(layout, v) for v in scene.uav_views)
     mesh = read_mesh(layout.path("correct_mesh"))
@@ -144,6 +144,10 @@ def fingerprint(layout: BuildingLayout, params: Params) -> str:
 
 
 def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list[Path]:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.training.batches import exposure_gains
+    from facade_pipeline.training.trained import TrainedModelFiles
+
     views = tr.data.views
     split = {
         "train": [views[i].stem for i in tr.data.train_idx],
@@ -162,12 +166,21 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list
 def held_out_evaluation(tr: Trainer, backend: str) -> dict:
     """The held-out views measured by the evaluation core (no LPIPS): the headline means and a row per
     view."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
+    from facade_pipeline.evaluation.render_views import from_trainer
+    from facade_pipeline.training.trained import PIPELINE_MODEL
+
     views = views_of(tr.data, tr.data.test_idx, tr.params.mask_by_facade)
     result = evaluate_views(from_trainer(tr, PIPELINE_MODEL, backend), views, LpipsSetting(()))
     return {**headline(result), "views": result["views"]}
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.training.render import splatting_rasterizer
+    from facade_pipeline.training.trainer import build_trainer, load_checkpoint, resolve_device, train
+
     data = load_train_data(layout, params)
     device = resolve_device(settings.device)
     rasterize = splatting_rasterizer(settings.raster_backend, params.lowpass_sigma_px)

@@ -140,7 +140,7 @@ def test_from_dict_nested_and_strict():
 def test_a_nested_section_by_its_dotted_name(cfg_dir):
     """``evaluate.align`` is the [evaluate.align] table, as in the whole [evaluate] section; a building's
     value wins; a name with no such table is one error naming it."""
-    from facade_pipeline.training.corrections import AlignParams
+    from facade_pipeline.training.params import AlignParams
 
     _write(cfg_dir, "nested", '[building]\nkind = "real"\ndescription = "x"\n[evaluate.align]\nsteps = 7\n')
     cfg = load_building_config("nested", cfg_dir)

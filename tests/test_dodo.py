@@ -116,6 +116,29 @@ def test_synthetic_building_hand_edit_reruns_only_downstream(tmp_path):
     assert executed(doit([IMPORT, "building=synthetic64"], env, root)) == ["synthesize", IMPORT]
 
 
+def test_listing_the_tasks_imports_no_heavy_library(tmp_path):
+    """``doit list`` builds task metadata only: it must not pay for torch, open3d, pycolmap or OpenCV, and
+    the pipeline's modules change no environment variable at import."""
+    probe = (
+        "import os, sys, runpy; before = dict(os.environ); sys.argv = ['doit', '-f', sys.argv[1], 'list', "
+        "'building=synthetic64', 'data_root=' + sys.argv[2]]\n"
+        "try:\n    runpy.run_module('doit', run_name='__main__')\n"
+        "except SystemExit as e:\n    assert not e.code, e.code\n"
+        "heavy = sorted(m for m in ('torch', 'open3d', 'pycolmap', 'cv2') if m in sys.modules)\n"
+        "changed = sorted(k for k in set(os.environ) | set(before) if os.environ.get(k) != before.get(k))\n"
+        "print('HEAVY', heavy, 'ENV', changed)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", probe, str(REPO / "dodo.py"), str(tmp_path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "HEAVY [] ENV []" in out.stdout, out.stdout
+
+
 def test_a_run_setting_reruns_nothing(real):
     """[run] (device, backend, logging, checkpoints, overlay size) is in no stage's parameters, so doit's
     config_changed never sees it: rectify, which draws its overlay at run.overlay_scale, stays up to date."""

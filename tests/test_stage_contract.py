@@ -110,3 +110,16 @@ def test_atomic_outputs_get_the_usual_file_mode(tmp_path):
     finally:
         os.umask(old)
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_a_stage_code_version_covers_the_modules_its_functions_import():
+    """Stage modules import the heavy algorithms inside ``run`` and its helpers (doit imports every stage to
+    list the tasks); their code version still covers those modules, so editing one reruns the stage."""
+    from stages import load_stage
+    from stages._runner import PACKAGE_DIR, source_files
+
+    train = set(source_files(load_stage("train_gs")))
+    assert PACKAGE_DIR / "training" / "render.py" in train  # imported in run()
+    assert PACKAGE_DIR / "bake" / "maps.py" in train  # imported in a helper of inputs()
+    assert PACKAGE_DIR / "meshing" / "clean.py" not in train  # import_photogrammetry's alone
+    assert PACKAGE_DIR / "meshing" / "clean.py" in set(source_files(load_stage("import_photogrammetry")))

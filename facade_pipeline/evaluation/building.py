@@ -9,25 +9,23 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from facade_pipeline.bake.maps import BakedPrior, bake_view
-from facade_pipeline.config import Fraction, PosInt, Positive
-from facade_pipeline.errors import ConfigError, InputError
+from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.core import EvalView, MeasuredView, evaluate_views
 from facade_pipeline.evaluation.geometry_eval import Truth, mesh_errors, panel_corner_errors, point_errors
-from facade_pipeline.evaluation.image_eval import LpipsSetting, error_heatmap, side_by_side
+from facade_pipeline.evaluation.image_eval import error_heatmap, side_by_side
 from facade_pipeline.evaluation.lpips import (
     UNAVAILABLE_TEXT,
-    LpipsConvention,
     LpipsUnavailable,
     convention_spec,
     find_lpips_weights,
 )
+from facade_pipeline.evaluation.params import EvaluateParams
 from facade_pipeline.evaluation.render_views import TrainedModel, render_trained
 from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
 from facade_pipeline.evaluation.video import (
@@ -48,55 +46,11 @@ from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, read_labels
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.params import flat_params
 from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
 
 #: comparison images per variant embedded in the report; the others are written as PNG beside it
 REPORT_VIEWS = 4
-
-
-@dataclass(frozen=True)
-class EvaluateParams:
-    """``[evaluate]``: what is rendered and measured, and how the report shows it."""
-
-    render_training_views: bool
-    """also render and measure the training views"""
-    include_saved_variants: bool
-    """evaluate the variants saved under variants/<name>/ beside 07_train"""
-    lpips_conventions: tuple[LpipsConvention, ...]
-    """LPIPS figures to compute; the first is the one the tables show"""
-    lpips_weights_dir: str
-    """folder or file of the LPIPS weights; "" searches $FACADE_LPIPS_DIR, then ../shared/lpips"""
-    heatmap_max_error: Positive
-    """absolute error (0-1, mean over RGB) at the top of the heat-map colour ramp"""
-    align: AlignParams
-    """``[evaluate.align]``: each measured view is also measured after its pose and exposure are fitted
-    against the frozen model (``<split>_aligned`` in metrics.json); steps = 0 turns it off"""
-    video: VideoParams
-    """``[evaluate.video]``: the fly-through of each model (frames = 0: none)"""
-    geometry_samples: PosInt | None = None
-    """points sampled by area on each mesh for the geometry metrics against gt/. This and the next two:
-    synthetic buildings only (configs/synthetic.toml); None: no truth to measure against"""
-    geometry_max_match_m: Positive | None = None
-    """samples farther than this (m) from both true glass and frames are left out"""
-    gaussian_min_opacity: Fraction | None = None
-    """Gaussians less opaque than this are left out of the geometry metrics"""
-
-    def __post_init__(self) -> None:
-        if not self.lpips_conventions:
-            raise ConfigError(None, "at least one convention in evaluate.lpips_conventions", "none")
-        for c in self.lpips_conventions:
-            convention_spec(c)
-
-    @property
-    def splits(self) -> tuple[str, ...]:
-        """The splits measured: the held-out views, and the training views when asked."""
-        return ("test", "train") if self.render_training_views else ("test",)
-
-    @property
-    def lpips(self) -> LpipsSetting:
-        return LpipsSetting(self.lpips_conventions, self.lpips_weights_dir or None)
 
 
 def truth_files(layout: BuildingLayout) -> list[Path]:

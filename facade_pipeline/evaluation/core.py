@@ -21,8 +21,8 @@ import torch
 from facade_pipeline.evaluation.image_eval import LpipsSetting, mean_metrics, region_masks, view_metrics
 from facade_pipeline.evaluation.render_views import TrainedModel, align_trained, render_trained
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.training.corrections import AlignParams
 from facade_pipeline.training.data import TrainData, TrainView
+from facade_pipeline.training.params import AlignParams
 
 
 @dataclass(frozen=True)

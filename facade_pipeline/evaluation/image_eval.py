@@ -12,15 +12,14 @@ region without a pixel gets ``None`` (JSON null), never a number; LPIPS without 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from facade_pipeline.evaluation.lpips import LpipsConvention, LpipsUnavailable, lpips_score
+from facade_pipeline.evaluation.lpips import LpipsUnavailable, lpips_score
 from facade_pipeline.evaluation.metrics import psnr, ssim
+from facade_pipeline.evaluation.params import LpipsSetting
 
 REGIONS = ("facade", "glass", "glass_interior", "frames")
 #: pixels nearer than this to the edge of a view's glass region are left out of ``glass_interior``
@@ -28,14 +27,6 @@ INTERIOR_MARGIN_PX = 2
 UNAVAILABLE = "unavailable"
 #: anchors of the heat-map colour ramp (black -> purple -> orange -> yellow), evenly spaced in [0, 1]
 _RAMP = np.array([[0, 0, 4], [87, 16, 110], [188, 55, 84], [249, 142, 9], [252, 255, 164]], np.float64) / 255
-
-
-@dataclass(frozen=True)
-class LpipsSetting:
-    """Which LPIPS figures to compute and where the weights are (None: the documented search order)."""
-
-    conventions: tuple[LpipsConvention, ...]
-    weights_dir: str | Path | None = None
 
 
 def region_masks(facade: np.ndarray, glass: np.ndarray) -> dict[str, np.ndarray]:

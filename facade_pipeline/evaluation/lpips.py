@@ -58,9 +58,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from facade_pipeline.evaluation.errors import EmptyMaskError, LpipsWeightsError, MetricInputError
+from facade_pipeline.evaluation.params import LpipsConvention, check_convention
 
 LpipsNet = Literal["alex", "vgg"]
-LpipsConvention = Literal["alex_official", "vgg_3dgs", "vgg_official"]
 
 WEIGHTS_DIR_ENV = "FACADE_LPIPS_DIR"
 #: file names looked for, per network, in each place (first found wins)
@@ -92,8 +92,7 @@ CONVENTIONS: dict[str, ConventionSpec] = {
 
 def convention_spec(convention: str) -> ConventionSpec:
     """The spec of a convention name; ``MetricInputError`` naming the valid ones otherwise."""
-    if convention not in CONVENTIONS:
-        raise MetricInputError(f"an LPIPS convention in {sorted(CONVENTIONS)}", repr(convention))
+    check_convention(convention)
     return CONVENTIONS[convention]
 
 

@@ -22,9 +22,9 @@ from facade_pipeline.shading.reflection import (
     strategy_from_record,
 )
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, NEAR_M
-from facade_pipeline.training.corrections import Alignment, AlignParams, align_view
+from facade_pipeline.training.corrections import Alignment, align_view
 from facade_pipeline.training.model import GaussianModel
-from facade_pipeline.training.params import REFL_THRESHOLD
+from facade_pipeline.training.params import REFL_THRESHOLD, AlignParams
 from facade_pipeline.training.ply import model_from_ply, read_ply
 from facade_pipeline.training.render import (
     Camera,

@@ -9,13 +9,13 @@ import numpy as np
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface
+from facade_pipeline.panels3d.params import RegularizeConfig
 from facade_pipeline.panels3d.regularize import (
     GHOST,
     OK,
     OUTLIER_MAD_FACTOR,
     STATUS_NAMES,
     CornerRays,
-    RegularizeConfig,
     cast_corners,
     cluster_1d,
     corner_rays,

@@ -24,15 +24,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
 
 import numpy as np
 import open3d as o3d
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from facade_pipeline.config import Count, NonNeg, PosInt, Positive, Range
 from facade_pipeline.errors import PipelineError
+from facade_pipeline.rectification.params import SurfaceFitParams
 
 
 class SurfaceFitError(PipelineError):
@@ -46,38 +45,6 @@ RANSAC_SEED = 0
 #: a cylinder bulging (its sagitta, |kappa| width^2 / 8) less than this many times the fit's RMS residual
 #: over the view's points is not told from a plane by them: a plane is fitted instead (-).
 MIN_SAGITTA_RMS = 3.0
-
-
-@dataclass(frozen=True)
-class SurfaceFitParams:
-    min_points: PosInt
-    """Fewest points a fit accepts (-)."""
-    min_spread_m: NonNeg
-    """Points must spread at least this much (m, standard deviation) in two directions: else on one line."""
-    ransac_threshold_m: Positive
-    """Distance (m) within which a point supports a RANSAC plane: generous, it only drops far outliers."""
-    max_normal_angle_deg: Annotated[float, Range(0.0, 90.0)]
-    """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera
-    (and, with ``normal_knn``, each fitted point's normal within it of the optical axis)."""
-    inlier_scale_m: Positive
-    """Scale (m) of the soft-L1 loss; points within 3x this of the surface are inliers (m)."""
-    normal_knn: Count
-    """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
-    viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out
-    before the fit (the ground before a facade seen from a low camera); 0: every point is kept."""
-    max_tilt_deg: Annotated[float, Range(0.0, 90.0)]
-    """A facade stands upright: a cylinder's axis within this angle (deg) of up, a plane's normal within it
-    of horizontal; a fit beyond is not the facade (a floor, a table) and the view gets no surface."""
-    min_radius_footprint: NonNeg
-    """A cylinder's radius must be at least this many times the view's footprint (the width it frames at
-    the surface's depth): a tighter one is a chair or a column in front of the camera (-)."""
-    max_rms_footprint: Positive
-    """The fit's RMS residual must be under this fraction of the footprint: a looser fit is of clutter (-)."""
-    max_displacement_size: Positive
-    """The map from a view to its rectified image, at the view's own scale and beyond a rotation, scale and
-    shift of the whole view (``surface_map.warp_displacement_px``), may move no pixel further than this many
-    times the view's larger side: a fit whose map does is not the surface the view frames (the view would
-    see it nearly edge-on), and the view gets no surface (-)."""
 
 
 def implausible(fit: SurfaceFit, footprint_m: float, params: SurfaceFitParams,

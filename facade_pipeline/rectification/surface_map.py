@@ -32,17 +32,17 @@ import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Literal
 
 import cv2
 import numpy as np
 
-from facade_pipeline.config import PosInt, Positive, Range
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.polywarp import PolyWarp, fit_polywarp
 from facade_pipeline.io.atomic import write_json
 from facade_pipeline.rectification.cylinder import Surface
+from facade_pipeline.rectification.params import RectifyParams
 
 Kind = Literal["plane", "cylinder", "unrectified", "skipped"]
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -50,26 +50,6 @@ WORLD_UP = np.array([0.0, 0.0, 1.0])
 #: polynomial: 25 x 25 points over-determine the paper's degree-7 polynomial (36 coefficients per coordinate)
 #: about seventeen times. No building ever needed another number: a method constant, not a parameter.
 WARP_SAMPLES_PER_SIDE = 25
-
-
-@dataclass(frozen=True)
-class WarpParams:
-    degree: PosInt
-    """Total degree of the polynomial recorded for a cylinder, both directions (-); the paper uses 7."""
-
-
-@dataclass(frozen=True)
-class RectifyParams:
-    metres_per_px: Positive | Literal["auto"]
-    """Scale of the rectified image (m per px on the facade); "auto": the view's own ground sample distance
-    on the surface (the median over the image of the square root of a pixel's footprint area)."""
-    max_view_angle_deg: Annotated[float, Range(0.0, 90.0, high_open=True)]
-    """A view whose surface normal (at the principal point's ray) is further than this (deg) from the
-    optical axis sees the facade nearly edge-on: skipped."""
-    max_size_factor: Positive
-    """A rectified image of more than this many times the view's pixel count is refused: skipped (-)."""
-    warp: WarpParams
-    """Sampling of the view and the polynomial recorded for cylinders (``[rectify.warp]``)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -13,10 +13,10 @@ from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.rectification.cylinder import (
     SurfaceFit,
     SurfaceFitError,
-    SurfaceFitParams,
     fit_surface,
     implausible,
 )
+from facade_pipeline.rectification.params import SurfaceFitParams
 from facade_pipeline.rectification.surface_map import ViewRectification
 
 

@@ -39,14 +39,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from facade_pipeline.config import Fraction, NonNeg, PosInt, Positive
 from facade_pipeline.segmentation.edges import EdgeLine, bar_edges, frame_presence
 from facade_pipeline.segmentation.grid import (
     EDGE_SEARCH_PX,
     STEP_PX,
     FamilyFit,
     Gradients,
-    GridParams,
     PixelSizes,
     bar_evidence,
     log_likelihood,
@@ -54,6 +52,7 @@ from facade_pipeline.segmentation.grid import (
     map_family,
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
+from facade_pipeline.segmentation.params import SegmentParams
 
 # Image-precision constants of the segmentation. The view is resampled so that the narrowest frame bar spans
 # ``work_bar_px`` pixels (SegmentParams), so these hold at any facade scale and photo size; no building ever
@@ -72,31 +71,6 @@ LSD_SIGMA_PX = 0.75
 PARALLAX_MIN_BARS = 3
 #: a panel side whose frame is present over less than this fraction of its length marks the panel occluded
 MIN_EDGE_SUPPORT = 0.6
-
-
-@dataclass(frozen=True)
-class SegmentParams:
-    upsample: PosInt
-    """LSD runs on the image upsampled by this factor (-)."""
-    grid: GridParams
-    """The MAP grid model (``[segment_panels.grid]``)."""
-    min_partial_m: NonNeg
-    """A border strip narrower than this (m on the facade) holds no partial panel."""
-    work_bar_px: Positive
-    """The image is segmented at a scale where the narrowest bar (``grid.min_bar_m``) spans at least this
-    many px, downsampled to it when finer (the grid search's cost grows with the pixel count, its precision
-    is a fraction of a pixel at any scale) (px)."""
-    continuation_ratio: Fraction
-    """Bars continuing into a border strip with this fraction of their inside strength: partial panels (-)."""
-    continuation_presence: Fraction
-    """... or whose frame colour is present over this fraction of the strip (median over the bars) (-)."""
-    surface_tolerance_m: Positive
-    """The facade surface is there where the view's ray meets the coarse mesh within this distance (m) of
-    the rectified surface: border strips beyond the facade's end hold no partial panel."""
-    frame_colour_tol: NonNeg
-    """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
-    parallax_max_slope: NonNeg
-    """Largest frame parallax d / (Z - d) accepted (frames d proud of glass seen from Z); 0: no correction."""
 
 
 @dataclass(frozen=True)

@@ -12,10 +12,10 @@ import numpy as np
 
 from facade_pipeline.errors import ConfigError
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
-from facade_pipeline.synthetic.facade import PartGeometry
+from facade_pipeline.synthetic.facade import PartGeometry, world_from_facade
 from facade_pipeline.synthetic.mesh import Material
 from facade_pipeline.synthetic.noise import rng_for
-from facade_pipeline.synthetic.params import CameraParams
+from facade_pipeline.synthetic.params import CameraParams, SynthesizeParams
 
 TARGET_INSET = 0.1  # UAV targets avoid this fraction of the part's width and height at each side (-)
 
@@ -78,6 +78,15 @@ def frontal_views(parts: tuple[PartGeometry, ...], cams: CameraParams) -> list[V
                     View("frontal", len(views), cam, (g.index, tuple(map(int, rows)), tuple(map(int, cols))))
                 )
     return views
+
+
+def planned_frontal_views(params: SynthesizeParams) -> list[View]:
+    """The frontal views of ``params`` without building the scene (cheap: for a stage's targets)."""
+    parts = tuple(
+        PartGeometry(i, p, world_from_facade(p), params.facade.frame_width_m)
+        for i, p in enumerate(params.parts)
+    )
+    return frontal_views(parts, params.cameras)
 
 
 def oblique_direction(normal: np.ndarray, k: int, max_deg: tuple[float, float], target: np.ndarray,

@@ -19,7 +19,6 @@ from facade_pipeline.synthetic.cameras import (
     perturb_pose,
     uav_views,
 )
-from facade_pipeline.synthetic.facade import PartGeometry, world_from_facade
 from facade_pipeline.synthetic.noise import rng_for
 from facade_pipeline.synthetic.params import SynthesizeParams
 from facade_pipeline.synthetic.render import SceneArrays, Tracer, ViewRender, render_view
@@ -34,15 +33,6 @@ class Simulator:
     tracer: Tracer
     arrays: SceneArrays
     views: tuple[View, ...]
-
-
-def planned_frontal_views(params: SynthesizeParams) -> list[View]:
-    """The frontal views of ``params`` without building the scene (cheap: for a stage's targets)."""
-    parts = tuple(
-        PartGeometry(i, p, world_from_facade(p), params.facade.frame_width_m)
-        for i, p in enumerate(params.parts)
-    )
-    return frontal_views(parts, params.cameras)
 
 
 def build_simulator(params: SynthesizeParams) -> Simulator:

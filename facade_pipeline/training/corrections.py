@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from facade_pipeline.config import Count, Positive
+from facade_pipeline.training.params import AlignParams
 
 #: Below this squared angle (rad^2) the rotation uses its Taylor series (exact to float64 rounding).
 _SMALL = 1e-8
@@ -78,22 +78,6 @@ class ViewCorrections(nn.Module):
         rates = {"rotation": lr_rotation, "translation": lr_translation, "log_gain": lr_exposure}
         groups = [{"params": [t], "lr": rates[n], "name": f"view_{n}"} for n, t in self.named_parameters()]
         return torch.optim.Adam(groups)
-
-
-@dataclass(frozen=True)
-class AlignParams:
-    """``[evaluate.align]``: how a measured view is aligned to the frozen model before it is measured."""
-
-    steps: Count
-    """Adam steps on the view's whole image (0: no alignment)"""
-    lr_rotation: Positive
-    """of the rotation correction (rad)"""
-    lr_translation: Positive
-    """of the translation correction (m)"""
-    lr_exposure: Positive
-    """of the log gain per colour channel (-)"""
-    exposure: bool
-    """fit the exposure gain as well as the pose"""
 
 
 @dataclass(frozen=True)

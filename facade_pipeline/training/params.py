@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Annotated, Any, TypeVar
 
 from facade_pipeline.config import AnyInt, Count, Fraction, NonNeg, PosInt, Positive, Range
-from facade_pipeline.shading.reflection import ReflectionModel, ReflectionParams
+from facade_pipeline.shading.params import ReflectionModel, ReflectionParams
 
 T = TypeVar("T")
 
@@ -138,3 +138,19 @@ def replace_keys(params: T, changes: dict[str, Any]) -> T:
     for head, sub in nested.items():
         direct[head] = replace_keys(getattr(params, head), sub)
     return dataclasses.replace(params, **direct)
+
+
+@dataclass(frozen=True)
+class AlignParams:
+    """``[evaluate.align]``: how a measured view is aligned to the frozen model before it is measured."""
+
+    steps: Count
+    """Adam steps on the view's whole image (0: no alignment)"""
+    lr_rotation: Positive
+    """of the rotation correction (rad)"""
+    lr_translation: Positive
+    """of the translation correction (m)"""
+    lr_exposure: Positive
+    """of the log gain per colour channel (-)"""
+    exposure: bool
+    """fit the exposure gain as well as the pose"""

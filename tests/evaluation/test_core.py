@@ -22,7 +22,8 @@ from facade_pipeline.evaluation.render_views import from_trainer
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.splatting.types import NEAR_M
-from facade_pipeline.training.corrections import AlignParams, align_view, so3_exp
+from facade_pipeline.training.corrections import align_view, so3_exp
+from facade_pipeline.training.params import AlignParams
 from facade_pipeline.training.render import Camera, render_view, splatting_rasterizer
 from facade_pipeline.training.schedule import active_sh_degree
 from facade_pipeline.training.trainer import build_trainer, train

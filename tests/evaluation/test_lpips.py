@@ -185,3 +185,16 @@ def test_loading_a_tiny_file_and_corrupt_files(tmp_path):
     torch.save([1, 2], tmp_path / "list.pth")
     with pytest.raises(LpipsWeightsError, match="state dict"):
         load_lpips_network("alex", tmp_path / "list.pth")
+
+
+def test_every_convention_the_config_accepts_has_a_spec():
+    """The config checks names against ``LpipsConvention`` (light, read by doit); the network needs a spec
+    for each, and a name outside them is refused in one line."""
+    from typing import get_args
+
+    from facade_pipeline.evaluation.lpips import CONVENTIONS, convention_spec
+    from facade_pipeline.evaluation.params import LpipsConvention
+
+    assert set(CONVENTIONS) == set(get_args(LpipsConvention))
+    with pytest.raises(MetricInputError, match="alex_official"):
+        convention_spec("squeeze")

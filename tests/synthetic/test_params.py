@@ -98,7 +98,7 @@ def test_bad_building_file_is_reported_with_its_key(tmp_path):
 
 
 def test_frontal_distance_too_small_for_a_panel_is_a_config_error():
-    from facade_pipeline.synthetic.simulate import planned_frontal_views
+    from facade_pipeline.synthetic.cameras import planned_frontal_views
 
     p = replace_in(shipped("synthetic64"), "cameras", frontal_distance_m=1.0)
     with pytest.raises(ConfigError, match="frontal_distance_m"):
@@ -106,10 +106,9 @@ def test_frontal_distance_too_small_for_a_panel_is_a_config_error():
 
 
 def test_a_tree_hiding_a_frontal_view_is_a_config_error():
-    from facade_pipeline.synthetic.cameras import check_frontal_views
+    from facade_pipeline.synthetic.cameras import check_frontal_views, planned_frontal_views
     from facade_pipeline.synthetic.render import SceneArrays, Tracer
     from facade_pipeline.synthetic.scene import build_scene
-    from facade_pipeline.synthetic.simulate import planned_frontal_views
     from tests.synthetic.conftest import tiny
 
     for distance, hidden in (((12.0, 20.0), False), ((2.0, 4.0), True)):
@@ -129,7 +128,7 @@ def test_a_tree_hiding_a_frontal_view_is_a_config_error():
 def test_frontal_views_have_their_own_resolution():
     """Frontal views default to the UAV size (0); set, they get it with the same horizontal field of view
     (a finer pixel), and every panel of each view's block still fits (planning raises otherwise)."""
-    from facade_pipeline.synthetic.simulate import planned_frontal_views
+    from facade_pipeline.synthetic.cameras import planned_frontal_views
 
     zero = {"cameras.frontal_width_px": 0, "cameras.frontal_height_px": 0, "render.frontal_supersample": 0}
     p = from_dict(SynthesizeParams, _table(**zero))
@@ -151,7 +150,7 @@ def test_frontal_views_have_their_own_resolution():
 def test_oblique_frontal_views_of_the_shipped_scene():
     """`oblique` turns its frontal views by up to 35 deg of yaw and of pitch from the facade's normal, spread
     over both signs, and renders them at 1600 x 1200 with frame bars of 20-60 px."""
-    from facade_pipeline.synthetic.simulate import planned_frontal_views
+    from facade_pipeline.synthetic.cameras import planned_frontal_views
 
     p = shipped("oblique")
     views = planned_frontal_views(p)

@@ -10,7 +10,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from facade_pipeline.training.corrections import AlignParams, ViewCorrections, align_view, so3_exp
+from facade_pipeline.training.corrections import ViewCorrections, align_view, so3_exp
+from facade_pipeline.training.params import AlignParams
 
 
 def test_so3_exp_matches_scipy_and_is_a_rotation():
