@@ -95,7 +95,7 @@ def main() -> int:
     ap.add_argument("root_b", type=Path)
     ap.add_argument("--building", default="demo")
     ap.add_argument("--rtol", type=float, default=1e-6, help="relative difference that counts (default 1e-6)")
-    ap.add_argument("--record", metavar="TITLE", help="put the table on the results page under ## TITLE")
+    ap.add_argument("--record", metavar="TITLE", help="put the headline table on the results page (## TITLE)")
     a = ap.parse_args()
     fa, fb = figures(a.root_a / a.building), figures(a.root_b / a.building)
     if not fa or not fb:
@@ -117,9 +117,29 @@ def main() -> int:
     table = "\n".join(lines)
     print(table)
     if a.record:
+        by_stage: dict[str, int] = {}
+        for k in diff:
+            stage = k.split("/", 1)[0]
+            by_stage[stage] = by_stage.get(stage, 0) + 1
+        where = ", ".join(f"{stage} {n}" for stage, n in sorted(by_stage.items())) or "none"
+        short = "\n".join(
+            [
+                f"{len(keys)} figures of {a.building}; differing by more than rtol {a.rtol:g} or in one run "
+                f"only, by stage folder: {where}.",
+                "",
+                "| figure | run A | run B |",
+                "| --- | --- | --- |",
+                *[
+                    f"| {'**' if k in diff else ''}`{k}`{'**' if k in diff else ''} | {fmt(fa.get(k))} | "
+                    f"{fmt(fb.get(k))} |"
+                    for k in head
+                ],
+            ]
+        )
         record_results(
             f"## {a.record}\n\n{machine()} Run A: `{a.root_a}`, run B: `{a.root_b}`. Command: "
-            f"`python benchmarks/compare_runs.py A B --building {a.building}`.\n\n{table}\n"
+            f"`python benchmarks/compare_runs.py A B --building {a.building} --record ...` (headline "
+            f"figures; the script prints every figure that differs).\n\n{short}\n"
         )
     return 1 if diff else 0
 

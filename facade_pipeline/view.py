@@ -43,6 +43,9 @@ from facade_pipeline.geometry.raycast import MeshRaycaster
 MODES = ("final", "diffuse", "specular", "reflectivity", "normals (splats)", "normals (prior)", "depth")
 MOVING_SECONDS = 0.25
 """a camera updated more recently than this is moving: it is rendered at the lower resolution"""
+SELECT_GRACE_SECONDS = 2.0
+"""after a camera is selected, the browser's reports of a pose from before the click are not taken for a
+move away from it for this long (s): its photo stays beside the render"""
 FOV_RANGE_DEG = (10.0, 120.0)
 """the field-of-view slider's range (vertical, degrees)"""
 
@@ -319,7 +322,7 @@ class Viewer:
         """Show ``vc``'s photo beside the frames of ``client_id`` while it looks from ``vc``'s centre."""
         with self._lock:
             if vc.photo is not None:
-                self._photo[client_id] = (vc.photo, vc.camera.center)
+                self._photo[client_id] = (vc.photo, vc.camera.center, time.monotonic())
 
     def frame(self, client_id: int, position, wxyz, fov: float, aspect: float, width_px: int) -> np.ndarray:
         """The image sent to ``client_id`` for its camera (viser's pose, ``fov`` vertical in rad): the render
@@ -327,19 +330,13 @@ class Viewer:
         img = render_image(self.scene, viser_camera(position, wxyz, fov, aspect, width_px), self.mode.value)
         with self._lock:
             photo = self._photo.get(client_id)
-        if photo is not None and not np.allclose(position, photo[1], atol=1e-4):
-            # ``position`` may have been read just before a click moved the camera onto the selected one:
-            # the photo goes only once the browser's camera itself has left it
-            if not np.allclose(self._position_now(client_id, position), photo[1], atol=1e-4):
-                with self._lock:
+            if photo is not None and not np.allclose(position, photo[1], atol=1e-4):
+                # the browser may report a pose from before the click for a moment: the photo goes once
+                # the camera is away from the selected one after that
+                if time.monotonic() - photo[2] > SELECT_GRACE_SECONDS:
                     self._photo.pop(client_id, None)
-            photo = None
+                photo = None
         return img if photo is None else _beside(photo[0], img)
-
-    def _position_now(self, client_id: int, default) -> np.ndarray:
-        """Where ``client_id``'s camera is now (``default`` for a client that has left)."""
-        client = self.server.get_clients().get(client_id)
-        return np.asarray(default if client is None else client.camera.position, dtype=float)
 
     def _touch(self, client_id: int) -> None:
         with self._lock:

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from facade_pipeline import view as view_module
 from facade_pipeline.evaluation.render_views import from_trainer, render_trained
 from facade_pipeline.geometry.frames import invert_rigid, transform_points
 from facade_pipeline.io.meshes import read_mesh
@@ -130,9 +131,10 @@ def test_the_frame_rate_reads_below_one():
     assert rate_text(0.25, 256, 192).startswith("4.00 ")
 
 
-def test_a_selected_camera_shows_its_photo_beside_the_render(scene):
+def test_a_selected_camera_shows_its_photo_beside_the_render(scene, monkeypatch):
     """After a frustum is selected, a frame from that camera is its photo, a gap and the render through
-    it; once the camera moves away the photo goes (and stays gone when it comes back)."""
+    it; a pose from before the click, reported just after it, does not drop the photo; once the camera
+    moves away the photo goes (and stays gone when it comes back)."""
     viewer = Viewer(scene, port=_free_port(), width_px=64)
     try:
         vc = scene.cameras[3]
@@ -147,7 +149,10 @@ def test_a_selected_camera_shows_its_photo_beside_the_render(scene):
         assert np.array_equal(img[:, -cam.width :], render)
         assert np.abs(img[:, :photo_w].astype(float) - vc.photo.astype(float)).mean() < 2.0
         assert np.array_equal(viewer.frame(8, pos, *args), render)  # another browser: no photo
-        assert np.array_equal(viewer.frame(7, pos + [0.5, 0, 0], *args).shape, render.shape)
+        assert viewer.frame(7, pos + [0.5, 0, 0], *args).shape == render.shape  # a stale report
+        assert viewer.frame(7, pos, *args).shape == img.shape  # the photo is still selected
+        monkeypatch.setattr(view_module, "SELECT_GRACE_SECONDS", 0.0)  # the grace period is over
+        assert viewer.frame(7, pos + [0.5, 0, 0], *args).shape == render.shape
         assert np.array_equal(viewer.frame(7, pos, *args), render)
     finally:
         viewer.stop()
