@@ -119,7 +119,7 @@ def test_synthetic_building_hand_edit_reruns_only_downstream(tmp_path):
 def test_listing_the_tasks_imports_no_heavy_library(tmp_path):
     """``doit list`` builds task metadata only: it must not pay for torch, open3d, pycolmap or OpenCV, and
     the pipeline's modules change no environment variable at import."""
-    probe = (
+    script = (
         "import os, sys, runpy; before = dict(os.environ); sys.argv = ['doit', '-f', sys.argv[1], 'list', "
         "'building=synthetic64', 'data_root=' + sys.argv[2]]\n"
         "try:\n    runpy.run_module('doit', run_name='__main__')\n"
@@ -129,7 +129,7 @@ def test_listing_the_tasks_imports_no_heavy_library(tmp_path):
         "print('HEAVY', heavy, 'ENV', changed)\n"
     )
     out = subprocess.run(
-        [sys.executable, "-c", probe, str(REPO / "dodo.py"), str(tmp_path)],
+        [sys.executable, "-c", script, str(REPO / "dodo.py"), str(tmp_path)],
         cwd=REPO,
         capture_output=True,
         text=True,

@@ -14,9 +14,9 @@ from facade_pipeline.synthetic.scene import panels_description
 _CORNER_EDGES = ((0, 1, 3), (1, 0, 2), (2, 3, 1), (3, 2, 0))
 
 
-def _corner_probes(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For the projected corners uv [4, 2] of a panel: probes 0.5 px inside the glass corner [4, 2] and
-    probes 0.5 px outside across either edge or both [12, 2]."""
+def _corner_samples(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For the projected corners uv [4, 2] of a panel: sample points 0.5 px inside the glass corner [4, 2]
+    and sample points 0.5 px outside across either edge or both [12, 2]."""
     inside, outside = [], []
     for c, a, b in _CORNER_EDGES:
         e1 = (uv[a] - uv[c]) / np.linalg.norm(uv[a] - uv[c])
@@ -38,7 +38,7 @@ def test_projected_corners_land_on_the_glass_corners_within_half_a_pixel(sim_nam
             if panel.part != part or panel.row not in rows or panel.col not in cols:
                 continue
             uv, _ = view.camera.project(panel.corners)
-            inside, outside = _corner_probes(uv)
+            inside, outside = _corner_samples(uv)
             o, d = view.camera.pixel_rays(*np.concatenate([inside, outside]).T)
             h = first_hits(sim.tracer, sim.arrays, o, d, "other")
             assert np.all(h.material[:4] == Material.GLASS) and np.all(h.object_id[:4] == pid)
