@@ -374,7 +374,7 @@ FIXED = {
         "regularize_corners.mask_refit_iou",
     ),
     "facade_pipeline/evaluation/video.py": ("evaluate.video.clip_frames", "evaluate.video.clip_width_px"),
-    "stages/evaluate.py": ("evaluate.report_views",),
+    "facade_pipeline/evaluation/building.py": ("evaluate.report_views",),
 }
 RENAMED |= {key: f"none: a constant in {where}" for where, keys in FIXED.items() for key in keys}
 

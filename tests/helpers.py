@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 from pathlib import Path
 
 import numpy as np
@@ -74,3 +75,10 @@ def tree_digest(folder: Path) -> dict[str, str]:
                 p.stat().st_mtime_ns
             )
     return out
+
+
+def as_real_building(toml_text: str) -> str:
+    """A synthetic building's config turned into a real building's: kind "real" and no simulator tables,
+    which a real building may not set."""
+    text = re.sub(r'(?m)^kind = "synthetic"', 'kind = "real"', toml_text)
+    return "".join(t for t in re.split(r"(?m)^(?=\[)", text) if not re.match(r"\[\[?synthesize", t))

@@ -22,6 +22,7 @@ from facade_pipeline.config import config_dir
 from facade_pipeline.io.images import read_image, write_image
 from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
+from tests.helpers import as_real_building
 
 REPO = Path(__file__).resolve().parents[1]
 IMPORT = "import_photogrammetry"
@@ -130,9 +131,7 @@ def test_bad_input_under_doit_is_one_line_and_a_rerun_after_the_fix_completes(
 ):
     root, env, cfg = synthetic
     name = "user_" + re.sub(r"\W", "_", case)
-    real = (cfg / "buildings" / "synthetic64.toml").read_text().replace('kind = "synthetic"', 'kind = "real"')
-    # a real building has no simulator tables
-    real = "".join(t for t in re.split(r"(?m)^(?=\[)", real) if not re.match(r"\[\[?synthesize", t))
+    real = as_real_building((cfg / "buildings" / "synthetic64.toml").read_text())
     (cfg / "buildings" / f"{name}.toml").write_text(real)
     layout = BuildingLayout(root, name)
     pristine = BuildingLayout(root, "synthetic64").raw_dir

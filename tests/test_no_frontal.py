@@ -24,6 +24,7 @@ from facade_pipeline.io.images import read_mask
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
+from tests.helpers import as_real_building
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -45,9 +46,7 @@ def survey(tmp_path_factory):
     text = (cfg / "buildings" / "synthetic64.toml").read_text()
     text = re.sub(r"(?m)^uav_count = \d+", "uav_count = 4", text)  # view 0 held out, 3 to train on
     (cfg / "buildings" / "synthetic64.toml").write_text(text)
-    real = re.sub(r'(?m)^kind = "synthetic"', 'kind = "real"', text)
-    # a real building has no simulator tables
-    real = "".join(t for t in re.split(r"(?m)^(?=\[)", real) if not re.match(r"\[\[?synthesize", t))
+    real = as_real_building(text)
     real = re.sub(r"(?m)^iterations = \d+", "iterations = 20", real)
     real += '\n[evaluate]\nlpips_conventions = ["vgg_3dgs"]\n'
     (cfg / "buildings" / "survey.toml").write_text(real)
