@@ -19,18 +19,12 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _common import machine, record_results  # noqa: E402
 
-STAGE_FOLDERS = (
-    "01_import",
-    "02_rectify",
-    "03_segment",
-    "04_regularize",
-    "05_correct_mesh",
-    "06_bake_normals",
-    "07_train",
-    "08_evaluate",
-)
+from facade_pipeline.layout import BuildingLayout  # noqa: E402
+from stages import PIPELINE  # noqa: E402
+
 #: parts of a figure's path that mark a timing or a machine-dependent size, not a result
 NOT_RESULTS = ("seconds", "wall", "_s", "per_s", "peak", "memory", "time", "rays_per", "fps", "ms_")
 #: the figures shown whether or not they differ (regular expressions over a figure's path)
@@ -62,14 +56,14 @@ def is_result(path: str) -> bool:
     return not any(mark in leaf for mark in NOT_RESULTS)
 
 
-def figures(building_dir: Path) -> dict[str, float | str]:
+def figures(layout: BuildingLayout) -> dict[str, float | str]:
     """Every result figure of one run: ``<stage folder>/<metric path>`` and ``metrics/<path>``."""
     out: dict[str, float | str] = {}
-    for folder in STAGE_FOLDERS:
-        manifest = building_dir / folder / "manifest.json"
+    for stage in PIPELINE:
+        manifest = layout.manifest(stage)
         if manifest.is_file():
-            _flatten(json.loads(manifest.read_text()).get("metrics", {}), folder, out)
-    evaluation = building_dir / "08_evaluate" / "metrics.json"
+            _flatten(json.loads(manifest.read_text()).get("metrics", {}), manifest.parent.name, out)
+    evaluation = layout.path("eval_metrics")
     if evaluation.is_file():
         _flatten(json.loads(evaluation.read_text()), "metrics", out)
     return {k: v for k, v in out.items() if is_result(k)}
@@ -97,7 +91,7 @@ def main() -> int:
     ap.add_argument("--rtol", type=float, default=1e-6, help="relative difference that counts (default 1e-6)")
     ap.add_argument("--record", metavar="TITLE", help="put the headline table on the results page (## TITLE)")
     a = ap.parse_args()
-    fa, fb = figures(a.root_a / a.building), figures(a.root_b / a.building)
+    fa, fb = figures(BuildingLayout(a.root_a, a.building)), figures(BuildingLayout(a.root_b, a.building))
     if not fa or not fb:
         missing = a.root_a / a.building if not fa else a.root_b / a.building
         print(f"{missing}: expected a building with stage manifests, found none", file=sys.stderr)
