@@ -8,10 +8,12 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
 (``complete = False``) when it is at least ``min_partial_m`` wide and the bars of the other family continue
 into it (by their frame colour or their edges, where the facade surface is there: ``_continues``); otherwise
-the facade ends at that bar. Partly occluded panels: a panel whose frame bars are present (their centre
-line within ``frame_colour_tol`` of the bar's median colour: a frame keeps its colour whatever the glass
-beside it reflects, an object in front of it does not) over less than ``MIN_EDGE_SUPPORT`` of any side's
-length is kept, with ``complete = False``.
+the facade ends at that bar, except beside the bars that continue on their own (a stepped facade, an empty
+or offset unit): there the opening between two such bars, or one and the border, is a partial panel.
+Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
+of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
+front of it does not) over less than ``MIN_EDGE_SUPPORT`` of any side's length is kept, with
+``complete = False``.
 
 Parallax of proud frames: frames stand d in front of the glass, so in a view from distance Z the front face
 of a bar hides a strip of the glass beyond it (on its side away from the principal point c) of width
@@ -306,39 +308,53 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
-               params: SegmentParams) -> bool:
-    """Do the bars of ``other`` continue over [lo, hi) along them? Only where the facade surface is there
-    (``support``: the fraction of the strip where the coarse mesh lies on the fitted surface, 1 without a
-    mesh) over at least half of the strip: that keeps out the ground or paving beyond the facade's end,
-    which may have the frames' colour. There a bar continues where its frame colour is present on its
-    centre line (``frame_presence``) over at least ``continuation_presence`` of the strip's part that shows
-    the view, in the median over the bars, or where its edges keep ``continuation_ratio`` of their strength
-    over ``inside``, in the median over the bars (either edge: an outer frame shows only its glass side
-    wherever the background beside it changes colour). Colour survives what takes the edges away: a
-    specular highlight on the glass beside a bar, the blur of a far, upsampled part of an oblique rectified
-    photo."""
-    if support < 0.5:
-        return False
-    fractions = []
-    for e in other.edges:
-        if e[0].present is None:
-            continue
-        seg = e[0].present[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
+def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float, inside: tuple[float, float],
+                   params: SegmentParams) -> tuple[float, float]:
+    """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
+    that shows the view where its frame colour is present on its centre line, NaN where unknown; the
+    larger ratio of its two edges' mean strength there to their mean strength over ``inside``)."""
+    presence = np.nan
+    if bar[0].present is not None:
+        seg = bar[0].present[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
         seg = seg[~np.isnan(seg)]
         if len(seg):
-            fractions.append(float(seg.mean()))
-    if fractions and float(np.median(fractions)) >= params.continuation_presence:
-        return True
-    r = []
-    for e in other.edges:
-        seen = None if e[0].present is None else ~np.isnan(e[0].present)
-        best = 0.0
-        for line in e:
-            ref = _mean(line.strength, *inside, seen)
-            best = max(best, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-        r.append(best)
-    return float(np.median(r)) >= params.continuation_ratio
+            presence = float(seg.mean())
+    seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
+    ratio = 0.0
+    for line in bar:
+        ref = _mean(line.strength, *inside, seen)
+        ratio = max(ratio, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
+    return presence, ratio
+
+
+def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
+               params: SegmentParams) -> frozenset[int] | None:
+    """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
+    across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
+
+    Only where the facade surface is there (``support``: the fraction of the strip where the coarse mesh
+    lies on the fitted surface, 1 without a mesh) over at least half of the strip: that keeps out the ground
+    or paving beyond the facade's end, which may have the frames' colour. There the bars continue where their
+    frame colour is present on the centre line (``frame_presence``) over at least ``continuation_presence``
+    of the strip's part that shows the view, in the median over the bars, or where their edges keep
+    ``continuation_ratio`` of their strength over ``inside``, in the median over the bars (either edge: an
+    outer frame shows only its glass side wherever the background beside it changes colour). Colour
+    survives what takes the edges away: a specular highlight on the glass beside a bar, the blur of a far,
+    upsampled part of an oblique rectified photo. Where the median fails, a bar that passes either test on
+    its own still continues: a partly installed or stepped facade ends over part of a strip only (an empty
+    unit, a unit set off its neighbours' line), and the openings beside such a bar go on."""
+    if support < 0.5:
+        return frozenset()
+    found = [_bar_continues(e, lo, hi, inside, params) for e in other.edges]
+    presence = [p for p, _ in found if not np.isnan(p)]
+    if presence and float(np.median(presence)) >= params.continuation_presence:
+        return None
+    if found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
+        return None
+    return frozenset(
+        i for i, (p, r) in enumerate(found)
+        if (not np.isnan(p) and p >= params.continuation_presence) or r >= params.continuation_ratio
+    )
 
 
 def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
@@ -353,26 +369,42 @@ def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
     return float(block.mean()) if block.size else 0.0
 
 
+@dataclass(frozen=True)
+class Opening:
+    """One opening across a family's bars: its low and high edge lines, the indices of the bars bounding
+    it (None: the image border), and for a strip cut by the border the bars of the other family that
+    continue into it (None: all of them)."""
+
+    low: EdgeLine
+    high: EdgeLine
+    bounds: tuple[int | None, int | None]
+    cut: bool = False
+    continuing: frozenset[int] | None = None
+
+    def admits(self, bounds: tuple[int | None, int | None]) -> bool:
+        """Does the opening of the other family bounded by the bars ``bounds`` go on into this one?"""
+        return self.continuing is None or all(b is None or b in self.continuing for b in bounds)
+
+
 def openings(
     bars: _Bars, other: _Bars, size: int, length: int, params: SegmentParams, min_partial_px: float,
     axis: int, support: np.ndarray | None = None,
-) -> list[tuple[EdgeLine, EdgeLine, bool]]:
-    """Openings across one family's bars (``axis`` 0: mullions), low to high: (low line, high line, cut by
-    the border)."""
+) -> list[Opening]:
+    """Openings across one family's bars (``axis`` 0: mullions), low to high."""
     e = bars.edges
     inside = (bars.fit.centres[0], bars.fit.centres[-1])
     across = (other.fit.centres[0], other.fit.centres[-1])
     out = []
     lo, top = e[0][0].a, e[-1][1].a
-    if lo >= min_partial_px and _continues(
-        other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params
-    ):
-        out.append((_border(0, length), e[0][0], True))
-    out += [(e[k][1], e[k + 1][0], False) for k in range(len(e) - 1)]
-    if size - top >= min_partial_px and _continues(
-        other, top, size, inside, _strip_support(support, axis, top, size, across), params
-    ):
-        out.append((e[-1][1], _border(size, length), True))
+    if lo >= min_partial_px:
+        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params)
+        if going is None or going:
+            out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
+    out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
+    if size - top >= min_partial_px:
+        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params)
+        if going is None or going:
+            out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
     return out
 
 
@@ -393,8 +425,12 @@ def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: 
     cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support)
     rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support)  # top to bottom
     panels = []
-    for i, (top, bottom, cut_r) in enumerate(rows):
-        for j, (left, right, cut_c) in enumerate(cols):
+    for i, row in enumerate(rows):
+        top, bottom, cut_r = row.low, row.high, row.cut
+        for j, col in enumerate(cols):
+            left, right, cut_c = col.low, col.high, col.cut
+            if not (row.admits(col.bounds) and col.admits(row.bounds)):
+                continue
             c = np.array(
                 [
                     intersect(left, bottom),

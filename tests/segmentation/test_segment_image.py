@@ -214,3 +214,20 @@ def test_border_strips_need_the_facade_surface_and_the_frame_colour():
     bright[:, x_last:] = frame_grey.astype(np.uint8)
     washed = segment_image(bright, PARAMS, M_PER_PX)
     assert [p for p in washed.panels if p.corners[:, 0].max() > d.W - 1.0]
+
+
+def test_a_border_strip_where_the_facade_goes_on_over_part_of_it():
+    """A facade that goes on past the top border above its last column only (a stepped facade, or a unit
+    installed off its neighbours' line): the strip's bars do not continue in the median, the one that
+    does carries the opening beside it, bounded by the border, and no other opening of the strip."""
+    d = Drawing(y0=-10.0, cols=4, rows=3)  # mullions at x = 6.3, 33.7, 61.1, 88.5 (and one beyond the border)
+    img = d.render()
+    first_transom = int(d.y0 + d.pitch[1])  # the first transom whole in the image starts here
+    img[:first_transom, : int(d.x0 + 3 * d.pitch[0])] = (140, 178, 242)  # sky above the first three columns
+    seg = segment_image(img, PARAMS, M_PER_PX)
+    top = [p for p in seg.panels if p.corners[:, 1].min() < 1.0]
+    assert len(top) == 1 and not top[0].complete
+    assert top[0].corners[:, 0].min() > d.x0 + 3 * d.pitch[0] and top[0].corners[:, 0].max() > d.W - 1.0
+    # the rows below keep every column
+    below = {p.col for p in seg.panels if p.corners[:, 1].min() >= 1.0}
+    assert below == {p.col for p in seg.panels}
