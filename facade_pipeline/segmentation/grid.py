@@ -28,7 +28,10 @@ MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) 
 frames: a facade's outer frame may meet a background of its own colour (paving, sky), so it shows only its
 glass-side edge. The run is then extended by one bar at either end where l(c) computed with the weaker edge
 counted at least ``outer_edge_floor`` of the stronger (a one-sided bar) pays for the line, one pitch beyond
-the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection. Reflections
+the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection. End bays: a
+facade's last column or row often has a pitch of its own (a wider end bay, a taller ground floor); where no
+outer frame ends the run, it is extended by the best two-sided bar between half and twice the pitch beyond
+its end, if that bar pays for two lines (``_with_end_bays``). Reflections
 of buildings and trees in the glass, the main distractor, are single edges (no opposite-polarity partner at
 the bar width), cover only parts of the grid and are not periodic: they lose against the prior.
 
@@ -301,7 +304,11 @@ def map_family(
     score, centres, pitch = best
     lat = np.clip(np.rint(centres / STEP_PX).astype(int), 0, M - 1)
     fit = FamilyFit(centres, widths[lat].astype(float), float(pitch), float(score))
-    return fit if outer is None else _with_outer_frames(fit, *outer, size, params)
+    if outer is None:
+        return fit
+    framed = _with_outer_frames(fit, *outer, size, params)
+    ended = (framed.centres[0] != fit.centres[0], framed.centres[-1] != fit.centres[-1])
+    return _with_end_bays(framed, ll, widths, size, params, sizes, ended)
 
 
 def _with_outer_frames(
@@ -331,3 +338,49 @@ def _with_outer_frames(
             centres.insert(0, c_new)
             widths.insert(0, w)
     return FamilyFit(np.array(centres), np.array(widths), fit.pitch, float(score))
+
+
+#: an end bay of its own pitch costs this many lines: a bar off the grid's spacing is less likely a priori
+#: than one on it, and twice a line's cost keeps single reflected edges (which the two-sided evidence
+#: already discounts) out of it
+END_BAY_LINES = 2.0
+#: an end bay's pitch lies within this factor of the grid's (either way): a wider end bay, a taller ground
+#: floor or a lower parapet row, not a second grid
+END_BAY_RATIO = 2.0
+
+
+def _with_end_bays(
+    fit: FamilyFit, ll: np.ndarray, widths: np.ndarray, size: int, params: GridParams, sizes: PixelSizes,
+    ended: tuple[bool, bool],
+) -> FamilyFit:
+    """The run extended by one bar at either end, at a pitch of its own (a wider end bay, a taller ground
+    floor): the best two-sided bar between 1 / ``END_BAY_RATIO`` and ``END_BAY_RATIO`` pitches (within the
+    pitch range) beyond the end, kept where its l(c) pays ``END_BAY_LINES`` lines and it lies whole in the
+    view. Not beyond an outer frame (``ended``: the facade ends there)."""
+    M = len(ll)
+    lo = max(sizes.min_pitch, fit.pitch / END_BAY_RATIO)
+    hi = min(sizes.max_pitch, fit.pitch * END_BAY_RATIO)
+    if hi < lo:
+        return fit
+    centres, bar_widths, score = list(fit.centres), list(fit.widths), fit.score
+    for end, sign, done in ((-1, 1.0, ended[1]), (0, -1.0, ended[0])):
+        if done:
+            continue
+        c = centres[end] + sign * np.arange(lo, hi + STEP_PX, STEP_PX)
+        i = np.rint(c / STEP_PX).astype(int)
+        w = widths[np.clip(i, 0, M - 1)]
+        ok = (i >= 0) & (i < M) & (c - w / 2 >= 1.0) & (c + w / 2 <= size - 1.0)
+        if not ok.any():
+            continue
+        gain = np.where(ok, ll[np.clip(i, 0, M - 1)], -np.inf) - END_BAY_LINES * params.line_cost
+        k = int(np.argmax(gain))
+        if gain[k] <= 0:
+            continue
+        score += float(gain[k])
+        if sign > 0:
+            centres.append(float(c[k]))
+            bar_widths.append(float(w[k]))
+        else:
+            centres.insert(0, float(c[k]))
+            bar_widths.insert(0, float(w[k]))
+    return FamilyFit(np.array(centres), np.array(bar_widths), fit.pitch, float(score))

@@ -25,6 +25,17 @@ class Drawing:
     occluder: tuple[float, float, float] | None = None  # circle (x, y, r) in px
     seed: int = 0
     glass_rects: list = field(default_factory=list)
+    #: the last column's and the last row's pitch (px), where they differ from ``pitch`` (a wider end bay, a
+    #: taller ground floor)
+    last_pitch: tuple[float | None, float | None] = (None, None)
+
+    def _lines(self, axis: int) -> np.ndarray:
+        """[n + 1] left (top) edges of the bars of one family (px), ``axis`` 0: mullions."""
+        n = (self.cols, self.rows)[axis]
+        p = np.full(n, self.pitch[axis])
+        if self.last_pitch[axis] is not None:
+            p[-1] = self.last_pitch[axis]
+        return (self.x0, self.y0)[axis] + np.concatenate([[0.0], np.cumsum(p)])
 
     def render(self) -> np.ndarray:
         W, H = self.W * S, self.H * S
@@ -32,9 +43,9 @@ class Drawing:
         img = np.zeros((H, W, 3), np.float32)
         img[: H // 2] = (0.55, 0.7, 0.95)  # sky
         img[H // 2 :] = (0.6, 0.58, 0.52)  # paving
+        xl, yl = self._lines(0), self._lines(1)
         gx0, gy0 = self.x0 * S, self.y0 * S
-        gx1 = gx0 + (self.cols * self.pitch[0] + self.bar) * S
-        gy1 = gy0 + (self.rows * self.pitch[1] + self.bar) * S
+        gx1, gy1 = (xl[-1] + self.bar) * S, (yl[-1] + self.bar) * S
         ys, xs = np.mgrid[0:H, 0:W] + 0.5
         facade = (xs >= gx0) & (xs < gx1) & (ys >= gy0) & (ys < gy1)
         img[facade] = (0.62, 0.64, 0.66)  # frames
@@ -42,9 +53,8 @@ class Drawing:
         self.glass_rects = []
         for r in range(self.rows):
             for c in range(self.cols):
-                x = self.x0 + c * self.pitch[0] + self.bar
-                y = self.y0 + r * self.pitch[1] + self.bar
-                w, h = self.pitch[0] - self.bar, self.pitch[1] - self.bar
+                x, y = xl[c] + self.bar, yl[r] + self.bar
+                w, h = xl[c + 1] - x, yl[r + 1] - y
                 self.glass_rects.append((x, y, x + w, y + h))
                 glass |= (xs >= x * S) & (xs < (x + w) * S) & (ys >= y * S) & (ys < (y + h) * S)
         sky = ys < gy0 + 0.45 * (gy1 - gy0)

@@ -231,3 +231,17 @@ def test_a_border_strip_where_the_facade_goes_on_over_part_of_it():
     # the rows below keep every column
     below = {p.col for p in seg.panels if p.corners[:, 1].min() >= 1.0}
     assert below == {p.col for p in seg.panels}
+
+
+@pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
+def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
+    """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
+    23.3 px: their far bars are found, and every pane, regular or not, is one complete panel within a
+    pixel of the truth (not a partial panel running to the border)."""
+    d = Drawing(W=145, H=125, cols=4, rows=4, last_pitch=last_pitch)
+    seg = segment_image(d.render(), PARAMS, M_PER_PX)
+    truth = d.corners()
+    pred = np.array([p.corners for p in seg.panels])
+    assert len(pred) == len(truth) and all(p.complete for p in seg.panels)
+    for t in truth:
+        assert np.abs(pred - t).max(axis=(1, 2)).min() < 1.0
