@@ -245,3 +245,41 @@ def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     assert len(pred) == len(truth) and all(p.complete for p in seg.panels)
     for t in truth:
         assert np.abs(pred - t).max(axis=(1, 2)).min() < 1.0
+
+
+def test_the_frame_depth_of_the_facade_is_pooled_over_views():
+    """Frames 0.15 m proud of the glass seen from 8-20 m: each view's slope k = d / (Z - d) gives d back;
+    views without a slope of their own (k = 0) do not count, and one view is not enough."""
+    from facade_pipeline.segmentation.panels import frame_depth_m, slope_at
+
+    d = 0.15
+    views = [(slope_at(d, z), z) for z in (8.0, 12.0, 20.0)] + [(0.0, 10.0)]
+    assert abs(frame_depth_m(views) - d) < 1e-12
+    assert frame_depth_m(views[:1]) is None and frame_depth_m([(0.0, 9.0), (0.0, 11.0)]) is None
+    assert slope_at(d, 0.1) == 0.0  # a camera nearer than the frames' depth: no correction
+
+
+def test_a_view_with_too_few_bars_takes_the_facades_slope():
+    """Two bars 8 px wide at glass level seen with k = 0.01: too few to fit k (three are needed), so no
+    correction of their own; with the facade's slope as the prior, their far edges go back to the glass
+    line; a view that fits its own slope keeps it."""
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.panels import _Bars, correct_bars
+
+    c, k = 192.0, 0.01
+    true = [(x - 4.0, x + 4.0) for x in (30.0, 350.0)]
+    seen = [(c + (lo - c) * (1 + k), hi) if lo < c else (lo, c + (hi - c) * (1 + k)) for lo, hi in true]
+    line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
+    bars = _Bars([(line(lo), line(hi)) for lo, hi in seen], None)
+    same, _, own = correct_bars(bars, bars, PARAMS, (c, c))
+    assert same is bars and not own["parallax_fitted_x"] and own["parallax_slope_x"] == 0.0
+    fixed, _, pooled = correct_bars(bars, bars, PARAMS, (c, c), (k, k))
+    assert not pooled["parallax_fitted_x"] and pooled["parallax_slope_x"] == k
+    for (lo, hi), (f_lo, f_hi) in zip(true, fixed.edges, strict=True):
+        assert abs(f_lo.a - lo) < 1e-9 and abs(f_hi.a - hi) < 1e-9
+    # four bars seen with k = 0.02: the view's own fit is kept over the facade's
+    four = [(x - 4.0, x + 4.0) for x in (30.0, 110.0, 270.0, 350.0)]
+    four = [(c + (lo - c) * 1.02, hi) if lo < c else (lo, c + (hi - c) * 1.02) for lo, hi in four]
+    four = _Bars([(line(lo), line(hi)) for lo, hi in four], None)
+    _, _, fitted = correct_bars(four, four, PARAMS, (c, c), (k, k))
+    assert fitted["parallax_fitted_x"] and abs(fitted["parallax_slope_x"] - 0.02) < 1e-3
