@@ -159,7 +159,8 @@ def segment_view(layout: BuildingLayout, view: View, params: Params, mesh: MeshR
     centre_xy = (float(centre[0]), float(centre[1])) if np.isfinite(centre).all() else None
     image = read_image(layout.path("rectify_image", stem=view.stem))
     support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
-    grid = find_grid(image, params, rect.metres_per_px, valid_region(rect), support)
+    planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
+    grid = find_grid(image, params, rect.metres_per_px, valid_region(rect), support, planar)
     distance = float("nan")
     if rect.chart is not None:
         distance = float(abs(rect.chart.surface().signed_distance(view.camera.center[None])[0]))

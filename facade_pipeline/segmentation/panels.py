@@ -258,10 +258,11 @@ def find_bars(
     params: SegmentParams,
     sizes: PixelSizes,
     valid: np.ndarray | None = None,
+    planar: bool = True,
 ) -> tuple[_Bars | None, _Bars | None, dict]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
-    evidence over the other's extent only), then sub-pixel edges (not corrected for parallax:
-    ``correct_bars``)."""
+    evidence over the other's extent only; on a ``planar`` surface the transoms must have the mullions'
+    colour, ``frame_colour_scale``), then sub-pixel edges (not corrected for parallax: ``correct_bars``)."""
     H, W = image.shape[:2]
     fam = group_segments(
         detect_segments(image, params.upsample, MIN_SEGMENT_PX),
@@ -276,7 +277,7 @@ def find_bars(
     # they run the facade's full height, while the long straight lines that reflections bring (horizon,
     # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
     colour_h = None
-    if v is not None and params.grid.frame_colour_scale > 0:
+    if v is not None and params.grid.frame_colour_scale > 0 and planar:
         colour_h = bar_colour(gv, v, _span(h, H))
     h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes, colour_h)
     metrics = {
@@ -512,11 +513,12 @@ def find_grid(
     metres_per_px: float,
     valid: np.ndarray | None = None,
     support: np.ndarray | None = None,
+    planar: bool = True,
 ) -> Grid:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal
     view), found at the working scale (``work_bar_px``); ``valid`` [H, W] marks the pixels that show the
     view (a rectified image has none outside the original), ``support`` [H, W] where the facade surface
-    is (``rectification.facade_support``; None: all)."""
+    is (``rectification.facade_support``; None: all); ``planar``: the surface is a plane (``find_bars``)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -528,7 +530,7 @@ def find_grid(
         if support is not None:
             support = cv2.resize(support.astype(np.uint8), (Ww, Hw), interpolation=cv2.INTER_NEAREST) > 0
     m = metres_per_px / np.sqrt(qx * qy)
-    bars_v, bars_h, metrics = find_bars(image, params, PixelSizes.of(params.grid, m), valid)
+    bars_v, bars_h, metrics = find_bars(image, params, PixelSizes.of(params.grid, m), valid, planar)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return Grid(bars_v, bars_h, (Ww, Hw), (qx, qy), m, support, metrics)
 

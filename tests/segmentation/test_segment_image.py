@@ -283,3 +283,18 @@ def test_a_view_with_too_few_bars_takes_the_facades_slope():
     four = _Bars([(line(lo), line(hi)) for lo, hi in four], None)
     _, _, fitted = correct_bars(four, four, PARAMS, (c, c), (k, k))
     assert fitted["parallax_fitted_x"] and abs(fitted["parallax_slope_x"] - 0.02) < 1e-3
+
+
+def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
+    """Transoms far brighter than the mullions, as a cylinder's transoms turned towards the sky are: on a
+    curved surface every transom is found where it is, at full evidence; on a plane, where frames of one
+    material are shaded alike, each costs more than a nat for its colour."""
+    from facade_pipeline.segmentation.panels import find_grid
+
+    d = Drawing(transom_colour=(0.95, 0.95, 0.95))
+    img = d.render()
+    curved = find_grid(img, PARAMS, M_PER_PX, planar=False)
+    true_centres = d.y0 + d.bar / 2 + d.pitch[1] * np.arange(d.rows + 1)
+    assert curved.bars_h is not None and np.abs(curved.bars_h.fit.centres - true_centres).max() <= 1.0
+    plane = find_grid(img, PARAMS, M_PER_PX, planar=True)
+    assert plane.metrics["map_score_y"] < curved.metrics["map_score_y"] - (d.rows + 1)
