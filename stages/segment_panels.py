@@ -11,10 +11,8 @@ images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md (
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -32,7 +30,7 @@ from stages._runner import StageReport, main
 if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.rectification.surface_map import ViewRectification
-    from facade_pipeline.segmentation.panels import Grid, Panel, Segmentation
+    from facade_pipeline.segmentation.panels import Panel
     from facade_pipeline.segmentation.result import SegmentedPanel
 
 NAME = "segment_panels"
@@ -129,57 +127,28 @@ def parallax_centre(rect: ViewRectification, view: View) -> np.ndarray:
     return np.array([(s[0] - rect.s0_m) / m, (rect.h0_m - h[0]) / m])
 
 
-@dataclass
-class _Segmented:
-    """One view's segmentation before it is written: the rectification, its frame bars and panels (None
-    where rectify skipped the view), the parallax centre, the distance (m) from the camera to the fitted
-    surface, and the seconds taken."""
-
-    rect: ViewRectification
-    grid: Grid | None
-    seg: Segmentation | None
-    centre: tuple[float, float] | None
-    distance_m: float
-    seconds: float
-
-
-def segment_view(layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster) -> _Segmented:
-    """Segment one view with its own parallax fit (``mesh``: the coarse mesh, which tells where the
-    facade surface is)."""
+def segment_one(
+    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster, overlay_scale: float
+) -> tuple[list[Path], dict]:
+    """Segment one view and write its three outputs (``mesh``: the coarse mesh, which tells where the
+    facade surface is); returns them and the view's metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
-    from facade_pipeline.io.images import read_image
-    from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
-    from facade_pipeline.segmentation.panels import find_grid, grid_panels
-
-    t0 = time.perf_counter()
-    rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
-    if rect.kind == "skipped":
-        return _Segmented(rect, None, None, None, float("nan"), time.perf_counter() - t0)
-    centre = parallax_centre(rect, view)
-    centre_xy = (float(centre[0]), float(centre[1])) if np.isfinite(centre).all() else None
-    image = read_image(layout.path("rectify_image", stem=view.stem))
-    support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
-    planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
-    grid = find_grid(image, params, rect.metres_per_px, valid_region(rect), support, planar)
-    distance = float("nan")
-    if rect.chart is not None:
-        distance = float(abs(rect.chart.surface().signed_distance(view.camera.center[None])[0]))
-    seg = grid_panels(grid, params, centre_xy)
-    return _Segmented(rect, grid, seg, centre_xy, distance, time.perf_counter() - t0)
-
-
-def write_view(layout: BuildingLayout, view: View, done: _Segmented, overlay_scale: float,
-               ) -> tuple[list[Path], dict]:
-    """Write one view's three outputs; returns them and the view's metrics."""
     from facade_pipeline.io.images import read_image, write_image
+    from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
+    from facade_pipeline.segmentation.panels import segment_image
     from facade_pipeline.segmentation.result import ViewSegmentation, panel_labels
 
     t0 = time.perf_counter()
-    rect, seg = done.rect, done.seg
+    rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     W, H = view.camera.width, view.camera.height
-    panels, found, metrics, reason = [], False, {}, rect.reason if seg is None else ""
-    labels = np.full((H, W), -1)
-    if seg is not None:
+    panels, found, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
+    if rect.kind != "skipped":
+        valid = valid_region(rect)
+        centre = parallax_centre(rect, view)
+        centre_xy = (float(centre[0]), float(centre[1])) if np.isfinite(centre).all() else None
+        image = read_image(layout.path("rectify_image", stem=view.stem))
+        support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
+        seg = segment_image(image, params, rect.metres_per_px, valid, centre_xy, support)
         labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
         found = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if found else []), seg.metrics
@@ -206,61 +175,23 @@ def write_view(layout: BuildingLayout, view: View, done: _Segmented, overlay_sca
         "n_occluded": sum(p.reason == "occluded" for p in panels),
         "rectified": rect.rectified,
         **{k: round(v, 5) if isinstance(v, float) else v for k, v in metrics.items()},
-        "seconds": round(done.seconds + time.perf_counter() - t0, 3),
+        "seconds": round(time.perf_counter() - t0, 3),
     }
     return out, metrics
-
-
-def pooled_slopes(
-    done: dict[str, _Segmented],
-) -> tuple[dict[str, float | None], dict[str, tuple[float, float]]]:
-    """The frames' depth (m) per family ("x": mullions, "y": transoms) from the views that fitted their
-    own parallax (``frame_depth_m``), and the slopes it gives each view that could not fit one."""
-    from facade_pipeline.segmentation.panels import frame_depth_m, slope_at
-
-    depth: dict[str, float | None] = {}
-    for name in ("x", "y"):
-        depth[name] = frame_depth_m([
-            (d.seg.metrics[f"parallax_slope_{name}"], d.distance_m) for d in done.values()
-            if d.seg is not None and d.seg.metrics.get(f"parallax_fitted_{name}")
-        ])
-    priors = {}
-    for stem, d in done.items():
-        if d.seg is None or not np.isfinite(d.distance_m):
-            continue
-        missing = [n for n in ("x", "y") if f"parallax_fitted_{n}" in d.seg.metrics
-                   and not d.seg.metrics[f"parallax_fitted_{n}"] and depth[n] is not None]
-        if missing:
-            priors[stem] = tuple(  # type: ignore[assignment]
-                slope_at(depth[n], d.distance_m) if n in missing else 0.0 for n in ("x", "y"))
-    return depth, priors
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.io.meshes import read_mesh
-    from facade_pipeline.segmentation.panels import grid_panels
 
     views = ImportedScene.load(layout).frontal_views
     coarse = read_mesh(layout.import_coarse_mesh)
     mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
-    done = {
-        view.stem: segment_view(layout, view, params, mesh)
-        for view in tqdm(views, desc="segment_panels: frontal views", unit="img", file=sys.stderr)
-    }
-    # one facade has one frame depth: views with too few whole bars to fit their own parallax take it
-    # from the views that could, at their own distance
-    depth, priors = pooled_slopes(done) if params.parallax_max_slope > 0 else ({}, {})
-    for stem, slopes in priors.items():
-        d = done[stem]
-        t0 = time.perf_counter()
-        seg = grid_panels(d.grid, params, d.centre, slopes)  # type: ignore[arg-type]
-        done[stem] = dataclasses.replace(d, seg=seg, seconds=d.seconds + time.perf_counter() - t0)
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
-    for view in views:
-        outs, per_view[view.stem] = write_view(layout, view, done[view.stem], settings.overlay_scale)
+    for view in tqdm(views, desc="segment_panels: frontal views", unit="img", file=sys.stderr):
+        outs, per_view[view.stem] = segment_one(layout, view, params, mesh, settings.overlay_scale)
         outputs += outs
     return StageReport(
         outputs,
@@ -270,8 +201,6 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "views_without_facade": {s: m["reason"] for s, m in per_view.items() if not m["facade_found"]},
             "n_panels": sum(m["n_panels"] for m in per_view.values()),
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
-            "frame_depth_m": {k: (None if v is None else round(v, 5)) for k, v in depth.items()},
-            "n_views_with_facade_parallax": len(priors),
             "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
             "views": per_view,
         },

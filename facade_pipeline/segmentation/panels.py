@@ -20,9 +20,7 @@ of a bar hides a strip of the glass beyond it (on its side away from the princip
 (u - c) d / (Z - d) px, while on its side towards c the bar's side face shows. A bar's apparent width thus
 grows as w = B + k s, with k = d / (Z - d) and s the distance from c of its far (front-face) edge; on a side
 of c where the side faces are shaded like the glass, the near edge found is the front face's as well, and
-the width does not grow there. k and those sides are fitted per family and view (``fit_parallax``; a view
-whose bars cannot give k, too few or out of range, takes it from the frames' depth pooled over the views
-that can: ``frame_depth_m``, in the stage) and the
+the width does not grow there. k and those sides are fitted per family and view (``fit_parallax``) and the
 front-face edges are moved to c + (u - c) / (1 + k), where the glass meets the frame: corners are the glass
 panel's corners, and masks are the panels' quads, hidden strips included (``parallax_max_slope = 0`` keeps
 the visible glass instead).
@@ -180,8 +178,6 @@ class Parallax:
     k: float = 0.0
     near_displaced: tuple[bool, bool] = (False, False)
     min_width_px: float = 0.0
-    fitted: bool = False
-    """whether k is the view's own fit (enough bars, and a slope in range)"""
 
 
 def fit_parallax(bars: _Bars, centre: float, min_bars: int, max_slope: float) -> Parallax:
@@ -210,21 +206,7 @@ def fit_parallax(bars: _Bars, centre: float, min_bars: int, max_slope: float) ->
     if not 0.0 < k <= max_slope:
         return Parallax(centre)
     near = tuple(bool(j in slopes and slopes[j] < 0.5 * k) for j in (0, 1))
-    return Parallax(centre, k, near, min_width, True)  # type: ignore[arg-type]
-
-
-def frame_depth_m(slopes: list[tuple[float, float]], min_views: int = 2) -> float | None:
-    """How far (m) the frames of one family stand proud of the glass, from the slopes k fitted in views at
-    distance Z (m) from the surface: d = k Z / (1 + k) (k = d / (Z - d)), the median over the views with
-    k > 0; None from fewer than ``min_views`` such views. One facade has one frame depth, so views with
-    too few whole bars to fit their own slope take it from the others (``slope_at``)."""
-    d = [k * z / (1.0 + k) for k, z in slopes if k > 0.0 and np.isfinite(z) and z > 0.0]
-    return float(np.median(d)) if len(d) >= min_views else None
-
-
-def slope_at(depth_m: float, distance_m: float) -> float:
-    """The parallax slope k = d / (Z - d) of frames ``depth_m`` proud of glass seen from ``distance_m``."""
-    return depth_m / (distance_m - depth_m) if distance_m > depth_m > 0.0 else 0.0
+    return Parallax(centre, k, near, min_width)  # type: ignore[arg-type]
 
 
 def _unparallax(line: EdgeLine, centre: float, k: float) -> EdgeLine:
@@ -258,11 +240,11 @@ def find_bars(
     params: SegmentParams,
     sizes: PixelSizes,
     valid: np.ndarray | None = None,
-    planar: bool = True,
+    centre: tuple[float, float] | None = None,
 ) -> tuple[_Bars | None, _Bars | None, dict]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
-    evidence over the other's extent only; on a ``planar`` surface the transoms must have the mullions'
-    colour, ``frame_colour_scale``), then sub-pixel edges (not corrected for parallax: ``correct_bars``)."""
+    evidence over the other's extent only), then sub-pixel edges, corrected for the frames' parallax about
+    ``centre`` (x, y) (the principal point in this image; None: not corrected)."""
     H, W = image.shape[:2]
     fam = group_segments(
         detect_segments(image, params.upsample, MIN_SEGMENT_PX),
@@ -277,7 +259,7 @@ def find_bars(
     # they run the facade's full height, while the long straight lines that reflections bring (horizon,
     # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
     colour_h = None
-    if v is not None and params.grid.frame_colour_scale > 0 and planar:
+    if v is not None and params.grid.frame_colour_scale > 0:
         colour_h = bar_colour(gv, v, _span(h, H))
     h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes, colour_h)
     metrics = {
@@ -296,30 +278,16 @@ def find_bars(
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )
+    if centre is not None and params.parallax_max_slope > 0:
+        fits = {
+            name: fit_parallax(bars, c, PARALLAX_MIN_BARS, params.parallax_max_slope)
+            for name, bars, c in (("x", bars_v, centre[0]), ("y", bars_h, centre[1]))
+            if bars is not None
+        }
+        metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
+        bars_v = correct_parallax(bars_v, fits["x"]) if bars_v is not None else None
+        bars_h = correct_parallax(bars_h, fits["y"]) if bars_h is not None else None
     return bars_v, bars_h, metrics
-
-
-def correct_bars(
-    bars_v: _Bars, bars_h: _Bars, params: SegmentParams, centre: tuple[float, float] | None,
-    prior_slopes: tuple[float, float] = (0.0, 0.0),
-) -> tuple[_Bars, _Bars, dict]:
-    """The bars corrected for the frames' parallax about ``centre`` (x, y) (the principal point in this
-    image; None: not corrected), with the fits' metrics; a family whose own fit fails (too few bars, a
-    slope out of range) takes ``prior_slopes`` (x, y) (0: not corrected), its near edges left as found."""
-    metrics: dict = {}
-    if centre is None or params.parallax_max_slope <= 0:
-        return bars_v, bars_h, metrics
-    fits = {}
-    for name, bars, c, prior in (("x", bars_v, centre[0], prior_slopes[0]),
-                                 ("y", bars_h, centre[1], prior_slopes[1])):
-        fit = fit_parallax(bars, c, PARALLAX_MIN_BARS, params.parallax_max_slope)
-        if not fit.fitted and 0.0 < prior <= params.parallax_max_slope:
-            w = np.array([e[1].a - e[0].a for e in bars.edges])
-            fit = Parallax(c, prior, (False, False), 0.5 * float(np.median(w)))
-        fits[name] = fit
-        metrics[f"parallax_fitted_{name}"] = fit.fitted
-    metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
-    return correct_parallax(bars_v, fits["x"]), correct_parallax(bars_h, fits["y"]), metrics
 
 
 def _border(pos: float, length: int) -> EdgeLine:
@@ -490,35 +458,20 @@ def working_scale(params: SegmentParams, metres_per_px: float) -> float:
     return min(1.0, metres_per_px * params.work_bar_px / params.grid.min_bar_m)
 
 
-@dataclass(frozen=True, eq=False)
-class Grid:
-    """The frame bars of an image at the working scale (``find_grid``), before the parallax correction:
-    what ``grid_panels`` needs to make the panels, with or without a slope from other views."""
-
-    bars_v: _Bars | None
-    bars_h: _Bars | None
-    size: tuple[int, int]
-    """(width, height) of the working image (px)"""
-    scale: tuple[float, float]
-    """working px per given px, (x, y)"""
-    metres_per_px: float
-    """at the working scale"""
-    support: np.ndarray | None
-    metrics: dict
-
-
-def find_grid(
+def segment_image(
     image: np.ndarray,
     params: SegmentParams,
     metres_per_px: float,
     valid: np.ndarray | None = None,
+    centre: tuple[float, float] | None = None,
     support: np.ndarray | None = None,
-    planar: bool = True,
-) -> Grid:
-    """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal
-    view), found at the working scale (``work_bar_px``); ``valid`` [H, W] marks the pixels that show the
-    view (a rectified image has none outside the original), ``support`` [H, W] where the facade surface
-    is (``rectification.facade_support``; None: all); ``planar``: the surface is a plane (``find_bars``)."""
+) -> Segmentation:
+    """The panels of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view);
+    ``support`` [H, W] marks where the facade surface is (``rectification.facade_support``; None: all);
+    ``valid`` [H, W] marks the pixels that show the view (a rectified image has none outside the original);
+    ``centre`` is the camera's principal point in this image, about which the frames' parallax is corrected
+    (None: not). The image is segmented at the working scale (``work_bar_px``); corners are returned in the
+    given image's pixels."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -529,24 +482,13 @@ def find_grid(
             valid = cv2.resize(valid.astype(np.float32), (Ww, Hw), interpolation=cv2.INTER_AREA) > 0.999
         if support is not None:
             support = cv2.resize(support.astype(np.uint8), (Ww, Hw), interpolation=cv2.INTER_NEAREST) > 0
+        if centre is not None:
+            centre = (centre[0] * qx, centre[1] * qy)
     m = metres_per_px / np.sqrt(qx * qy)
-    bars_v, bars_h, metrics = find_bars(image, params, PixelSizes.of(params.grid, m), valid, planar)
+    sizes = PixelSizes.of(params.grid, m)
+    bars_v, bars_h, metrics = find_bars(image, params, sizes, valid, centre)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
-    return Grid(bars_v, bars_h, (Ww, Hw), (qx, qy), m, support, metrics)
-
-
-def grid_panels(
-    grid: Grid,
-    params: SegmentParams,
-    centre: tuple[float, float] | None = None,
-    prior_slopes: tuple[float, float] = (0.0, 0.0),
-) -> Segmentation:
-    """The panels of a ``Grid``, its bars corrected for the frames' parallax about ``centre`` (the camera's
-    principal point in the given image; None: not corrected), with ``prior_slopes`` (x, y) for a family
-    whose own fit fails (``correct_bars``); corners in the given image's pixels."""
-    metrics = dict(grid.metrics)
-    m = grid.metres_per_px
-    if grid.bars_v is None or grid.bars_h is None:
+    if bars_v is None or bars_h is None:
         g = params.grid
         missing = " nor ".join(
             name for name, key in (("vertical (mullions)", "mullions_found"),
@@ -557,12 +499,7 @@ def grid_panels(
             f"no regular {missing} frame bars {g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of "
             f"{g.min_pitch_m:g}-{g.max_pitch_m:g} m (the image at {1000 * m:.3g} mm per working pixel)"
         ))  # fmt: skip
-    qx, qy = grid.scale
-    if centre is not None:
-        centre = (centre[0] * qx, centre[1] * qy)
-    bars_v, bars_h, fits = correct_bars(grid.bars_v, grid.bars_h, params, centre, prior_slopes)
-    metrics.update(fits)
-    panels = build_panels(bars_v, bars_h, *grid.size, params, params.min_partial_m / m, grid.support)
+    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
     for k in ("pitch_x_px", "pitch_y_px"):
@@ -570,19 +507,6 @@ def grid_panels(
             metrics[k.replace("_px", "_m")] = metrics[k] * m
     why = "" if panels else "frame bars found, but no opening between them looks like a pane"
     return Segmentation(bool(panels), panels, metrics, why)
-
-
-def segment_image(
-    image: np.ndarray,
-    params: SegmentParams,
-    metres_per_px: float,
-    valid: np.ndarray | None = None,
-    centre: tuple[float, float] | None = None,
-    support: np.ndarray | None = None,
-) -> Segmentation:
-    """The panels of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (``find_grid``, then
-    ``grid_panels`` with the view's own parallax fit about ``centre``)."""
-    return grid_panels(find_grid(image, params, metres_per_px, valid, support), params, centre)
 
 
 def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
