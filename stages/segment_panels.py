@@ -171,6 +171,16 @@ def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
     return {name: float(np.median(d)) for name, d in sorted(depths.items())}
 
 
+def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The width (m) of the mullions ("x") and of the transoms ("y"): per family, the median over every
+    bar of every view (``FrameBars.bar_widths_m``); a family without bars is left out."""
+    widths: dict[str, list[float]] = {}
+    for f in found:
+        for name, w in ({} if f is None else f.bar_widths_m()).items():
+            widths.setdefault(name, []).extend(w)
+    return {name: float(np.median(w)) for name, w in sorted(widths.items()) if w}
+
+
 def segment_one(
     layout: BuildingLayout,
     view: View,
@@ -178,10 +188,11 @@ def segment_one(
     found: FrameBars | None,
     params: Params,
     frame_depth_m: dict[str, float],
+    bar_width_m: dict[str, float],
     overlay_scale: float,
 ) -> tuple[list[Path], dict]:
-    """Segment one view from its frame bars (``find_one``) with the building's frame depth and write its
-    three outputs; returns them and the view's metrics."""
+    """Segment one view from its frame bars (``find_one``) with the building's frame depth and bar widths
+    and write its three outputs; returns them and the view's metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image, write_image
     from facade_pipeline.segmentation.panels import segment_frames
@@ -191,7 +202,7 @@ def segment_one(
     W, H = view.camera.width, view.camera.height
     panels, ok, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
     if found is not None:
-        seg = segment_frames(found, params, frame_depth_m)
+        seg = segment_frames(found, params, frame_depth_m, bar_width_m)
         labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
         ok = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if ok else []), seg.metrics
@@ -236,8 +247,9 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     found = [find_one(layout, v, params, mesh) for v in tqdm(views, desc="segment_panels: frame bars",
                                                               unit="img", file=sys.stderr)]
     depth = building_frame_depth_m([f for _, f, _ in found])
+    width = building_bar_width_m([f for _, f, _ in found])
     for view, (rect, frames, seconds) in zip(views, found, strict=True):
-        outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth,
+        outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
                                                 settings.overlay_scale)
         per_view[view.stem]["seconds"] = round(per_view[view.stem]["seconds"] + seconds, 3)
         outputs += outs
@@ -250,6 +262,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "n_panels": sum(m["n_panels"] for m in per_view.values()),
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
             "frame_depth_m": {name: round(d, 4) for name, d in depth.items()},
+            "bar_width_m": {name: round(w, 4) for name, w in width.items()},
             "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
             "views": per_view,
         },

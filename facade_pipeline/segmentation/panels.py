@@ -320,10 +320,11 @@ def find_bars(
     sizes: PixelSizes,
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
-) -> tuple[_Bars | None, _Bars | None, dict, dict[str, Parallax]]:
+) -> tuple[_Bars | None, _Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
     evidence over the other's extent only), then sub-pixel edges, with their frames' parallax fitted in the
-    image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected."""
+    image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
+    and the two families' gradients."""
     H, W = image.shape[:2]
     fam = group_segments(
         detect_segments(image, params.upsample, MIN_SEGMENT_PX),
@@ -351,7 +352,7 @@ def find_bars(
         "transoms_found": h is not None,
     }
     if v is None or h is None:
-        return None, None, metrics, {}
+        return None, None, metrics, {}, (gv, gh)
     bars_v = _edges(v, gv, _span(h, H), params)
     bars_h = _edges(h, gh, _span(v, W), params)
     metrics.update(
@@ -363,7 +364,7 @@ def find_bars(
             name: fit_parallax(bars, parallax, axis, PARALLAX_MIN_BARS, params.parallax_max_slope)
             for name, bars, axis in (("x", bars_v, 0), ("y", bars_h, 1))
         }
-    return bars_v, bars_h, metrics, fits
+    return bars_v, bars_h, metrics, fits, (gv, gh)
 
 
 def _border(pos: float, length: int) -> EdgeLine:
@@ -514,6 +515,12 @@ class FrameBars:
     metres_per_px: float
     support: np.ndarray | None
     metrics: dict
+    grads: tuple[Gradients, Gradients]
+
+    def bar_widths_m(self) -> dict[str, list[float]]:
+        """The widths (m) of the bars found, per family ("x": mullions, "y": transoms)."""
+        return {name: [(hi.a - lo.a) * self.metres_per_px for lo, hi in bars.edges]
+                for name, bars in (("x", self.bars_v), ("y", self.bars_h)) if bars is not None}
 
     def frame_depths_m(self) -> dict[str, float]:
         """The frame depth d = k D / (1 + k) (m) each family's own parallax fit gives ("x": the mullions,
@@ -549,19 +556,54 @@ def find_frames(
             parallax = parallax.scaled(qx, qy)
     m = metres_per_px / np.sqrt(qx * qy)
     sizes = PixelSizes.of(params.grid, m)
-    bars_v, bars_h, metrics, fits = find_bars(image, params, sizes, valid, parallax)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, sizes, valid, parallax)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
-    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics)
+    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
+
+
+def widen_narrow_bars(bars: _Bars, grad: Gradients, span: slice, width_px: float,
+                      params: SegmentParams) -> tuple[_Bars, int]:
+    """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
+    a whole width away from the image border found again at that width, and how many were: a thin line
+    that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
+    place of a frame whose face has little contrast against the glass beside it. Of the four bars of
+    ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
+    geometric mean of its edges' strengths, as the bar evidence of ``grid``)."""
+    size = grad.d.shape[1] + 1
+    edges, n = [], 0
+    for low, high in bars.edges:
+        if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
+            edges.append((low, high))
+            continue
+        best, score = (low, high), 0.0
+        for c in (low.a - 0.5 * width_px, low.a + 0.5 * width_px, high.a - 0.5 * width_px,
+                  high.a + 0.5 * width_px):
+            e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
+            if e is None or e[1].a - e[0].a < 0.5 * width_px:
+                continue
+            sc = float(np.sqrt(e[0].strength.mean() * e[1].strength.mean()))
+            if sc > score:
+                best, score = e, sc
+        if best[0] is not low:
+            present = frame_presence(grad, best[0], best[1], span, params.frame_colour_tol)
+            best = tuple(dataclasses.replace(line, present=present) for line in best)
+            n += 1
+        edges.append(best)
+    return _Bars(edges, bars.fit), n
 
 
 def segment_frames(
-    found: FrameBars, params: SegmentParams, frame_depth_m: dict[str, float] | None = None
+    found: FrameBars,
+    params: SegmentParams,
+    frame_depth_m: dict[str, float] | None = None,
+    bar_width_m: dict[str, float] | None = None,
 ) -> Segmentation:
     """The panels between the frame bars ``found`` (``find_frames``), corners in the given image's pixels.
     The bars are corrected for their parallax: a family with a depth in ``frame_depth_m`` ("x": mullions,
     "y": transoms; m proud of the glass, the building's, measured over all its views: a view's own widths
     may not show it) with the slope of that depth where the camera's distance to the surface is known,
-    else with its own fit."""
+    else with its own fit. A family with a width in ``bar_width_m`` (m, the building's) has its bars
+    narrower than half of it found again at it (``widen_narrow_bars``)."""
     metrics = dict(found.metrics)
     bars_v, bars_h, m = found.bars_v, found.bars_h, found.metres_per_px
     if bars_v is None or bars_h is None:
@@ -575,6 +617,13 @@ def segment_frames(
             f"no regular {missing} frame bars {g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of "
             f"{g.min_pitch_m:g}-{g.max_pitch_m:g} m (the image at {1000 * m:.3g} mm per working pixel)"
         ))  # fmt: skip
+    (Ww, Hw), (qx, qy) = found.size, found.scale
+    for name, width in (bar_width_m or {}).items():
+        if name == "x":
+            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], _span(bars_h.fit, Hw), width / m, params)
+        else:
+            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], _span(bars_v.fit, Ww), width / m, params)
+        metrics[f"bars_widened_{name}"] = n
     fits = dict(found.fits)
     for name, depth in (frame_depth_m or {}).items():
         k = 0.0 if found.parallax is None else slope_of(depth, found.parallax.distance_m)
@@ -584,7 +633,6 @@ def segment_frames(
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
         bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
-    (Ww, Hw), (qx, qy) = found.size, found.scale
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, found.support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
@@ -603,10 +651,11 @@ def segment_image(
     parallax: ParallaxField | None = None,
     support: np.ndarray | None = None,
     frame_depth_m: dict[str, float] | None = None,
+    bar_width_m: dict[str, float] | None = None,
 ) -> Segmentation:
     """The panels of one image (``find_frames`` then ``segment_frames``, same arguments)."""
     return segment_frames(find_frames(image, params, metres_per_px, valid, parallax, support), params,
-                          frame_depth_m)
+                          frame_depth_m, bar_width_m)
 
 
 def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

@@ -257,3 +257,31 @@ def test_border_strips_need_the_facade_surface_and_the_frame_colour():
     bright[:, x_last:] = frame_grey.astype(np.uint8)
     washed = segment_image(bright, PARAMS, M_PER_PX)
     assert [p for p in washed.panels if p.corners[:, 0].max() > d.W - 1.0]
+
+
+def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_width():
+    """A transom whose face is barely brighter than the glass (rows 20-28) above its dark shaded underside
+    (rows 28-30): the strong thin line takes the bar's place. With the building's transom width (8 px)
+    the bar is found again at that width, at the face: of the four bars sharing an edge with the line, the
+    one whose weaker edge is strongest. A bar of full width and one a width from the border stay."""
+    from facade_pipeline.segmentation.edges import bar_edges
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, Gradients
+    from facade_pipeline.segmentation.panels import _Bars, widen_narrow_bars
+
+    H, W = 90, 60
+    img = np.full((H, W, 3), 0.45)
+    img[20:28] = 0.52  # the face: low contrast against the glass
+    img[28:30] = 0.20  # the shaded underside
+    img[50:58] = 0.80  # a well-contrasted transom
+    img[84:86] = 0.20  # a thin line near the border
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 1)
+    span = slice(0, W)
+    thin = bar_edges(grad, 29.0, 2.0, span, EDGE_SEARCH_PX)
+    whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
+    border = bar_edges(grad, 85.0, 2.0, span, EDGE_SEARCH_PX)
+    assert abs(thin[0].a - 28.0) < 0.3 and abs(thin[1].a - 30.0) < 0.3  # what the grid found
+    out, n = widen_narrow_bars(_Bars([thin, whole, border], None), grad, span, 8.0, PARAMS)
+    assert n == 1
+    assert abs(out.edges[0][0].a - 20.0) < 0.3 and abs(out.edges[0][1].a - 28.0) < 0.3
+    assert out.edges[1] == whole and out.edges[2] == border
