@@ -1,6 +1,8 @@
 """Stage ``segment_panels``: glass panels of each frontal view by MAP estimation of the panel grid (paper,
 3.1.2), on the metric rectified image (sizes in metres, turned into pixels with its scale), with the
-corners mapped back to the original view through the rectification.
+corners mapped back to the original view through the rectification. The frame bars of every view are
+found first; the building's frame depth and bar width per family (medians over the views: one facade's
+frames share them) then correct each view's frame parallax and widen the bars a view found too thin.
 
 Reads ``02_rectify`` (rectified image and warps per view) and ``01_import`` (the views' sizes, the original
 images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md ("Hand-off formats"):

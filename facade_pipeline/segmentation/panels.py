@@ -568,8 +568,12 @@ def widen_narrow_bars(bars: _Bars, grad: Gradients, span: slice, width_px: float
     that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
     place of a frame whose face has little contrast against the glass beside it. Of the four bars of
     ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
-    geometric mean of its edges' strengths, as the bar evidence of ``grid``)."""
+    geometric mean of its edges' strengths, as the bar evidence of ``grid``). Only where the view shows a
+    bar of the family at least half that wide: a part whose frames are all thinner than the building's
+    (another style) keeps them."""
     size = grad.d.shape[1] + 1
+    if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
+        return bars, 0
     edges, n = [], 0
     for low, high in bars.edges:
         if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:

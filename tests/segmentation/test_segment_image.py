@@ -263,7 +263,8 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     """A transom whose face is barely brighter than the glass (rows 20-28) above its dark shaded underside
     (rows 28-30): the strong thin line takes the bar's place. With the building's transom width (8 px)
     the bar is found again at that width, at the face: of the four bars sharing an edge with the line, the
-    one whose weaker edge is strongest. A bar of full width and one a width from the border stay."""
+    one whose weaker edge is strongest. A bar of full width and one a width from the border stay; without
+    a bar of full width in the view the thin one stays too (frames of another style)."""
     from facade_pipeline.segmentation.edges import bar_edges
     from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, Gradients
     from facade_pipeline.segmentation.panels import _Bars, widen_narrow_bars
@@ -285,3 +286,5 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     assert n == 1
     assert abs(out.edges[0][0].a - 20.0) < 0.3 and abs(out.edges[0][1].a - 28.0) < 0.3
     assert out.edges[1] == whole and out.edges[2] == border
+    alone = _Bars([thin, border], None)
+    assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
