@@ -3,6 +3,8 @@ reflections, panels cut by the border, partly occluded panels, no facade)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -201,8 +203,15 @@ def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
     the foot) leaves about a pixel of error at the grazing bars."""
     from facade_pipeline.rectification.surface_map import parallax_grid, rectify_view
     from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import ParallaxField, _Bars, correct_parallax, fit_parallax, slope_of
-    from tests.rectification.test_surface_map import PARAMS as RECTIFY, camera, cylinder
+    from facade_pipeline.segmentation.panels import (
+        ParallaxField,
+        _Bars,
+        correct_parallax,
+        fit_parallax,
+        slope_of,
+    )
+    from tests.rectification.test_surface_map import PARAMS as RECTIFY
+    from tests.rectification.test_surface_map import camera, cylinder
 
     cam, surf = camera(), cylinder(6.0)
     rect = rectify_view(cam, surf, RECTIFY)
@@ -225,7 +234,8 @@ def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
 
     def error(par, f) -> float:
         fixed = correct_parallax(bars, par, f)
-        return max(max(abs(lo.a - a), abs(hi.a - b)) for (lo, hi), (a, b) in zip(fixed.edges, true, strict=True))
+        pairs = zip(fixed.edges, true, strict=True)
+        return max(max(abs(lo.a - a), abs(hi.a - b)) for (lo, hi), (a, b) in pairs)
 
     assert error(own, field) > 1.0
     assert error(own.with_slope(k), field) < 0.05
@@ -288,3 +298,26 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     assert out.edges[1] == whole and out.edges[2] == border
     alone = _Bars([thin, border], None)
     assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
+
+
+def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
+    """Each view's own parallax fit gives d = k D / (1 + k) where it has one and D is known (a view not
+    rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.panels import FrameBars, Parallax, ParallaxField, _Bars
+
+    def view(kx: float, ky: float, distance: float, widths: list[float]) -> FrameBars:
+        line = lambda a: EdgeLine(a, 0.0, 0.0, np.ones(4))  # noqa: E731
+        bars = _Bars([(line(10.0 * i), line(10.0 * i + w)) for i, w in enumerate(widths)], None)
+        field = dataclasses.replace(ParallaxField.about((50.0, 50.0), 100, 100), distance_m=distance)
+        fits = {"x": Parallax(0, kx), "y": Parallax(1, ky)}
+        return FrameBars(bars, bars, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
+
+    k = lambda d, D: d / (D - d)  # noqa: E731
+    views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
+             view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
+    depth = segment_panels.building_frame_depth_m(views)
+    assert depth.keys() == {"x", "y"}
+    assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
+    width = segment_panels.building_bar_width_m(views)
+    assert width == pytest.approx({"x": 0.3, "y": 0.3})
