@@ -23,10 +23,11 @@ from the camera's foot c; across an unrolled cylinder P grows faster than the di
 away from the camera), and for the horizontal bars it changes along the bar. A bar's apparent width thus
 grows as w = B + k P, with P at its far (front-face) edge; on a side of c where the side faces are shaded
 like the glass, the near edge found is the front face's as well, and the width does not grow there. k and
-those sides are fitted per family and view (``fit_parallax``) and the front-face edges are moved back by
-k P / (1 + k) along their length, where the glass meets the frame: corners are the glass panel's corners,
-and masks are the panels' quads, hidden strips included (``parallax_max_slope = 0`` keeps the visible glass
-instead).
+those sides are fitted per family and view (``fit_parallax``); where both sides' side faces are shaded the
+widths show no k at all, so a rectified view takes k from the building's frame depth per family (the median
+of the views' fits, ``segment_frames``). The front-face edges are moved back by k P / (1 + k) along their
+length, where the glass meets the frame: corners are the glass panel's corners, and masks are the panels'
+quads, hidden strips included (``parallax_max_slope = 0`` keeps the visible glass instead).
 
 Masks: a pixel belongs to a panel when its centre lies inside the panel's quad, the way the views are
 sampled (one ray through each pixel centre); a centre exactly on a quad's edge is decided by the half-open
