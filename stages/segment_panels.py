@@ -1,6 +1,8 @@
 """Stage ``segment_panels``: glass panels of each frontal view by MAP estimation of the panel grid (paper,
 3.1.2), on the metric rectified image (sizes in metres, turned into pixels with its scale), with the
-corners mapped back to the original view through the rectification.
+corners mapped back to the original view through the rectification. The frame bars of every view are
+found first; the building's frame depth and bar width per family (medians over the views: one facade's
+frames share them) then correct each view's frame parallax and widen the bars a view found too thin.
 
 Reads ``02_rectify`` (rectified image and warps per view) and ``01_import`` (the views' sizes, the original
 images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md ("Hand-off formats"):
@@ -30,7 +32,7 @@ from stages._runner import StageReport, main
 if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.rectification.surface_map import ViewRectification
-    from facade_pipeline.segmentation.panels import Panel
+    from facade_pipeline.segmentation.panels import FrameBars, Panel, ParallaxField
     from facade_pipeline.segmentation.result import SegmentedPanel
 
 NAME = "segment_panels"
@@ -115,60 +117,114 @@ def _overlay(image: np.ndarray, panels: list[Panel], rect: ViewRectification, sc
     return out
 
 
-def parallax_centre(rect: ViewRectification, view: View) -> np.ndarray:
-    """[2] the rectified pixel about which frames proud of the glass show parallax: the foot of the camera
-    centre on the surface (a frame's front face is seen shifted away from it, in proportion to the
-    distance), which is the principal point only for a fronto-parallel view; the principal point for a
-    view that is not rectified."""
-    if rect.chart is None:
-        return view.camera.K[:2, 2].copy()
-    s, h = rect.chart.coords(view.camera.center[None])
-    m = rect.metres_per_px
-    return np.array([(s[0] - rect.s0_m) / m, (rect.h0_m - h[0]) / m])
+#: grid step (px of the rectified image) on which a view's parallax coordinate is sampled: P changes
+#: smoothly (a bar's pitch holds many steps), so bilinear reading between samples is far below a pixel
+PARALLAX_STEP_PX = 8.0
 
 
-def segment_one(
-    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster, overlay_scale: float
-) -> tuple[list[Path], dict]:
-    """Segment one view and write its three outputs (``mesh``: the coarse mesh, which tells where the
-    facade surface is); returns them and the view's metrics."""
+def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
+    """The parallax coordinate of the segmented image (``segmentation.panels``): from the fitted surface
+    for a rectified view (``surface_map.parallax_grid``), the distance from the principal point for a view
+    that is not rectified; None where it is not finite."""
     # imported here, not at the top: doit loads every stage module to build its task list
-    from facade_pipeline.io.images import read_image, write_image
+    from facade_pipeline.rectification.surface_map import parallax_grid
+    from facade_pipeline.segmentation.panels import ParallaxField
+
+    if rect.chart is None:
+        cx, cy = view.camera.K[:2, 2]
+        return ParallaxField.about((float(cx), float(cy)), rect.width, rect.height)
+    distance = abs(float(rect.chart.surface().signed_distance(view.camera.center[None])[0]))
+    field = ParallaxField(*parallax_grid(rect, PARALLAX_STEP_PX), distance)
+    return field if np.isfinite(field.p).all() else None
+
+
+def find_one(
+    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster
+) -> tuple[ViewRectification, FrameBars | None, float]:
+    """The rectification of one view and the frame bars in it (None for a view rectify skipped), and the
+    seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is)."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
-    from facade_pipeline.segmentation.panels import segment_image
-    from facade_pipeline.segmentation.result import ViewSegmentation, panel_labels
+    from facade_pipeline.segmentation.panels import find_frames
 
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
+    if rect.kind == "skipped":
+        return rect, None, time.perf_counter() - t0
+    valid = valid_region(rect)
+    parallax = parallax_field(rect, view)
+    image = read_image(layout.path("rectify_image", stem=view.stem))
+    support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
+    found = find_frames(image, params, rect.metres_per_px, valid, parallax, support)
+    return rect, found, time.perf_counter() - t0
+
+
+def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass: per family, the
+    median of what the views' own parallax fits give (``FrameBars.frame_depths_m``); a family without any
+    is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
+    widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
+    tight cylinder) or show it loosely."""
+    depths: dict[str, list[float]] = {}
+    for f in found:
+        for name, d in ({} if f is None else f.frame_depths_m()).items():
+            depths.setdefault(name, []).append(d)
+    return {name: float(np.median(d)) for name, d in sorted(depths.items())}
+
+
+def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The width (m) of the mullions ("x") and of the transoms ("y"): per family, the median over every
+    bar of every view (``FrameBars.bar_widths_m``); a family without bars is left out."""
+    widths: dict[str, list[float]] = {}
+    for f in found:
+        for name, w in ({} if f is None else f.bar_widths_m()).items():
+            widths.setdefault(name, []).extend(w)
+    return {name: float(np.median(w)) for name, w in sorted(widths.items()) if w}
+
+
+def segment_one(
+    layout: BuildingLayout,
+    view: View,
+    rect: ViewRectification,
+    found: FrameBars | None,
+    params: Params,
+    frame_depth_m: dict[str, float],
+    bar_width_m: dict[str, float],
+    overlay_scale: float,
+) -> tuple[list[Path], dict]:
+    """Segment one view from its frame bars (``find_one``) with the building's frame depth and bar widths
+    and write its three outputs; returns them and the view's metrics."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image, write_image
+    from facade_pipeline.segmentation.panels import segment_frames
+    from facade_pipeline.segmentation.result import ViewSegmentation, panel_labels
+
+    t0 = time.perf_counter()
     W, H = view.camera.width, view.camera.height
-    panels, found, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
-    if rect.kind != "skipped":
-        valid = valid_region(rect)
-        centre = parallax_centre(rect, view)
-        centre_xy = (float(centre[0]), float(centre[1])) if np.isfinite(centre).all() else None
-        image = read_image(layout.path("rectify_image", stem=view.stem))
-        support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
-        seg = segment_image(image, params, rect.metres_per_px, valid, centre_xy, support)
+    panels, ok, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
+    if found is not None:
+        seg = segment_frames(found, params, frame_depth_m, bar_width_m)
         labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
-        found = seg.facade_found and bool((labels >= 0).any())
-        panels, metrics = (seg.panels if found else []), seg.metrics
-        reason = "" if found else (seg.reason or "no panel inside the view")
+        ok = seg.facade_found and bool((labels >= 0).any())
+        panels, metrics = (seg.panels if ok else []), seg.metrics
+        reason = "" if ok else (seg.reason or "no panel inside the view")
     result = ViewSegmentation(
         view.stem,
         W,
         H,
         rect.rectified,
-        found,
+        ok,
         reason,
         tuple(_to_view(p, rect, W, H) for p in panels),
-        labels >= 0 if found else np.zeros((H, W), bool),
+        labels >= 0 if ok else np.zeros((H, W), bool),
     )
     out = result.save(layout)
     out.append(layout.path("segment_overlay", stem=view.stem))
     original = read_image(layout.import_frontal_image(view.stem))
     write_image(out[-1], _overlay(original, panels, rect, overlay_scale))
     metrics = {
-        "facade_found": found,
+        "facade_found": ok,
         "reason": reason,
         "n_panels": len(panels),
         "n_complete": sum(p.complete for p in panels),
@@ -190,8 +246,14 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
-    for view in tqdm(views, desc="segment_panels: frontal views", unit="img", file=sys.stderr):
-        outs, per_view[view.stem] = segment_one(layout, view, params, mesh, settings.overlay_scale)
+    found = [find_one(layout, v, params, mesh) for v in tqdm(views, desc="segment_panels: frame bars",
+                                                              unit="img", file=sys.stderr)]
+    depth = building_frame_depth_m([f for _, f, _ in found])
+    width = building_bar_width_m([f for _, f, _ in found])
+    for view, (rect, frames, seconds) in zip(views, found, strict=True):
+        outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
+                                                settings.overlay_scale)
+        per_view[view.stem]["seconds"] = round(per_view[view.stem]["seconds"] + seconds, 3)
         outputs += outs
     return StageReport(
         outputs,
@@ -201,6 +263,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "views_without_facade": {s: m["reason"] for s, m in per_view.items() if not m["facade_found"]},
             "n_panels": sum(m["n_panels"] for m in per_view.values()),
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
+            "frame_depth_m": {name: round(d, 4) for name, d in depth.items()},
+            "bar_width_m": {name: round(w, 4) for name, w in width.items()},
             "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
             "views": per_view,
         },

@@ -283,6 +283,30 @@ def _similarity_residual_px(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.linalg.norm(b - scale * a @ R.T, axis=1)
 
 
+def parallax_grid(rect: ViewRectification, step_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The parallax coordinate of a rectified canvas (``segmentation.panels.ParallaxField``) on a grid of
+    about ``step_px`` (px), borders included: x positions [Gx], y positions [Gy] and P [Gy, Gx, 2] (px).
+    A point standing proud of the surface by e (m) is seen shifted along the surface by e tan(a) away
+    from the camera, a the angle of the line of sight from the local normal in the plane of the normal and
+    the direction of the shift; P = D tan(a) / m, signed along x and y, with D the camera's distance to the
+    surface, so that the shift is (e / D) P px. For a plane P is the distance from the camera's foot
+    (linear); on a cylinder it grows faster, without bound toward the silhouette."""
+    c, m = rect.chart, rect.metres_per_px
+    xs = np.linspace(0.0, rect.width, max(2, int(np.ceil(rect.width / step_px)) + 1))
+    ys = np.linspace(0.0, rect.height, max(2, int(np.ceil(rect.height / step_px)) + 1))
+    gx, gy = np.meshgrid(xs, ys)
+    s = rect.s0_m + gx.ravel() * m
+    X = c.point(s, rect.h0_m - gy.ravel() * m)
+    phi = (c.curvature_per_m * s)[:, None]  # the normal turns by the arc angle about the up axis
+    n = np.cos(phi) * c.normal + np.sin(phi) * c.right
+    right = np.cross(c.up, n)
+    r = X - rect.camera.center
+    depth = np.maximum(np.abs(np.einsum("ij,ij->i", r, n)), 1e-9)  # |r . n|
+    D = abs(float(c.surface().signed_distance(rect.camera.center[None])[0]))
+    p = np.stack([np.einsum("ij,ij->i", r, right), -(r @ c.up)], axis=1) * (D / m) / depth[:, None]
+    return xs, ys, p.reshape(len(ys), len(xs), 2)
+
+
 def ground_sample_m(unit: ViewRectification, px: np.ndarray) -> float:
     """Median over ``px`` [N, 2] of the square root of one pixel's footprint area on the surface (m);
     ``unit`` is the view's rectification at 1 m per px."""

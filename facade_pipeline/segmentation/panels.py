@@ -15,15 +15,21 @@ of the bar's median colour: a frame keeps its colour whatever the glass beside i
 front of it does not) over less than ``MIN_EDGE_SUPPORT`` of any side's length is kept, with
 ``complete = False``.
 
-Parallax of proud frames: frames stand d in front of the glass, so in a view from distance Z the front face
-of a bar hides a strip of the glass beyond it (on its side away from the principal point c) of width
-(u - c) d / (Z - d) px, while on its side towards c the bar's side face shows. A bar's apparent width thus
-grows as w = B + k s, with k = d / (Z - d) and s the distance from c of its far (front-face) edge; on a side
-of c where the side faces are shaded like the glass, the near edge found is the front face's as well, and
-the width does not grow there. k and those sides are fitted per family and view (``fit_parallax``) and the
-front-face edges are moved to c + (u - c) / (1 + k), where the glass meets the frame: corners are the glass
-panel's corners, and masks are the panels' quads, hidden strips included (``parallax_max_slope = 0`` keeps
-the visible glass instead).
+Parallax of proud frames: frames stand d in front of the glass, so the front face of a bar is seen shifted
+away from the camera along the surface by d tan(a), a the angle of the line of sight from the surface normal
+(in the plane of the normal and the direction across the bar); its front face hides a strip of the glass
+beyond it of that width, while on its side towards the camera the bar's side face shows. In pixels the shift
+is k' P, with P the view's parallax coordinate (``ParallaxField``: D tan(a) / m, D the camera's distance to
+the surface, m the scale) and k' = d / D = k / (1 + k). Seen straight on to a plane, P = u - c, the distance
+from the camera's foot c; across an unrolled cylinder P grows faster than the distance (the surface turns
+away from the camera), and for the horizontal bars it changes along the bar. A bar's apparent width thus
+grows as w = B + k P, with P at its far (front-face) edge; on a side of c where the side faces are shaded
+like the glass, the near edge found is the front face's as well, and the width does not grow there. k and
+those sides are fitted per family and view (``fit_parallax``); where both sides' side faces are shaded the
+widths show no k at all, so a rectified view takes k from the building's frame depth per family (the median
+of the views' fits, ``segment_frames``). The front-face edges are moved back by k P / (1 + k) along their
+length, where the glass meets the frame: corners are the glass panel's corners, and masks are the panels'
+quads, hidden strips included (``parallax_max_slope = 0`` keeps the visible glass instead).
 
 Masks: a pixel belongs to a panel when its centre lies inside the panel's quad, the way the views are
 sampled (one ray through each pixel centre); a centre exactly on a quad's edge is decided by the half-open
@@ -168,70 +174,146 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     return _Bars(edges, fit) if edges else None
 
 
+@dataclass(frozen=True, eq=False)
+class ParallaxField:
+    """The parallax coordinate P (px; module docstring) of a view's image, sampled on a grid: ``p``
+    [Gy, Gx, 2] (P across the mullions, i.e. along x, and across the transoms, along y) at image positions
+    ``xs`` [Gx], ``ys`` [Gy] (px, increasing); read between samples bilinearly, beyond them by the nearest."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    p: np.ndarray
+    distance_m: float = float("nan")
+    """D, the camera's distance to the surface (m); NaN where no surface is known (a view not rectified)."""
+
+    @classmethod
+    def about(cls, centre: tuple[float, float], width: int, height: int) -> ParallaxField:
+        """The field of a ``width`` x ``height`` image of a plane whose camera's foot is ``centre`` (x, y):
+        P = the position less the centre (bilinear over a linear field: exact, and sampled a whole image
+        beyond every border)."""
+        xs, ys = np.array([-1.0, 2.0]) * width, np.array([-1.0, 2.0]) * height
+        gx, gy = np.meshgrid(xs - centre[0], ys - centre[1])
+        return cls(xs, ys, np.stack([gx, gy], axis=-1))
+
+    def scaled(self, qx: float, qy: float) -> ParallaxField:
+        """The field of the image resized by (qx, qy)."""
+        return ParallaxField(self.xs * qx, self.ys * qy, self.p * [qx, qy], self.distance_m)
+
+    def along(self, axis: int, pos: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """P across the bars of family ``axis`` (0: mullions, positions x along rows y = t; 1: transoms,
+        positions y along columns x = t) at [N] points."""
+        x, y = (pos, t) if axis == 0 else (t, pos)
+        return self._bilinear(np.asarray(x, float), np.asarray(y, float), axis)
+
+    def _bilinear(self, x: np.ndarray, y: np.ndarray, c: int) -> np.ndarray:
+        fx = np.interp(x, self.xs, np.arange(len(self.xs)))
+        fy = np.interp(y, self.ys, np.arange(len(self.ys)))
+        i = np.minimum(fx.astype(int), len(self.xs) - 2) if len(self.xs) > 1 else np.zeros_like(fx, int)
+        j = np.minimum(fy.astype(int), len(self.ys) - 2) if len(self.ys) > 1 else np.zeros_like(fy, int)
+        u, v = fx - i, fy - j
+        g = self.p[..., c]
+        i1, j1 = np.minimum(i + 1, len(self.xs) - 1), np.minimum(j + 1, len(self.ys) - 1)
+        return (1 - v) * ((1 - u) * g[j, i] + u * g[j, i1]) + v * ((1 - u) * g[j1, i] + u * g[j1, i1])
+
+
 @dataclass(frozen=True)
 class Parallax:
-    """One family's frame parallax about ``centre`` (px; module docstring): slope ``k``, and per side of
-    the centre (low, high) whether the bars' near edges are displaced like their far edges; bars narrower
-    than ``min_width_px`` (cut by the border) are left as found."""
+    """One family's frame parallax (module docstring): the family's ``axis`` (0: mullions), slope ``k``,
+    and per side of the camera's foot (P < 0, P > 0) whether the bars' near edges are displaced like their
+    far edges; bars narrower than ``min_width_px`` (cut by the border) are left as found."""
 
-    centre: float
+    axis: int
     k: float = 0.0
     near_displaced: tuple[bool, bool] = (False, False)
     min_width_px: float = 0.0
+    slopes: tuple[float, float] = (float("nan"), float("nan"))
+    """The width's growth with P on either side (NaN: not measured there)."""
+
+    def with_slope(self, k: float) -> Parallax:
+        """This family's parallax with the slope ``k`` (the building's frame depth, ``slope_of``): a side
+        whose widths grow by less than half of it has its near edges displaced."""
+        near = tuple(bool(np.isfinite(g) and g < 0.5 * k) for g in self.slopes)
+        return dataclasses.replace(self, k=k, near_displaced=near)  # type: ignore[arg-type]
 
 
-def fit_parallax(bars: _Bars, centre: float, min_bars: int, max_slope: float) -> Parallax:
+def _coord(field: ParallaxField, axis: int, line: EdgeLine) -> float:
+    """P at the middle of an edge line of family ``axis``."""
+    return float(field.along(axis, np.array([line.a]), np.array([line.mid]))[0])
+
+
+def fit_parallax(bars: _Bars, field: ParallaxField, axis: int, min_bars: int, max_slope: float) -> Parallax:
     """The frame parallax of one family (module docstring), from the bars' apparent widths.
 
-    Fits w_i = B + k_low s_low,i + k_high s_high,i, s the extent (px) of a bar beyond the centre on either
-    side (at glass level: a second fit divides by 1 + k), leaving out bars narrower than half the median
-    (cut by the border). k is the larger side slope. A side whose slope is under half of k has its
-    bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found is the
-    front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars or k outside
+    Fits w_i = B + k_low s_low,i + k_high s_high,i, s the extent (px of P) of a bar beyond the camera's
+    foot on either side (at glass level: a second fit divides by 1 + k), leaving out bars narrower than
+    half the median (cut by the border). k is the larger side slope. A side whose slope is under half of k
+    has its bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found
+    is the front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars or k outside
     (0, ``max_slope``]."""
     lows = np.array([e[0].a for e in bars.edges])
     highs = np.array([e[1].a for e in bars.edges])
+    p_low = np.array([_coord(field, axis, e[0]) for e in bars.edges])
+    p_high = np.array([_coord(field, axis, e[1]) for e in bars.edges])
     w = highs - lows
     min_width = 0.5 * float(np.median(w))
     ok = w >= min_width
-    s = np.stack([np.maximum(centre - lows, 0.0), np.maximum(highs - centre, 0.0)], axis=1)[ok]  # [n, 2]
+    s = np.stack([np.maximum(-p_low, 0.0), np.maximum(p_high, 0.0)], axis=1)[ok]  # [n, 2]
     sides = [j for j in (0, 1) if np.ptp(s[:, j]) >= 1.0] if ok.sum() >= min_bars else []
     if not sides:
-        return Parallax(centre)
+        return Parallax(axis, min_width_px=min_width)
     k = 0.0
     for _ in range(2):
         A = np.concatenate([np.ones((len(s), 1)), s[:, sides] / (1.0 + k)], axis=1)
         slopes = dict(zip(sides, np.linalg.lstsq(A, w[ok], rcond=None)[0][1:], strict=True))
         k = float(max(slopes.values()))
+    measured = tuple(float(slopes.get(j, np.nan)) for j in (0, 1))
     if not 0.0 < k <= max_slope:
-        return Parallax(centre)
-    near = tuple(bool(j in slopes and slopes[j] < 0.5 * k) for j in (0, 1))
-    return Parallax(centre, k, near, min_width)  # type: ignore[arg-type]
+        return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
+    return Parallax(axis, min_width_px=min_width, slopes=measured).with_slope(k)  # type: ignore[arg-type]
 
 
-def _unparallax(line: EdgeLine, centre: float, k: float) -> EdgeLine:
-    """A front-face edge moved to where the glass-level edge projects: towards ``centre`` by 1 / (1 + k)."""
-    return dataclasses.replace(line, a=centre + (line.a - centre) / (1.0 + k), b=line.b / (1.0 + k))
+def slope_of(frame_depth_m: float, distance_m: float) -> float:
+    """The parallax slope k = d / (D - d) of frames ``frame_depth_m`` proud of a surface ``distance_m``
+    from the camera (0 where that is not finite and positive)."""
+    k = frame_depth_m / (distance_m - frame_depth_m)
+    return float(k) if np.isfinite(k) and k > 0.0 else 0.0
 
 
-def correct_parallax(bars: _Bars, par: Parallax) -> _Bars:
+def _unparallax(line: EdgeLine, field: ParallaxField, axis: int, k: float) -> EdgeLine:
+    """A front-face edge moved to where the glass-level edge is seen: by k P / (1 + k) at every point
+    along it where it was found (P changes along a transom of a curved facade, fastest toward the
+    silhouette), refitted as a straight line weighted by the edge's strength."""
+    t = np.arange(len(line.strength)) + 0.5  # the rows (columns) the edge was fitted over, by strength
+    w = np.asarray(line.strength, float)
+    if not (w > 0).sum() >= 2:
+        t, w = np.array([line.mid - 0.5, line.mid + 0.5]), np.ones(2)
+    pos = line.at(t)
+    moved = pos - k / (1.0 + k) * field.along(axis, pos, t)
+    A = np.stack([np.ones_like(t), t - line.mid], axis=1) * w[:, None]
+    a, b = np.linalg.lstsq(A, moved * w, rcond=None)[0]
+    return dataclasses.replace(line, a=float(a), b=float(b))
+
+
+def correct_parallax(bars: _Bars, par: Parallax, field: ParallaxField) -> _Bars:
     """Bars whose front-face edges are moved by the parallax to where the glass meets the frame: each
-    bar's edge on the far side from the centre, both edges of a bar over the centre, and the near edges
+    bar's edge on the far side from the camera's foot, both edges of a bar over it, and the near edges
     on a side where they are displaced too (``par.near_displaced``)."""
     if par.k <= 0.0:
         return bars
-    c, k = par.centre, par.k
+    k, axis = par.k, par.axis
     edges = []
     for low, high in bars.edges:
         if high.a - low.a < par.min_width_px:
             edges.append((low, high))
             continue
-        below, above = high.a <= c, low.a >= c  # the bar lies wholly on the low / high side
-        if low.a < c or (above and par.near_displaced[1]):
-            low = _unparallax(low, c, k)
-        if high.a > c or (below and par.near_displaced[0]):
-            high = _unparallax(high, c, k)
-        edges.append((low, high))
+        p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
+        below, above = p_high <= 0.0, p_low >= 0.0  # the bar lies wholly on the low / high side
+        new_low, new_high = low, high
+        if p_low < 0.0 or (above and par.near_displaced[1]):
+            new_low = _unparallax(low, field, axis, k)
+        if p_high > 0.0 or (below and par.near_displaced[0]):
+            new_high = _unparallax(high, field, axis, k)
+        edges.append((new_low, new_high))
     return _Bars(edges, bars.fit)
 
 
@@ -240,11 +322,12 @@ def find_bars(
     params: SegmentParams,
     sizes: PixelSizes,
     valid: np.ndarray | None = None,
-    centre: tuple[float, float] | None = None,
-) -> tuple[_Bars | None, _Bars | None, dict]:
+    parallax: ParallaxField | None = None,
+) -> tuple[_Bars | None, _Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
-    evidence over the other's extent only), then sub-pixel edges, corrected for the frames' parallax about
-    ``centre`` (x, y) (the principal point in this image; None: not corrected)."""
+    evidence over the other's extent only), then sub-pixel edges, with their frames' parallax fitted in the
+    image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
+    and the two families' gradients."""
     H, W = image.shape[:2]
     fam = group_segments(
         detect_segments(image, params.upsample, MIN_SEGMENT_PX),
@@ -272,22 +355,19 @@ def find_bars(
         "transoms_found": h is not None,
     }
     if v is None or h is None:
-        return None, None, metrics
+        return None, None, metrics, {}, (gv, gh)
     bars_v = _edges(v, gv, _span(h, H), params)
     bars_h = _edges(h, gh, _span(v, W), params)
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )
-    if centre is not None and params.parallax_max_slope > 0:
+    fits = {}
+    if parallax is not None and params.parallax_max_slope > 0:
         fits = {
-            name: fit_parallax(bars, c, PARALLAX_MIN_BARS, params.parallax_max_slope)
-            for name, bars, c in (("x", bars_v, centre[0]), ("y", bars_h, centre[1]))
-            if bars is not None
+            name: fit_parallax(bars, parallax, axis, PARALLAX_MIN_BARS, params.parallax_max_slope)
+            for name, bars, axis in (("x", bars_v, 0), ("y", bars_h, 1))
         }
-        metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
-        bars_v = correct_parallax(bars_v, fits["x"]) if bars_v is not None else None
-        bars_h = correct_parallax(bars_h, fits["y"]) if bars_h is not None else None
-    return bars_v, bars_h, metrics
+    return bars_v, bars_h, metrics, fits, (gv, gh)
 
 
 def _border(pos: float, length: int) -> EdgeLine:
@@ -458,20 +538,47 @@ def working_scale(params: SegmentParams, metres_per_px: float) -> float:
     return min(1.0, metres_per_px * params.work_bar_px / params.grid.min_bar_m)
 
 
-def segment_image(
+@dataclass(frozen=True, eq=False)
+class FrameBars:
+    """The frame bars of one image at the working scale (``find_frames``), their parallax fitted but not
+    yet corrected: what ``segment_frames`` makes the panels from."""
+
+    bars_v: _Bars | None
+    bars_h: _Bars | None
+    fits: dict[str, Parallax]
+    parallax: ParallaxField | None
+    size: tuple[int, int]
+    scale: tuple[float, float]
+    metres_per_px: float
+    support: np.ndarray | None
+    metrics: dict
+    grads: tuple[Gradients, Gradients]
+
+    def bar_widths_m(self) -> dict[str, list[float]]:
+        """The widths (m) of the bars found, per family ("x": mullions, "y": transoms)."""
+        return {name: [(hi.a - lo.a) * self.metres_per_px for lo, hi in bars.edges]
+                for name, bars in (("x", self.bars_v), ("y", self.bars_h)) if bars is not None}
+
+    def frame_depths_m(self) -> dict[str, float]:
+        """The frame depth d = k D / (1 + k) (m) each family's own parallax fit gives ("x": the mullions,
+        "y": the transoms), where it has one and the camera's distance D to the surface is known."""
+        D = np.nan if self.parallax is None else self.parallax.distance_m
+        return {n: f.k / (1.0 + f.k) * D for n, f in self.fits.items() if f.k > 0.0 and np.isfinite(D)}
+
+
+def find_frames(
     image: np.ndarray,
     params: SegmentParams,
     metres_per_px: float,
     valid: np.ndarray | None = None,
-    centre: tuple[float, float] | None = None,
+    parallax: ParallaxField | None = None,
     support: np.ndarray | None = None,
-) -> Segmentation:
-    """The panels of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view);
-    ``support`` [H, W] marks where the facade surface is (``rectification.facade_support``; None: all);
-    ``valid`` [H, W] marks the pixels that show the view (a rectified image has none outside the original);
-    ``centre`` is the camera's principal point in this image, about which the frames' parallax is corrected
-    (None: not). The image is segmented at the working scale (``work_bar_px``); corners are returned in the
-    given image's pixels."""
+) -> FrameBars:
+    """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
+    found at the working scale (``work_bar_px``); ``support`` [H, W] marks where the facade surface is
+    (``rectification.facade_support``; None: all); ``valid`` [H, W] marks the pixels that show the view (a
+    rectified image has none outside the original); ``parallax`` is the image's parallax coordinate, in
+    which the frames' parallax is fitted (None: not)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -482,12 +589,64 @@ def segment_image(
             valid = cv2.resize(valid.astype(np.float32), (Ww, Hw), interpolation=cv2.INTER_AREA) > 0.999
         if support is not None:
             support = cv2.resize(support.astype(np.uint8), (Ww, Hw), interpolation=cv2.INTER_NEAREST) > 0
-        if centre is not None:
-            centre = (centre[0] * qx, centre[1] * qy)
+        if parallax is not None:
+            parallax = parallax.scaled(qx, qy)
     m = metres_per_px / np.sqrt(qx * qy)
     sizes = PixelSizes.of(params.grid, m)
-    bars_v, bars_h, metrics = find_bars(image, params, sizes, valid, centre)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, sizes, valid, parallax)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
+    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
+
+
+def widen_narrow_bars(bars: _Bars, grad: Gradients, span: slice, width_px: float,
+                      params: SegmentParams) -> tuple[_Bars, int]:
+    """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
+    a whole width away from the image border found again at that width, and how many were: a thin line
+    that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
+    place of a frame whose face has little contrast against the glass beside it. Of the four bars of
+    ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
+    geometric mean of its edges' strengths, as the bar evidence of ``grid``). Only where the view shows a
+    bar of the family at least half that wide: a part whose frames are all thinner than the building's
+    (another style) keeps them."""
+    size = grad.d.shape[1] + 1
+    if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
+        return bars, 0
+    edges, n = [], 0
+    for low, high in bars.edges:
+        if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
+            edges.append((low, high))
+            continue
+        best, score = (low, high), 0.0
+        for c in (low.a - 0.5 * width_px, low.a + 0.5 * width_px, high.a - 0.5 * width_px,
+                  high.a + 0.5 * width_px):
+            e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
+            if e is None or e[1].a - e[0].a < 0.5 * width_px:
+                continue
+            sc = float(np.sqrt(e[0].strength.mean() * e[1].strength.mean()))
+            if sc > score:
+                best, score = e, sc
+        if best[0] is not low:
+            present = frame_presence(grad, best[0], best[1], span, params.frame_colour_tol)
+            best = tuple(dataclasses.replace(line, present=present) for line in best)
+            n += 1
+        edges.append(best)
+    return _Bars(edges, bars.fit), n
+
+
+def segment_frames(
+    found: FrameBars,
+    params: SegmentParams,
+    frame_depth_m: dict[str, float] | None = None,
+    bar_width_m: dict[str, float] | None = None,
+) -> Segmentation:
+    """The panels between the frame bars ``found`` (``find_frames``), corners in the given image's pixels.
+    The bars are corrected for their parallax: a family with a depth in ``frame_depth_m`` ("x": mullions,
+    "y": transoms; m proud of the glass, the building's, measured over all its views: a view's own widths
+    may not show it) with the slope of that depth where the camera's distance to the surface is known,
+    else with its own fit. A family with a width in ``bar_width_m`` (m, the building's) has its bars
+    narrower than half of it found again at it (``widen_narrow_bars``)."""
+    metrics = dict(found.metrics)
+    bars_v, bars_h, m = found.bars_v, found.bars_h, found.metres_per_px
     if bars_v is None or bars_h is None:
         g = params.grid
         missing = " nor ".join(
@@ -499,7 +658,23 @@ def segment_image(
             f"no regular {missing} frame bars {g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of "
             f"{g.min_pitch_m:g}-{g.max_pitch_m:g} m (the image at {1000 * m:.3g} mm per working pixel)"
         ))  # fmt: skip
-    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, support)
+    (Ww, Hw), (qx, qy) = found.size, found.scale
+    for name, width in (bar_width_m or {}).items():
+        if name == "x":
+            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], _span(bars_h.fit, Hw), width / m, params)
+        else:
+            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], _span(bars_v.fit, Ww), width / m, params)
+        metrics[f"bars_widened_{name}"] = n
+    fits = dict(found.fits)
+    for name, depth in (frame_depth_m or {}).items():
+        k = 0.0 if found.parallax is None else slope_of(depth, found.parallax.distance_m)
+        if name in fits and 0.0 < k <= params.parallax_max_slope:
+            fits[name] = fits[name].with_slope(k)
+    metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
+    if fits:
+        bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
+        bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
+    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, found.support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
     for k in ("pitch_x_px", "pitch_y_px"):
@@ -507,6 +682,21 @@ def segment_image(
             metrics[k.replace("_px", "_m")] = metrics[k] * m
     why = "" if panels else "frame bars found, but no opening between them looks like a pane"
     return Segmentation(bool(panels), panels, metrics, why)
+
+
+def segment_image(
+    image: np.ndarray,
+    params: SegmentParams,
+    metres_per_px: float,
+    valid: np.ndarray | None = None,
+    parallax: ParallaxField | None = None,
+    support: np.ndarray | None = None,
+    frame_depth_m: dict[str, float] | None = None,
+    bar_width_m: dict[str, float] | None = None,
+) -> Segmentation:
+    """The panels of one image (``find_frames`` then ``segment_frames``, same arguments)."""
+    return segment_frames(find_frames(image, params, metres_per_px, valid, parallax, support), params,
+                          frame_depth_m, bar_width_m)
 
 
 def inside_quads(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ from facade_pipeline.rectification.cylinder import Surface
 from facade_pipeline.rectification.surface_map import (
     Chart,
     ViewRectification,
+    parallax_grid,
     rectify_view,
     valid_region,
     warp_image,
@@ -111,6 +112,36 @@ def test_cylinder_rulings_and_arcs_come_out_straight_and_the_polynomial_reports_
         inside = (uv[:, 0] > 0) & (uv[:, 0] < cam.width)
         assert line_deviation_px(uv[inside]) > 0.5  # bowed before
         assert np.ptp(rect.to_rectified(uv[inside])[:, 1]) < 1e-6  # straight and level after
+
+
+@pytest.mark.parametrize("radius", [np.inf, 15.0, 6.0])
+def test_parallax_grid_is_the_shift_of_a_point_standing_proud_of_the_surface(radius):
+    """A point e proud of the surface along its normal is seen (e / D) P px from its foot in the rectified
+    image, D the camera's distance to the surface: checked against the point's ray (e = 0.1 mm) at every
+    node seen at less than 75 deg. For a plane P is the distance from the camera's foot; on a tight
+    cylinder (6 m, seen from 6 m, as curved12) it grows much faster than that toward the silhouette."""
+    cam = camera()
+    surf = plane() if np.isinf(radius) else cylinder(radius)
+    rect = rectify_view(cam, surf, PARAMS)
+    xs, ys, P = parallax_grid(rect, 8.0)
+    c, m, e = rect.chart, rect.metres_per_px, 1e-4
+    D = abs(float(surf.signed_distance(cam.center[None])[0]))
+    gx, gy = np.meshgrid(xs, ys)
+    s_m = rect.s0_m + gx.ravel() * m
+    foot = c.point(s_m, rect.h0_m - gy.ravel() * m)
+    phi = (c.curvature_per_m * s_m)[:, None]
+    n = np.cos(phi) * c.normal + np.sin(phi) * c.right
+    ray = foot - cam.center
+    seen = -(ray * n).sum(1) > np.cos(np.radians(75.0)) * np.linalg.norm(ray, axis=1)
+    shifted = rect.to_rectified(cam.project(foot + e * n)[0]) - np.stack([gx.ravel(), gy.ravel()], 1)
+    assert seen.sum() > 20
+    np.testing.assert_allclose(shifted[seen] * D / e, P.reshape(-1, 2)[seen], rtol=1e-3, atol=1e-3)
+    s_c, h_c = c.coords(cam.center[None])
+    from_foot = np.stack([gx.ravel() - (s_c[0] - rect.s0_m) / m, gy.ravel() - (rect.h0_m - h_c[0]) / m], 1)
+    if np.isinf(radius):
+        np.testing.assert_allclose(P.reshape(-1, 2), from_foot, atol=1e-6)
+    elif radius == 6.0:
+        assert np.abs(P.reshape(-1, 2)[seen, 0]).max() > 2.0 * np.abs(from_foot[seen, 0]).max()
 
 
 def test_edge_on_and_too_large_views_are_skipped_with_the_reason():

@@ -3,6 +3,8 @@ reflections, panels cut by the border, partly occluded panels, no facade)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -168,9 +170,10 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     left side, the right side is recognised as displaced, and every edge is put back; a bar cut by the
     border (narrower than half the median) is left as found."""
     from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import _Bars, correct_parallax, fit_parallax
+    from facade_pipeline.segmentation.panels import ParallaxField, _Bars, correct_parallax, fit_parallax
 
     c, k = 192.0, 0.01
+    field = ParallaxField.about((c, 50.0), 400, 200)
     true = [(x - 4.0, x + 4.0) for x in (30.0, 110.0, 190.0, 270.0, 350.0)]
 
     def seen(u: float) -> float:
@@ -180,15 +183,65 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
     cut = (line(380.0), line(382.5))
     bars = _Bars([(line(lo), line(hi)) for lo, hi in apparent] + [cut], None)
-    par = fit_parallax(bars, c, 3, 0.05)
+    par = fit_parallax(bars, field, 0, 3, 0.05)
     assert abs(par.k - k) < 3e-4 and par.near_displaced == (False, True)  # 2 % bias: second order in k
-    fixed = correct_parallax(bars, par)
+    fixed = correct_parallax(bars, par, field)
     for (lo, hi), (f_lo, f_hi) in zip(true, fixed.edges, strict=False):
         assert abs(f_lo.a - lo) < 0.05 and abs(f_hi.a - hi) < 0.05
     assert fixed.edges[-1] == cut
-    assert fit_parallax(bars, c, 7, 0.05).k == 0.0  # too few bars: no correction
-    assert fit_parallax(bars, c, 3, 0.005).k == 0.0  # beyond the largest slope accepted
-    assert correct_parallax(bars, fit_parallax(bars, c, 7, 0.05)) is bars
+    assert fit_parallax(bars, field, 0, 7, 0.05).k == 0.0  # too few bars: no correction
+    assert fit_parallax(bars, field, 0, 3, 0.005).k == 0.0  # beyond the largest slope accepted
+    assert correct_parallax(bars, fit_parallax(bars, field, 0, 7, 0.05), field) is bars
+
+
+def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
+    """A cylinder of 6 m seen from 6 m (curved12's frontal views at half scale): frames d = 6 cm proud of
+    the glass are seen shifted by (d / D) P, P growing much faster than the distance from the camera's foot
+    toward the silhouette. With side faces shaded like the glass on both sides, both edges of every bar
+    shift and the widths barely grow, so a view's own fit sees almost no parallax; the building's frame
+    depth (``slope_of``) puts every edge back on the glass, where the planar model (P = the distance from
+    the foot) leaves about a pixel of error at the grazing bars."""
+    from facade_pipeline.rectification.surface_map import parallax_grid, rectify_view
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.panels import (
+        ParallaxField,
+        _Bars,
+        correct_parallax,
+        fit_parallax,
+        slope_of,
+    )
+    from tests.rectification.test_surface_map import PARAMS as RECTIFY
+    from tests.rectification.test_surface_map import camera, cylinder
+
+    cam, surf = camera(), cylinder(6.0)
+    rect = rectify_view(cam, surf, RECTIFY)
+    D = abs(float(surf.signed_distance(cam.center[None])[0]))
+    field = ParallaxField(*parallax_grid(rect, 8.0), D)
+    k = slope_of(0.06, D)
+    mid = 0.5 * rect.height
+
+    def seen(a: float) -> float:  # the front face's position: a - k / (1 + k) P(seen) = a
+        x = a
+        for _ in range(50):
+            x = a + k / (1.0 + k) * float(field.along(0, np.array([x]), np.array([mid]))[0])
+        return x
+
+    true = [(x - 2.0, x + 2.0) for x in np.linspace(12.0, rect.width - 12.0, 6)]
+    line = lambda a: EdgeLine(a, 0.0, mid, np.ones(rect.height))  # noqa: E731
+    bars = _Bars([(line(seen(lo)), line(seen(hi))) for lo, hi in true], None)
+    own = fit_parallax(bars, field, 0, 3, 0.05)
+    assert own.k < 0.5 * k  # the widths do not show it
+
+    def error(par, f) -> float:
+        fixed = correct_parallax(bars, par, f)
+        pairs = zip(fixed.edges, true, strict=True)
+        return max(max(abs(lo.a - a), abs(hi.a - b)) for (lo, hi), (a, b) in pairs)
+
+    assert error(own, field) > 1.0
+    assert error(own.with_slope(k), field) < 0.05
+    s_c, _ = rect.chart.coords(cam.center[None])
+    planar = ParallaxField.about(((s_c[0] - rect.s0_m) / rect.metres_per_px, mid), rect.width, rect.height)
+    assert error(own.with_slope(k), planar) > 0.5
 
 
 def test_border_strips_need_the_facade_surface_and_the_frame_colour():
@@ -245,3 +298,57 @@ def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     assert len(pred) == len(truth) and all(p.complete for p in seg.panels)
     for t in truth:
         assert np.abs(pred - t).max(axis=(1, 2)).min() < 1.0
+
+
+def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_width():
+    """A transom whose face is barely brighter than the glass (rows 20-28) above its dark shaded underside
+    (rows 28-30): the strong thin line takes the bar's place. With the building's transom width (8 px)
+    the bar is found again at that width, at the face: of the four bars sharing an edge with the line, the
+    one whose weaker edge is strongest. A bar of full width and one a width from the border stay; without
+    a bar of full width in the view the thin one stays too (frames of another style)."""
+    from facade_pipeline.segmentation.edges import bar_edges
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, Gradients
+    from facade_pipeline.segmentation.panels import _Bars, widen_narrow_bars
+
+    H, W = 90, 60
+    img = np.full((H, W, 3), 0.45)
+    img[20:28] = 0.52  # the face: low contrast against the glass
+    img[28:30] = 0.20  # the shaded underside
+    img[50:58] = 0.80  # a well-contrasted transom
+    img[84:86] = 0.20  # a thin line near the border
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 1)
+    span = slice(0, W)
+    thin = bar_edges(grad, 29.0, 2.0, span, EDGE_SEARCH_PX)
+    whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
+    border = bar_edges(grad, 85.0, 2.0, span, EDGE_SEARCH_PX)
+    assert abs(thin[0].a - 28.0) < 0.3 and abs(thin[1].a - 30.0) < 0.3  # what the grid found
+    out, n = widen_narrow_bars(_Bars([thin, whole, border], None), grad, span, 8.0, PARAMS)
+    assert n == 1
+    assert abs(out.edges[0][0].a - 20.0) < 0.3 and abs(out.edges[0][1].a - 28.0) < 0.3
+    assert out.edges[1] == whole and out.edges[2] == border
+    alone = _Bars([thin, border], None)
+    assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
+
+
+def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
+    """Each view's own parallax fit gives d = k D / (1 + k) where it has one and D is known (a view not
+    rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.panels import FrameBars, Parallax, ParallaxField, _Bars
+
+    def view(kx: float, ky: float, distance: float, widths: list[float]) -> FrameBars:
+        line = lambda a: EdgeLine(a, 0.0, 0.0, np.ones(4))  # noqa: E731
+        bars = _Bars([(line(10.0 * i), line(10.0 * i + w)) for i, w in enumerate(widths)], None)
+        field = dataclasses.replace(ParallaxField.about((50.0, 50.0), 100, 100), distance_m=distance)
+        fits = {"x": Parallax(0, kx), "y": Parallax(1, ky)}
+        return FrameBars(bars, bars, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
+
+    k = lambda d, D: d / (D - d)  # noqa: E731
+    views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
+             view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
+    depth = segment_panels.building_frame_depth_m(views)
+    assert depth.keys() == {"x", "y"}
+    assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
+    width = segment_panels.building_bar_width_m(views)
+    assert width == pytest.approx({"x": 0.3, "y": 0.3})
