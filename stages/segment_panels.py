@@ -156,7 +156,8 @@ def find_one(
     parallax = parallax_field(rect, view)
     image = read_image(layout.path("rectify_image", stem=view.stem))
     support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
-    found = find_frames(image, params, rect.metres_per_px, valid, parallax, support)
+    planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
+    found = find_frames(image, params, rect.metres_per_px, valid, parallax, support, planar)
     return rect, found, time.perf_counter() - t0
 
 

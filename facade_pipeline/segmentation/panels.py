@@ -323,9 +323,11 @@ def find_bars(
     sizes: PixelSizes,
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
+    planar: bool = True,
 ) -> tuple[_Bars | None, _Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
-    evidence over the other's extent only), then sub-pixel edges, with their frames' parallax fitted in the
+    evidence over the other's extent only; on a ``planar`` surface the transoms must have the mullions'
+    colour, ``frame_colour_scale``), then sub-pixel edges, with their frames' parallax fitted in the
     image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
     and the two families' gradients."""
     H, W = image.shape[:2]
@@ -342,7 +344,7 @@ def find_bars(
     # they run the facade's full height, while the long straight lines that reflections bring (horizon,
     # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
     colour_h = None
-    if v is not None and params.grid.frame_colour_scale > 0:
+    if v is not None and params.grid.frame_colour_scale > 0 and planar:
         colour_h = bar_colour(gv, v, _span(h, H))
     h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes, colour_h)
     metrics = {
@@ -573,12 +575,13 @@ def find_frames(
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
     support: np.ndarray | None = None,
+    planar: bool = True,
 ) -> FrameBars:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
     found at the working scale (``work_bar_px``); ``support`` [H, W] marks where the facade surface is
     (``rectification.facade_support``; None: all); ``valid`` [H, W] marks the pixels that show the view (a
     rectified image has none outside the original); ``parallax`` is the image's parallax coordinate, in
-    which the frames' parallax is fitted (None: not)."""
+    which the frames' parallax is fitted (None: not); ``planar``: the surface is a plane (``find_bars``)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -593,7 +596,7 @@ def find_frames(
             parallax = parallax.scaled(qx, qy)
     m = metres_per_px / np.sqrt(qx * qy)
     sizes = PixelSizes.of(params.grid, m)
-    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, sizes, valid, parallax)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, sizes, valid, parallax, planar)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
 

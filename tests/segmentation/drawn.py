@@ -28,6 +28,8 @@ class Drawing:
     #: the last column's and the last row's pitch (px), where they differ from ``pitch`` (a wider end bay, a
     #: taller ground floor)
     last_pitch: tuple[float | None, float | None] = (None, None)
+    #: the transoms' colour where it differs from the mullions' (a cylinder's transoms face the sky)
+    transom_colour: tuple[float, float, float] | None = None
 
     def _lines(self, axis: int) -> np.ndarray:
         """[n + 1] left (top) edges of the bars of one family (px), ``axis`` 0: mullions."""
@@ -57,6 +59,9 @@ class Drawing:
                 w, h = xl[c + 1] - x, yl[r + 1] - y
                 self.glass_rects.append((x, y, x + w, y + h))
                 glass |= (xs >= x * S) & (xs < (x + w) * S) & (ys >= y * S) & (ys < (y + h) * S)
+        if self.transom_colour is not None:
+            for y in yl:
+                img[facade & ~glass & (ys >= y * S) & (ys < (y + self.bar) * S)] = self.transom_colour
         sky = ys < gy0 + 0.45 * (gy1 - gy0)
         img[glass & sky] = (0.35, 0.45, 0.6)
         img[glass & ~sky] = (0.25, 0.35, 0.22)

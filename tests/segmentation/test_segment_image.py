@@ -352,3 +352,18 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
     assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
     width = segment_panels.building_bar_width_m(views)
     assert width == pytest.approx({"x": 0.3, "y": 0.3})
+
+
+def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
+    """Transoms far brighter than the mullions, as a cylinder's transoms turned towards the sky are: on a
+    curved surface every transom is found where it is, at full evidence; on a plane, where frames of one
+    material are shaded alike, each costs more than a nat for its colour."""
+    from facade_pipeline.segmentation.panels import find_frames
+
+    d = Drawing(transom_colour=(0.95, 0.95, 0.95))
+    img = d.render()
+    curved = find_frames(img, PARAMS, M_PER_PX, planar=False)
+    true_centres = d.y0 + d.bar / 2 + d.pitch[1] * np.arange(d.rows + 1)
+    assert curved.bars_h is not None and np.abs(curved.bars_h.fit.centres - true_centres).max() <= 1.0
+    plane = find_frames(img, PARAMS, M_PER_PX, planar=True)
+    assert plane.metrics["map_score_y"] < curved.metrics["map_score_y"] - (d.rows + 1)
