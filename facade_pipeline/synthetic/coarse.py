@@ -1,5 +1,6 @@
 """What photogrammetry makes of a glass facade (the paper's Fig. 2): raw/coarse_mesh.ply and
-raw/coarse_points.ply.
+raw/coarse_points.ply. The mesh also holds the roofs of the building body behind the facade (``roofs``),
+which a UAV survey sees from above and which hide glass from the high views.
 
 The coarse mesh of a part is a height field h(s, z) over its surface coordinates (see ``facade``): the
 frames' front (h = frame_depth_m) and the glass (h = 0), on a grid that contains every frame edge, so steps
@@ -25,6 +26,7 @@ from facade_pipeline.synthetic.textures import albedo, lighting, sky
 
 EDGE_MERGE_M = 1e-6  # grid lines closer than this are merged (m)
 GHOST_MAX_RADIUS_FRACTION = 0.9  # ghosts of a cylindrical part stay within this fraction of its radius (-)
+ROOF_MIN_UP = 0.9  # a body triangle whose normal is within about 25 deg of up is roof (-)
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,12 +114,26 @@ def _glass_colour(g: PartGeometry, s: np.ndarray, scene: Scene) -> np.ndarray:
     return (1 - refl) * D + refl * np.asarray(p.facade.glass_f0) * sky(n, p.environment)
 
 
+def roofs(scene: Scene) -> TriMesh:
+    """The roofs of the building body behind the facade: its upward-facing triangles. Photogrammetry of a
+    UAV survey reconstructs a roof, matte and seen from above, as well as any wall; the body's other faces
+    are hidden behind the facade or seen by no view."""
+    b = scene.body
+    t = b.vertices[b.triangles]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    up = n[:, 2] > ROOF_MIN_UP * np.linalg.norm(n, axis=1)
+    return b.select(up)
+
+
 def coarse_mesh(scene: Scene) -> tuple[TriMesh, np.ndarray]:
-    """The coarse facade mesh of every part (vertices compacted) and its vertex colours [V, 3]."""
+    """The coarse mesh of every part's facade and of the roofs behind it (vertices compacted) and its
+    vertex colours [V, 3]."""
     meshes, colors = [], []
     offset = 0
-    for g in scene.parts:
-        m, c = height_field_mesh(g, height_field(g, scene), scene)
+    roof = roofs(scene)
+    pieces = [height_field_mesh(g, height_field(g, scene), scene) for g in scene.parts]
+    pieces.append((roof, np.tile(np.asarray(scene.params.facade.wall_color, float), (len(roof.vertices), 1))))
+    for m, c in pieces:
         used, inverse = np.unique(m.triangles, return_inverse=True)
         meshes.append(TriMesh(m.vertices[used], inverse.reshape(-1, 3) + offset, m.material, m.object_id))
         colors.append(c[used])

@@ -18,8 +18,9 @@ def test_coarse_mesh_deviates_on_glass_and_not_on_frames_by_the_declared_amounts
     scene = build_scene(p)
     mesh, colors = coarse_mesh(scene)
     assert colors.shape == mesh.vertices.shape and np.all((colors >= 0) & (colors <= 1))
+    vertices = mesh.vertices[np.unique(mesh.triangles[mesh.material != Material.WALL])]  # not the roofs
     g = scene.parts[0]
-    s, z, h = g.surface_coords(mesh.vertices)
+    s, z, h = g.surface_coords(vertices)
     frame = frame_flags(g, s, z)
     glass_dev = np.abs(h[~frame])
     frame_dev = np.abs(h[frame] - p.facade.frame_depth_m)
@@ -32,7 +33,7 @@ def test_coarse_mesh_deviates_on_glass_and_not_on_frames_by_the_declared_amounts
         o3d.core.Tensor(scene.frames.vertices.astype(np.float32)),
         o3d.core.Tensor(scene.frames.triangles.astype(np.uint32)),
     )
-    dist = rc.compute_distance(o3d.core.Tensor(mesh.vertices[frame].astype(np.float32))).numpy()
+    dist = rc.compute_distance(o3d.core.Tensor(vertices[frame].astype(np.float32))).numpy()
     sag = 0.0  # true curved frames are flat facets: add the chord's sagitta to the tolerance
     if g.part.kind == "cylindrical":
         s0, s1, _, _ = g.panel_bounds(0, 0)
@@ -100,3 +101,30 @@ def test_environment_points_fill_the_disc_and_stop_at_its_edge():
     on = (np.abs(u) <= bw / 2 + 1e-6) & (np.abs(w) <= bd / 2 + 1e-6) & (pts[:, 2] > 0.5)
     assert on.sum() > 20
     assert pts[on, 2].max() > 0.95 * height  # the full height, not one triangle of each face
+
+
+@pytest.mark.parametrize("building", ["synthetic64", "synthetic64_curved"])
+def test_the_coarse_mesh_holds_the_roof_that_hides_glass_from_above(building):
+    """Photogrammetry of a UAV survey reconstructs the roof behind the facade: the coarse mesh has the
+    building body's upward faces at the facade's top, behind it, and a ray down from above the body meets
+    the roof before anything else, as in the true scene."""
+    scene = build_scene(tiny(building))
+    mesh, _ = coarse_mesh(scene)
+    roof = mesh.select(mesh.material == Material.WALL)
+    g = scene.parts[0]
+    v = roof.vertices[np.unique(roof.triangles)]
+    s, z, h = g.surface_coords(v)
+    assert len(roof.triangles) > 0
+    assert np.allclose(z, g.part.height_m) and (h < 0).all()  # at the top, behind the glass
+    t = roof.vertices[roof.triangles]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    assert (n[:, 2] > 0).all()  # facing up, as seen from the UAV views
+    above = g.surface(np.array([0.0]), np.array([g.part.height_m + 5.0]), np.array([-1.0]))[0]
+    for m in (mesh, scene.mesh):
+        rc = o3d.t.geometry.RaycastingScene()
+        rc.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)),
+                         o3d.core.Tensor(m.triangles.astype(np.uint32)))
+        ray = o3d.core.Tensor(np.array([[*above, 0.0, 0.0, -1.0]], np.float32))
+        hit = rc.cast_rays(ray)
+        assert np.isclose(float(hit["t_hit"].numpy()[0]), 5.0, atol=1e-3)
+        assert m.material[int(hit["primitive_ids"].numpy()[0])] == Material.WALL
