@@ -48,6 +48,7 @@ ENTRIES: dict[str, str] = {
     "gt_facade_mesh": "gt/facade_mesh.ply",
     "gt_glass_mesh": "gt/glass_mesh.ply",
     "gt_frame_mesh": "gt/frame_mesh.ply",
+    "gt_body_mesh": "gt/body_mesh.ply",
     "gt_panels": "gt/panels.json",
     "gt_sparse_dir": "gt/sparse/0",
     "gt_frontal_sparse_dir": "gt/frontal/sparse/0",

@@ -81,8 +81,9 @@ def truth_metrics(
         return {}
     gt = SyntheticTruth.load(layout)
     truth = [gt.raycaster("glass_mesh"), gt.raycaster("frame_mesh")]
+    body = gt.raycaster("body_mesh") if SyntheticTruth.available(layout, "body_mesh") else None
     out: dict = {
-        name: surface_errors(v, f, *truth, params.metric_samples, params.metric_max_match_m)
+        name: surface_errors(v, f, *truth, params.metric_samples, params.metric_max_match_m, other=body)
         for name, (v, f) in meshes.items()
     }
     out["panel_width_m"] = round(panel_width_m, 4)  # the scale of benchmarks/bench_bake.py's targets

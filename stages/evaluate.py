@@ -38,6 +38,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     measured on; on synthetic buildings the meshes, panels and gt/ truth. Missing files raise."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.evaluation.building import (
+        body_file,
         measures_geometry,
         split_views,
         trained_models,
@@ -62,6 +63,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
             layout.path("correct_mesh"),
             layout.path("regularize_panels"),
             *truth_files(layout),
+            *[f for f in (body_file(layout),) if f is not None],
         ]
     for f in files:
         if not f.is_file():
@@ -78,6 +80,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     # an earlier run's report must not pass for this one's while it runs, or after it is killed
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.evaluation.building import (
+        body_file,
         evaluate_split,
         facade_masker,
         gaussian_geometry,
@@ -102,7 +105,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     scene = ImportedScene.load(layout)
     device = resolve_device(settings.device)
     truth = (
-        load_truth(*truth_files(layout), scene.georef_from_local)
+        load_truth(*truth_files(layout), scene.georef_from_local, body_file(layout))
         if measures_geometry(layout, params)
         else None
     )

@@ -84,7 +84,7 @@ def targets(layout: BuildingLayout, params: SynthesizeParams) -> list[Path]:
     ):
         out += [d / f for f in MODEL_FILES]
     out += [layout.raw_coarse_mesh_candidates[0], layout.raw_coarse_points]
-    out += [layout.gt(k) for k in ("scene", "facade_mesh", "glass_mesh", "frame_mesh", "panels")]
+    out += [layout.gt(k) for k in ("scene", "facade_mesh", "glass_mesh", "frame_mesh", "body_mesh", "panels")]
     out += [layout.gt(k, s) for s in uav + frontal for k in PER_VIEW_GT]
     return out
 
@@ -107,7 +107,8 @@ def write_truth(layout: BuildingLayout, sim: Simulator) -> list[Path]:
     write_mesh(layout.gt("facade_mesh"), _mesh(scene.facade))
     write_mesh(layout.gt("glass_mesh"), _mesh(scene.glass))
     write_mesh(layout.gt("frame_mesh"), _mesh(scene.frames))
-    return [layout.gt(k) for k in ("scene", "panels", "facade_mesh", "glass_mesh", "frame_mesh")]
+    write_mesh(layout.gt("body_mesh"), _mesh(scene.body))
+    return [layout.gt(k) for k in ("scene", "panels", "facade_mesh", "glass_mesh", "frame_mesh", "body_mesh")]
 
 
 def write_coarse(layout: BuildingLayout, sim: Simulator) -> tuple[list[Path], np.ndarray, np.ndarray, dict]:

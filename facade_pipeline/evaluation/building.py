@@ -54,8 +54,14 @@ REPORT_VIEWS = 4
 
 
 def truth_files(layout: BuildingLayout) -> list[Path]:
-    """The gt/ files the geometry metrics read."""
+    """The gt/ files the geometry metrics need (``load_truth``'s first three arguments)."""
     return [layout.gt("glass_mesh"), layout.gt("frame_mesh"), layout.gt("panels")]
+
+
+def body_file(layout: BuildingLayout) -> Path | None:
+    """gt/'s building body, which the mesh errors leave out, where synthesize wrote it."""
+    path = layout.gt("body_mesh")
+    return path if path.is_file() else None
 
 
 def measures_geometry(layout: BuildingLayout, params: EvaluateParams) -> bool:

@@ -32,15 +32,19 @@ class Truth:
     glass: MeshRaycaster
     frames: MeshRaycaster
     panel_corners: np.ndarray
+    body: MeshRaycaster | None = None
+    """the building body behind the facade, left out of the mesh errors (None: not in gt/)"""
 
 
-def load_truth(glass_mesh: Path, frame_mesh: Path, panels_json: Path, georef_from_local: np.ndarray) -> Truth:
+def load_truth(glass_mesh: Path, frame_mesh: Path, panels_json: Path, georef_from_local: np.ndarray,
+               body_mesh: Path | None = None) -> Truth:
     """Read gt/ (world = georeferenced frame) into the pipeline's local frame (``synthetic.truth``)."""
     local_from_georef = invert_rigid(np.asarray(georef_from_local, np.float64))
     glass, frames = (MeshRaycaster(*read_truth_mesh(p, local_from_georef)) for p in (glass_mesh, frame_mesh))
     panels = read_truth_panels(panels_json, local_from_georef)
     corners = np.array([p["corners"] for p in panels], np.float64).reshape(-1, 4, 3)
-    return Truth(glass, frames, corners)
+    body = None if body_mesh is None else MeshRaycaster(*read_truth_mesh(body_mesh, local_from_georef))
+    return Truth(glass, frames, corners, body)
 
 
 def point_errors(points: np.ndarray, normals: np.ndarray, truth: Truth, max_match_m: float) -> dict[str, Any]:
@@ -77,7 +81,8 @@ def mesh_errors(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Surface distance and normal error of a mesh against the truth (``meshing.metrics.surface_errors``)."""
-    return surface_errors(vertices, triangles, truth.glass, truth.frames, n_samples, max_match_m, seed)
+    return surface_errors(vertices, triangles, truth.glass, truth.frames, n_samples, max_match_m, seed,
+                          other=truth.body)
 
 
 def corner_error_px(panels: PanelSet, truth: Truth, cameras: list[PinholeCamera]) -> dict[str, Any]:

@@ -40,16 +40,23 @@ def surface_errors(
     n_samples: int,
     max_match_m: float,
     seed: int = 0,
+    other: MeshRaycaster | None = None,
 ) -> dict[str, float | None]:
     """Distances (m) from ``n_samples`` points of the mesh to the true glass and frames (``glass``,
     ``frames``), split by the nearer of the two; samples farther than ``max_match_m`` from both are left
-    out (counted). Normal error (deg) on glass samples."""
+    out (counted), and so are samples nearer to ``other`` (the true surfaces that are not facade: the
+    building body's roof, which a coarse mesh holds too) than to both (counted apart). Normal error (deg)
+    on glass samples."""
     pts, nrm = sample_surface(vertices, triangles, n_samples, np.random.default_rng(seed))
     gp, _, gn = glass.closest(pts)
     fp, _, _ = frames.closest(pts)
     dg, df = np.linalg.norm(pts - gp, axis=1), np.linalg.norm(pts - fp, axis=1)
-    on_glass = (dg <= df) & (dg <= max_match_m)
-    on_frame = (df < dg) & (df <= max_match_m)
+    facade = np.ones(len(pts), bool)
+    if other is not None:
+        op, _, _ = other.closest(pts)
+        facade = np.linalg.norm(pts - op, axis=1) >= np.minimum(dg, df)
+    on_glass = facade & (dg <= df) & (dg <= max_match_m)
+    on_frame = facade & (df < dg) & (df <= max_match_m)
     ang = np.degrees(np.arccos(np.clip(np.abs(np.sum(nrm * gn, axis=1)), 0.0, 1.0)))
 
     def stats(x: np.ndarray) -> tuple[float | None, float | None]:  # None (JSON null) without samples
@@ -59,7 +66,8 @@ def surface_errors(
     out["glass_distance_mean_m"], out["glass_distance_p95_m"] = stats(dg[on_glass])
     out["frame_distance_mean_m"], out["frame_distance_p95_m"] = stats(df[on_frame])
     out["glass_normal_error_mean_deg"], out["glass_normal_error_p95_deg"] = stats(ang[on_glass])
-    out["samples_unmatched"] = int(n_samples - on_glass.sum() - on_frame.sum())
+    out["samples_off_facade"] = int((~facade).sum())
+    out["samples_unmatched"] = int(n_samples - on_glass.sum() - on_frame.sum() - (~facade).sum())
     return {k: (round(v, 5) if isinstance(v, float) else v) for k, v in out.items()}
 
 

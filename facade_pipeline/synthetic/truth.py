@@ -31,7 +31,7 @@ from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.scene import ImportedScene
 
-TruthMesh = Literal["facade_mesh", "glass_mesh", "frame_mesh"]
+TruthMesh = Literal["facade_mesh", "glass_mesh", "frame_mesh", "body_mesh"]
 TruthMask = Literal["facade", "glass", "frame"]
 
 

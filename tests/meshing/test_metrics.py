@@ -124,3 +124,19 @@ def test_corner_errors_hand_computed():
     empty = {"corner_error_mean_m": None, "corner_error_max_m": None}
     assert corner_errors(PanelSet((), ()), true) == empty
     assert corner_errors(PanelSet((), (_panel(true[0]),)), np.zeros((0, 4, 3))) == empty
+
+
+def test_surface_errors_leave_out_what_lies_on_the_body():
+    """A mesh of the glass square 0.25 above it plus a roof square lying on the true body (beside the
+    glass, 0.5 from it): without the body the roof's samples count as glass errors of 0.5 and more; with
+    it they are left out and counted apart, and the glass error is the 0.25 offset alone."""
+    glass = MeshRaycaster(*SQUARE)
+    roof_v = SQUARE[0] + [1.5, 0.0, 0.0]
+    body = MeshRaycaster(roof_v, SQUARE[1])
+    v = np.concatenate([SQUARE[0] + [0, 0, 0.25], roof_v])
+    f = np.concatenate([SQUARE[1], SQUARE[1] + 4])
+    without = surface_errors(v, f, glass, _frames_beside(), 4000, 5.0, seed=2)
+    assert without["glass_distance_p95_m"] > 0.5 and without["samples_off_facade"] == 0
+    out = surface_errors(v, f, glass, _frames_beside(), 4000, 5.0, seed=2, other=body)
+    assert out["glass_distance_mean_m"] == pytest.approx(0.25, abs=1e-6)
+    assert out["samples_off_facade"] == pytest.approx(2000, rel=0.1) and out["samples_unmatched"] == 0
