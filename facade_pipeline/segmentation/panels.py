@@ -390,8 +390,8 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float, inside: tuple[float, float],
-                   params: SegmentParams) -> tuple[float, float]:
+def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
+                   inside: tuple[float, float]) -> tuple[float, float]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
     larger ratio of its two edges' mean strength there to their mean strength over ``inside``)."""
@@ -427,7 +427,7 @@ def _continues(other: _Bars, lo: float, hi: float, inside: tuple[float, float], 
     unit, a unit set off its neighbours' line), and the openings beside such a bar go on."""
     if support < 0.5:
         return frozenset()
-    found = [_bar_continues(e, lo, hi, inside, params) for e in other.edges]
+    found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
     presence = [p for p, _ in found if not np.isnan(p)]
     if presence and float(np.median(presence)) >= params.continuation_presence:
         return None
@@ -696,9 +696,10 @@ def segment_image(
     support: np.ndarray | None = None,
     frame_depth_m: dict[str, float] | None = None,
     bar_width_m: dict[str, float] | None = None,
+    planar: bool = True,
 ) -> Segmentation:
     """The panels of one image (``find_frames`` then ``segment_frames``, same arguments)."""
-    return segment_frames(find_frames(image, params, metres_per_px, valid, parallax, support), params,
+    return segment_frames(find_frames(image, params, metres_per_px, valid, parallax, support, planar), params,
                           frame_depth_m, bar_width_m)
 
 
