@@ -12,8 +12,8 @@ the facade ends at that bar, except beside the bars that continue on their own (
 or offset unit): there the opening between two such bars, or one and the border, is a partial panel.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
-front of it does not) over less than ``MIN_EDGE_SUPPORT`` of any side's length is kept, with
-``complete = False``.
+front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
+side's length is kept, with ``complete = False``.
 
 Parallax of proud frames: frames stand d in front of the glass, so the front face of a bar is seen shifted
 away from the camera along the surface by d tan(a), a the angle of the line of sight from the surface normal
@@ -491,13 +491,20 @@ def openings(
 
 
 def _supported(line: EdgeLine, lo: float, hi: float) -> float:
-    """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where its frame bar is present;
-    1 for the image border."""
+    """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where its frame bar is present
+    or the edge itself (the bar's side facing the panel) is found at half its median strength or more: an
+    object in front hides both, while a bar that shows its shaded side face beside an empty unit keeps the
+    sharp edge where it meets the glass; 1 for the image border."""
     if line.present is None:
         return 1.0
-    s = line.present[int(max(0, np.ceil(lo + 1))) : int(max(0, np.floor(hi - 1)))]
-    s = s[~np.isnan(s)]
-    return float(s.mean()) if len(s) else 1.0
+    i0, i1 = int(max(0, np.ceil(lo + 1))), int(max(0, np.floor(hi - 1)))
+    present = line.present[i0:i1]
+    found = line.strength[i0:i1]
+    seen = ~np.isnan(present)
+    if not seen.any():
+        return 1.0
+    ref = np.median(line.strength[line.strength > 0]) if (line.strength > 0).any() else np.inf
+    return float(((present[seen] > 0) | (found[seen] >= 0.5 * ref)).mean())
 
 
 def build_panels(bars_v: _Bars, bars_h: _Bars, width: int, height: int, params: SegmentParams,

@@ -367,3 +367,17 @@ def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
     assert curved.bars_h is not None and np.abs(curved.bars_h.fit.centres - true_centres).max() <= 1.0
     plane = find_frames(img, PARAMS, M_PER_PX, planar=True)
     assert plane.metrics["map_score_y"] < curved.metrics["map_score_y"] - (d.rows + 1)
+
+
+def test_a_bar_showing_its_side_face_does_not_mark_the_pane_beside_it_occluded():
+    """The second mullion over the top row shows another face (lighter than the frames, as a bar's side
+    face beside an empty unit does), its edges against the glass still sharp: the panes beside it are
+    whole. A tree in front of a bar hides its edges as well, and keeps marking the pane occluded
+    (``test_partly_occluded_panel_keeps_the_grid``)."""
+    d = Drawing()
+    img = d.render()
+    x0 = d.x0 + d.pitch[0]  # the second mullion's left edge
+    rows = slice(int(np.ceil(d.y0)), int(d.y0 + d.pitch[1] + d.bar))
+    img[rows, int(np.ceil(x0)) : int(x0 + d.bar)] = (215, 215, 215)  # a lit side face, not the frames' grey
+    seg = segment_image(img, PARAMS, M_PER_PX)
+    assert len(seg.panels) == 9 and all(p.complete for p in seg.panels)
