@@ -87,10 +87,15 @@ def main() -> None:
                 f"| {cpu1:.1f} | {pair_wall:.1f} | {pair_cpu:.1f} | {pair_wall / (2 * wall1):.2f} |"
             )
             print(rows[-1], flush=True)
+    command = "python benchmarks/bench_concurrency.py" + (
+        "" if args.building == "synthetic64" else f" --building {args.building}")
     text = (
-        f"\n## Two runs at once: train_gs on {args.building}, alone and in pairs\n\n"
-        f"{machine()} Command: `python benchmarks/bench_concurrency.py`. Target: the pair's "
-        "wall time within 1.2x of twice the lone run's.\n\n"
+        "## Two runs at once\n\n"
+        f"train_gs on {args.building} alone, then two at once (two copies of the building), with the "
+        "stages' thread policy (passive OpenMP waiting, pools no bigger than the usable cores) and without "
+        "it (`FACADE_THREAD_POLICY=off`). Target: the pair's wall time within 1.2x of twice the lone "
+        "run's.\n\n"
+        f"{machine()}\n`{command}`\n\n"
         "| thread policy | alone: wall s | alone: CPU s | pair: wall s (slower) | pair: CPU s (both) "
         "| pair wall / (2 x alone) |\n| --- | --- | --- | --- | --- | --- |\n" + "\n".join(rows) + "\n"
     )
