@@ -63,8 +63,9 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
             layout.path("correct_mesh"),
             layout.path("regularize_panels"),
             *truth_files(layout),
-            *[f for f in (body_file(layout),) if f is not None],
         ]
+        body = body_file(layout)
+        files += [body] if body is not None else []
     for f in files:
         if not f.is_file():
             raise InputError(f, "a file written by an upstream stage", "no file")
