@@ -134,13 +134,23 @@ def build_panels(geom: PartGeometry, style: FacadeStyle, rng: np.random.Generato
     return out
 
 
+def curve_segments(geom: PartGeometry, style: FacadeStyle, width_m: float) -> int:
+    """Flat facets across ``width_m`` (m along the surface): 1 on a plane; on a cylinder enough that none
+    turns through more than ``curve_max_facet_deg``."""
+    p = geom.part
+    if p.kind != "cylindrical":
+        return 1
+    return max(1, math.ceil(math.degrees(width_m / p.radius_m) / style.curve_max_facet_deg))
+
+
 def part_meshes(
     geom: PartGeometry, style: FacadeStyle, first_panel: int, ground_z: float
 ) -> tuple[TriMesh, TriMesh, TriMesh]:
     """(glass, frames, body) meshes of one part. Glass triangles carry their global panel index
     (``first_panel`` + row * cols + col); the body reaches down to world height ``ground_z``."""
     p, fw = geom.part, style.frame_width_m
-    seg = style.curve_segments_per_panel if p.kind == "cylindrical" else 1
+    pitch = (p.width_m - fw) / p.cols
+    seg = curve_segments(geom, style, pitch)  # per panel column
     h = (-style.frame_back_m, style.frame_depth_m)
     glass, frames = [], []
     for r in range(p.rows):
@@ -151,7 +161,8 @@ def part_meshes(
             )
     for sk in geom.s_lines:
         frames.append(
-            prism(geom.surface, (sk - fw / 2, sk + fw / 2), (0.0, p.height_m), h, 1, Material.FRAME)
+            prism(geom.surface, (sk - fw / 2, sk + fw / 2), (0.0, p.height_m), h,
+                  curve_segments(geom, style, fw), Material.FRAME)
         )
     for zk in geom.z_lines:
         for c in range(p.cols):

@@ -74,8 +74,10 @@ class FacadeStyle:
     """How far frames reach behind the glass plane (m)."""
     body_depth_m: Positive
     """Depth of the opaque building body behind the glass (m)."""
-    curve_segments_per_panel: PosInt
-    """Flat facets per panel column on cylindrical parts."""
+    curve_max_facet_deg: Positive
+    """Largest angle (deg) a flat facet of a cylindrical part's glass, frames and body turns through: the
+    simulated surface is a cylinder to within an eighth of this in normal on average (its flat facets
+    are the renderer's normals and the truth's)."""
     glass_reflectivity: Fraction
     """refl of Eq. 7 on glass (0-1)."""
     glass_f0: RGB
@@ -348,7 +350,7 @@ def _check_ranges(p: SynthesizeParams) -> None:
         "render.ray_offset_m": p.render.ray_offset_m,
         "coarse.mesh_resolution_m": p.coarse.mesh_resolution_m,
         "environment.ground_tile_m": p.environment.ground_tile_m,
-        "facade.curve_segments_per_panel": p.facade.curve_segments_per_panel,
+        "facade.curve_max_facet_deg": p.facade.curve_max_facet_deg,
     }
     for key, v in positive.items():
         if v <= 0:

@@ -9,6 +9,7 @@ import pytest
 from facade_pipeline.synthetic.mesh import Material
 from facade_pipeline.synthetic.render import first_hits, truth_maps
 from facade_pipeline.synthetic.scene import panels_description
+from tests.synthetic.conftest import tiny
 
 # (corner, neighbour along the row, neighbour along the column) in the order BL, BR, TR, TL
 _CORNER_EDGES = ((0, 1, 3), (1, 0, 2), (2, 3, 1), (3, 2, 0))
@@ -107,6 +108,26 @@ def test_panel_normals_and_corners_match_the_glass_mesh(planar_sim, curved_sim):
                 assert np.all(
                     cos >= np.cos(0.5 * (s1 - s0) / sim.scene.parts[panel.part].part.radius_m) - 1e-12
                 )
+
+
+def test_curved_glass_is_the_cylinder_to_within_its_facet_angle(curved_sim):
+    """Every flat facet of the curved glass is a chord of the cylinder that turns through at most
+    ``curve_max_facet_deg``: its normal is the cylinder's at the middle of its arc (the renderer's normals
+    and the truth's are within half the facet angle of the cylinder's)."""
+    scene = curved_sim.scene
+    geom = next(g for g in scene.parts if g.part.kind == "cylindrical")
+    glass = scene.glass
+    mine = np.array([scene.panels[i].part == geom.index for i in glass.object_id])
+    assert mine.any()
+    corners = glass.vertices[glass.triangles[mine]]  # [F, 3, 3] world
+    local = (corners - geom.world_from_facade[:3, 3]) @ geom.world_from_facade[:3, :3]
+    # facade frame: the cylinder's axis stands at (0, -R) in x-y and x = -(R + h) sin(s / R)
+    phi = np.arctan2(-local[..., 0], local[..., 1] + geom.part.radius_m)  # [F, 3]
+    turn = np.degrees(phi.max(axis=1) - phi.min(axis=1))
+    max_deg = tiny("synthetic64_curved").facade.curve_max_facet_deg  # the params curved_sim was built from
+    assert turn.max() <= max_deg + 1e-9 and turn.max() > 0.5 * max_deg
+    middle = geom.normal(0.5 * (phi.max(axis=1) + phi.min(axis=1)) * geom.part.radius_m)
+    assert np.allclose(np.sum(glass.normals[mine] * middle, axis=1), 1.0, atol=1e-9)
 
 
 def test_panels_json_orders_rows_bottom_up_and_columns_left_to_right(planar_sim, curved_sim):
