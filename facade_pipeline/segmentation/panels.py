@@ -41,7 +41,6 @@ pixel.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from dataclasses import dataclass, field
 
 import cv2
@@ -58,6 +57,7 @@ from facade_pipeline.segmentation.grid import (
     log_likelihood,
     lsd_evidence,
     map_family,
+    nanmedian0,
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
 from facade_pipeline.segmentation.params import SegmentParams
@@ -148,9 +148,7 @@ def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
     over ``span``."""
     colour = grad.line_colour(span)
     idx = np.clip(np.rint(fit.centres / STEP_PX).astype(int), 0, len(colour) - 1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(colour[idx], axis=0)
+    return nanmedian0(colour[idx])
 
 
 def _span(fit: FamilyFit | None, size: int) -> slice:
