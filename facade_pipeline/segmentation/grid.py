@@ -119,6 +119,8 @@ def nanmedian0(a: np.ndarray) -> np.ndarray:
     """The median over axis 0 of ``a`` [L, ...] leaving out NaNs (NaN where all are): ``np.nanmedian(a,
     axis=0)``, by one sort (NaNs sort last) instead of numpy's masked-array path, which is many times
     slower on the few hundred rows of a view."""
+    if a.shape[0] == 0:
+        return np.full(a.shape[1:], np.nan)
     s = np.sort(a, axis=0)
     n = (~np.isnan(a)).sum(axis=0)
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]

@@ -24,3 +24,7 @@ def test_nanmedian0_is_numpys_nanmedian_over_the_first_axis(shape):
     assert got.shape == ref.shape
     assert np.array_equal(np.isnan(got), np.isnan(ref))
     assert np.allclose(got[~np.isnan(ref)], ref[~np.isnan(ref)], rtol=0, atol=0)
+
+
+def test_nanmedian0_of_no_rows_is_nan():
+    assert np.isnan(nanmedian0(np.zeros((0, 3, 2)))).all() and nanmedian0(np.zeros((0, 3, 2))).shape == (3, 2)
