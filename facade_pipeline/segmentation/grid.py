@@ -264,18 +264,21 @@ class FamilyFit:
     score: float
 
 
-def _best_run(values: np.ndarray) -> tuple[float, int, int]:
-    """Kadane over one row of values (-inf = unusable): best sum of a contiguous run of >= 2 terms."""
-    best, lo, hi = -np.inf, 0, 0
-    for i in range(len(values) - 1):
-        s = values[i]
-        for j in range(i + 1, len(values)):
-            s += values[j]
-            if not np.isfinite(s):
-                break
-            if s > best:
-                best, lo, hi = s, i, j + 1
-    return best, lo, hi
+def best_run(values: np.ndarray) -> tuple[float, int, int]:
+    """The best sum of a contiguous run of >= 2 terms of one row of values (-inf = unusable) and its
+    [lo, hi): of the runs of the same sum, the one that starts first, then ends first. Each run's sum is
+    accumulated from its first term on, left to right (the order of a scalar loop over the runs)."""
+    n = len(values)
+    if n < 2:
+        return -np.inf, 0, 0
+    i, j = np.indices((n, n))
+    terms = np.where(j >= i, values[None, :], 0.0)  # row i: the terms from i on
+    sums = np.cumsum(terms, axis=1)  # sums[i, j] = values[i] + ... + values[j]
+    sums[(j <= i) | ~np.isfinite(sums)] = -np.inf  # two terms at least; a run holds no unusable term
+    k = int(np.argmax(sums))  # row-major: the first of equal sums by start, then by end
+    if not np.isfinite(sums.flat[k]):
+        return -np.inf, 0, 0
+    return float(sums.flat[k]), k // n, k % n + 1
 
 
 def map_family(
@@ -303,7 +306,7 @@ def map_family(
         for p in top:
             if best is not None and gain[p] <= best[0]:
                 break  # a run scores at most the sum of its positive terms: no better run from here on
-            score, lo, hi = _best_run(vals[p])
+            score, lo, hi = best_run(vals[p])
             if hi - lo >= 2 and (best is None or score > best[0]):
                 i = idx[p, lo:hi]
                 best = (score, pos[p, lo:hi] + delta[i], pitch)

@@ -1,4 +1,5 @@
-"""The segmentation's NaN-aware median against numpy's (the slow, obviously correct reference)."""
+"""The segmentation grid's array helpers against slow, obviously correct references: numpy's NaN median and a
+scalar loop over every run of lattice values."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from facade_pipeline.segmentation.grid import nanmedian0
+from facade_pipeline.segmentation.grid import best_run, nanmedian0
 
 
 @pytest.mark.parametrize("shape", [(1, 4), (2, 5, 3), (7, 6), (288, 40, 3)])
@@ -28,3 +29,26 @@ def test_nanmedian0_is_numpys_nanmedian_over_the_first_axis(shape):
 
 def test_nanmedian0_of_no_rows_is_nan():
     assert np.isnan(nanmedian0(np.zeros((0, 3, 2)))).all() and nanmedian0(np.zeros((0, 3, 2))).shape == (3, 2)
+
+
+def _best_run_loop(values: np.ndarray) -> tuple[float, int, int]:
+    """The reference: every run of >= 2 terms, summed from its start on, the first best kept."""
+    best, lo, hi = -np.inf, 0, 0
+    for i in range(len(values) - 1):
+        s = values[i]
+        for j in range(i + 1, len(values)):
+            s += values[j]
+            if not np.isfinite(s):
+                break
+            if s > best:
+                best, lo, hi = s, i, j + 1
+    return best, lo, hi
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_best_run_is_the_loop_over_every_run(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 30))
+    values = np.round(rng.normal(0.2, 1.0, n), 1 if seed % 2 else 6)  # rounded: equal sums occur
+    values[rng.random(n) < 0.15] = -np.inf
+    assert best_run(values) == _best_run_loop(values)
