@@ -92,7 +92,10 @@ def main() -> int:
     print(text)
     print(note)
     if not args.no_record:
-        record_results(f"\n## synthesize\n\n{machine()}\n\n{text}\n\n{note}\n")
+        intro = ("Wall time and memory of the simulator per scene: the process, the stage alone, and its ray "
+                 "tracing.")
+        record_results(f"\n## synthesize\n\n{intro}\n\n{machine()} `python benchmarks/bench_synthesize.py`\n\n"
+                       f"{text}\n\n{note}\n")
     failed = [label for label, r, target in rows if target is not None and r["wall_s"] > target]
     return 1 if failed else 0
 
