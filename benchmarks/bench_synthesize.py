@@ -94,8 +94,8 @@ def main() -> int:
     if not args.no_record:
         intro = ("Wall time and memory of the simulator per scene: the process, the stage alone, and its ray "
                  "tracing.")
-        record_results(f"\n## synthesize\n\n{intro}\n\n{machine()} `python benchmarks/bench_synthesize.py`\n\n"
-                       f"{text}\n\n{note}\n")
+        command = "`python benchmarks/bench_synthesize.py`"
+        record_results(f"\n## synthesize\n\n{intro}\n\n{machine()} {command}\n\n{text}\n\n{note}\n")
     failed = [label for label, r, target in rows if target is not None and r["wall_s"] > target]
     return 1 if failed else 0
 
