@@ -124,7 +124,7 @@ def nanmedian0(a: np.ndarray) -> np.ndarray:
     s = np.sort(a, axis=0)
     n = (~np.isnan(a)).sum(axis=0)
     lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[None], axis=0)[0]
-    hi = np.take_along_axis(s, (n // 2 - (n == 0))[None].clip(0), axis=0)[0]
+    hi = np.take_along_axis(s, (n // 2)[None], axis=0)[0]
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
