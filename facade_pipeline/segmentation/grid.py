@@ -43,6 +43,7 @@ corners are intersections of these edge lines (``panels.py``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -164,14 +165,21 @@ class Gradients:
         out[:, (f < 0) | (f > n - 1)] = 0.0
         return out
 
+    # both are taken over several row spans of one image (the MAP passes, the bars' colour): kept once made
+    @cached_property
     def on_lattice(self) -> np.ndarray:
         """[L, M, 3] gradients at the lattice positions ``j * STEP_PX``."""
         return self._interp(self.d, 1.0)
 
+    @cached_property
+    def _samples(self) -> np.ndarray:
+        """[L, M, 3] the image at each lattice position (interpolated between pixel centres), NaN outside
+        the view."""
+        return self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)
+
     def _line_samples(self, rows: slice) -> np.ndarray:
-        """[L', M, 3] the image over ``rows`` at each lattice position (interpolated between pixel centres),
-        NaN outside the view."""
-        return self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)[rows]
+        """[L', M, 3] ``_samples`` over ``rows``."""
+        return self._samples[rows]
 
     def line_colour(self, rows: slice) -> np.ndarray:
         """[M, 3] median colour over ``rows`` of the image at each lattice position (NaN outside the view)."""
@@ -186,32 +194,44 @@ class Gradients:
 
 
 def bar_evidence(
-    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes, weak_edge_floor: float = 0.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px).
+    grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes,
+    weak_edge_floors: tuple[float, ...] = (0.0,),
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px), one
+    pair per floor of ``weak_edge_floors`` (the edges and their agreement are computed once for all).
 
     Per row, edges gL, gR (colour vectors) at the two sides of the bar give sqrt((|gL||gR| - gL.gR) / 2):
     |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
-    agree, 0 for equal changes (a ramp, not a bar). The weaker edge counts at least ``weak_edge_floor``
+    agree, 0 for equal changes (a ramp, not a bar). The weaker edge counts at least its floor's fraction
     of the stronger: 0 inside the grid, where both edges must be seen; ``outer_edge_floor`` for the outer
     frame bars."""
-    g = grad.on_lattice()[rows]
+    g = grad.on_lattice[rows]
     mag = np.linalg.norm(g, axis=2)
     M = g.shape[1]
-    best, width = np.zeros(M), np.zeros(M)
+    out = [(np.zeros(M), np.zeros(M)) for _ in weak_edge_floors]
     for w in range(sizes.min_bar, sizes.max_bar + 1):
         h = w  # half width in lattice steps (w / 2 / STEP_PX)
         if 2 * h >= M:
             break
         gl, gr, ml, mr = g[:, : M - 2 * h], g[:, 2 * h :], mag[:, : M - 2 * h], mag[:, 2 * h :]
-        cos = (gl * gr).sum(axis=2) / np.maximum(ml * mr, 1e-12)
-        # the weaker edge counts at least ``weak_edge_floor`` of the stronger: an outer frame may border a
-        # background of its own colour on one side
-        weak = np.maximum(np.minimum(ml, mr), weak_edge_floor * np.maximum(ml, mr))
-        e = np.pad(np.sqrt(np.maximum(ml, mr) * weak * np.clip(1 - cos, 0, 2) / 2).mean(axis=0), (h, h))
-        better = e > best
-        best[better], width[better] = e[better], w
-    return best, width
+        # the arrays are [rows, M]: done in place, channel by channel, as the sum of the products over the
+        # channels would add them, so that the values are those of the plain expressions
+        dot = gl[..., 0] * gr[..., 0]
+        dot += gl[..., 1] * gr[..., 1]
+        dot += gl[..., 2] * gr[..., 2]
+        cos = np.divide(dot, np.maximum(ml * mr, 1e-12), out=dot)
+        disagree = np.subtract(1.0, cos, out=cos)
+        np.minimum(np.maximum(disagree, 0.0, out=disagree), 2.0, out=disagree)  # clip(1 - cos, 0, 2)
+        strong, weaker = np.maximum(ml, mr), np.minimum(ml, mr)
+        for floor, (best, width) in zip(weak_edge_floors, out, strict=True):
+            # an outer frame may border a background of its own colour on one side
+            e2 = np.multiply(strong, np.maximum(weaker, floor * strong))
+            e2 *= disagree
+            e2 /= 2
+            e = np.pad(np.sqrt(e2, out=e2).mean(axis=0), (h, h))
+            better = e > best
+            best[better], width[better] = e[better], w
+    return out
 
 
 def lsd_evidence(support: np.ndarray, width: np.ndarray, length_px: float) -> np.ndarray:
@@ -241,17 +261,29 @@ def log_likelihood(
     return ll
 
 
-def _relaxed(ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """max over delta of l(c + delta) - delta^2 / (2 sigma^2), |delta| <= 3 sigma, and the best delta (px)."""
-    r = int(np.ceil(3 * sigma_px / STEP_PX))
+def _radius(sigma_px: float) -> int:
+    """Lattice steps the prior's relaxation reaches at ``sigma_px``: 3 sigma."""
+    return int(np.ceil(3 * sigma_px / STEP_PX))
+
+
+def shifted(ll: np.ndarray, radius: int) -> np.ndarray:
+    """[2 radius + 1, M]: row radius + s holds l(c + s lattice steps) at c, -inf beyond the ends. Made once
+    for a family, it serves the relaxation at every pitch (``relaxed``)."""
     M = len(ll)
-    padded = np.pad(ll, r, constant_values=-np.inf)
+    padded = np.pad(ll, radius, constant_values=-np.inf)
+    return np.stack([padded[radius + s : radius + s + M] for s in range(-radius, radius + 1)])
+
+
+def relaxed(shifts_of_ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """max over delta of l(c + delta) - delta^2 / (2 sigma^2), |delta| <= 3 sigma, and the best delta (px)
+    (the first of equal ones), from ``shifted(ll, radius)`` with a radius of at least 3 sigma."""
+    r, R = _radius(sigma_px), (len(shifts_of_ll) - 1) // 2
+    if r > R:
+        raise ValueError(f"relaxed: sigma {sigma_px} px reaches {r} lattice steps, the shifts only {R}")
     shifts = np.arange(-r, r + 1)
-    cand = np.stack([padded[r + s : r + s + M] for s in shifts]) - (shifts * STEP_PX)[:, None] ** 2 / (
-        2 * sigma_px**2
-    )
+    cand = shifts_of_ll[R - r : R + r + 1] - (shifts * STEP_PX)[:, None] ** 2 / (2 * sigma_px**2)
     k = np.argmax(cand, axis=0)
-    return cand[k, np.arange(M)], shifts[k] * STEP_PX
+    return cand[k, np.arange(cand.shape[1])], shifts[k] * STEP_PX
 
 
 @dataclass(frozen=True)
@@ -293,14 +325,17 @@ def map_family(
     ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames."""
     M = len(ll)
     best: tuple[float, np.ndarray, float] | None = None
-    for pitch in np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX):
+    pitches = np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX)
+    if len(pitches):  # sigma grows with the pitch: the last one reaches furthest
+        shifts_of_ll = shifted(ll, _radius(max(SIGMA_MIN_PX, params.sigma_frac * pitches[-1])))
+    for pitch in pitches:
         sigma = max(SIGMA_MIN_PX, params.sigma_frac * pitch)
-        relaxed, delta = _relaxed(ll, sigma)
+        relaxed_ll, delta = relaxed(shifts_of_ll, sigma)
         k = np.arange(int(size / pitch) + 2)
         phases = np.arange(0.0, pitch, STEP_PX)
         pos = phases[:, None] + k[None, :] * pitch  # [P, K] px
         idx = np.rint(pos / STEP_PX).astype(int)
-        vals = np.where(idx < M, relaxed[np.minimum(idx, M - 1)] - params.line_cost, -np.inf)
+        vals = np.where(idx < M, relaxed_ll[np.minimum(idx, M - 1)] - params.line_cost, -np.inf)
         gain = np.where(vals > 0, vals, 0.0).sum(axis=1)
         top = gain.argsort()[::-1][:8]  # only the most promising phases need the exact run
         for p in top:
@@ -330,18 +365,18 @@ def _with_outer_frames(
     in the prior, pays for the line (module docstring)."""
     M = len(ll_outer)
     sigma = max(SIGMA_MIN_PX, params.sigma_frac * fit.pitch)
-    relaxed, delta = _relaxed(ll_outer, sigma)
+    relaxed_ll, delta = relaxed(shifted(ll_outer, _radius(sigma)), sigma)
     centres, widths, score = list(fit.centres), list(fit.widths), fit.score
     for end, sign in ((-1, 1.0), (0, -1.0)):
         c = centres[end] + sign * fit.pitch
         i = int(np.rint(c / STEP_PX))
-        if not 0 <= i < M or relaxed[i] - params.line_cost <= 0:
+        if not 0 <= i < M or relaxed_ll[i] - params.line_cost <= 0:
             continue
         c_new = c + delta[i]
         w = float(widths_outer[int(np.clip(np.rint(c_new / STEP_PX), 0, M - 1))])
         if c_new - w / 2 < 1.0 or c_new + w / 2 > size - 1.0:  # an outer frame lies whole in the view
             continue
-        score += relaxed[i] - params.line_cost
+        score += relaxed_ll[i] - params.line_cost
         if sign > 0:
             centres.append(c_new)
             widths.append(w)

@@ -111,19 +111,19 @@ class _Bars:
 
 
 def _family(
-    image: np.ndarray,
-    valid: np.ndarray | None,
+    grad: Gradients,
     segments: np.ndarray,
     axis: int,
     span: slice,
     params: SegmentParams,
     sizes: PixelSizes,
     frame_colour: np.ndarray | None = None,
-) -> tuple[FamilyFit | None, Gradients]:
-    """MAP bars of one family (axis 0: mullions) with evidence taken over ``span`` along the bars; with
-    ``frame_colour`` [3] (the other family's bars), bars of another colour are penalised."""
-    grad = Gradients.of(image, axis, valid)
-    e_grad, widths = bar_evidence(grad, span, params.grid, sizes)
+) -> FamilyFit | None:
+    """MAP bars of one family (axis 0: mullions; ``grad`` its gradients) with evidence taken over ``span``
+    along the bars; with ``frame_colour`` [3] (the other family's bars), bars of another colour are
+    penalised."""
+    (e_grad, widths), (e_out, w_out) = bar_evidence(grad, span, params.grid, sizes,
+                                                    (0.0, params.grid.outer_edge_floor))
     lo, hi, _ = span.indices(grad.d.shape[0])
     t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
     inside = segments[(t >= lo) & (t <= hi)]
@@ -136,11 +136,10 @@ def _family(
         dist = np.linalg.norm(grad.line_colour(span) - frame_colour, axis=1)[: len(e_grad)]
         dist = np.maximum(dist - params.frame_colour_tol, 0.0)
     ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid, dist)
-    e_out, w_out = bar_evidence(grad, span, params.grid, sizes, params.grid.outer_edge_floor)
     # outer frames are judged without the colour prior: one side meets the background, and the centre line
     # of a one-sided bar found at its glass-side edge is not reliably on the frame
     ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
-    return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out)), grad
+    return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out))
 
 
 def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
@@ -335,16 +334,17 @@ def find_bars(
         ORIENTATION_SEARCH_DEG,
     )
     vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
-    v, _ = _family(image, valid, vseg, 0, slice(0, H), params, sizes)
-    h, _ = _family(image, valid, hseg, 1, slice(0, W), params, sizes)
-    v, gv = _family(image, valid, vseg, 0, _span(h, H), params, sizes)
+    gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
+    v = _family(gv, vseg, 0, slice(0, H), params, sizes)
+    h = _family(gh, hseg, 1, slice(0, W), params, sizes)
+    v = _family(gv, vseg, 0, _span(h, H), params, sizes)
     # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
     # they run the facade's full height, while the long straight lines that reflections bring (horizon,
     # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
     colour_h = None
     if v is not None and params.grid.frame_colour_scale > 0 and planar:
         colour_h = bar_colour(gv, v, _span(h, H))
-    h, gh = _family(image, valid, hseg, 1, _span(v, W), params, sizes, colour_h)
+    h = _family(gh, hseg, 1, _span(v, W), params, sizes, colour_h)
     metrics = {
         "n_segments": len(fam.segments),
         "n_vertical_segments": len(vseg),
