@@ -97,7 +97,8 @@ def test_relaxed_refuses_shifts_shorter_than_its_reach():
         relaxed(shifted(np.zeros(10), 3), 1.0)
 
 
-def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int, floor: float) -> tuple[np.ndarray, np.ndarray]:
+def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int,
+                       floor: float) -> tuple[np.ndarray, np.ndarray]:
     """The reference: at each lattice position and width in turn, the mean over the rows of
     sqrt(max(|gL|, |gR|) * max(min(|gL|, |gR|), floor * max(|gL|, |gR|)) * (1 - cos) / 2), the first best
     width kept."""
