@@ -77,6 +77,10 @@ LSD_SIGMA_PX = 0.75
 #: a family with fewer whole frame bars than this is not corrected for parallax: three points are the
 #: fewest that tell a slope from one bar's error
 PARALLAX_MIN_BARS = 3
+#: a view's parallax slope counts where it stands this many standard errors above 0 (from the fit's own
+#: residual): a fit through few bars measured in a real photo scatters by more than the slope of frames
+#: nearly flush with the glass, and a slope from noise would shift every corrected edge
+PARALLAX_MIN_T = 3.0
 #: a panel side whose frame is present over less than this fraction of its length marks the panel occluded
 MIN_EDGE_SUPPORT = 0.6
 
@@ -245,8 +249,10 @@ def fit_parallax(bars: _Bars, field: ParallaxField, axis: int, min_bars: int, ma
     foot on either side (at glass level: a second fit divides by 1 + k), leaving out bars narrower than
     half the median (cut by the border). k is the larger side slope. A side whose slope is under half of k
     has its bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found
-    is the front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars or k outside
-    (0, ``max_slope``]."""
+    is the front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars, k outside
+    (0, ``max_slope``], or k less than ``PARALLAX_MIN_T`` standard errors above 0 (a fit through as many
+    bars as unknowns has no residual to judge it by: it counts only where the building's depth, from
+    other views, applies)."""
     lows = np.array([e[0].a for e in bars.edges])
     highs = np.array([e[1].a for e in bars.edges])
     p_low = np.array([_coord(field, axis, e[0]) for e in bars.edges])
@@ -261,12 +267,24 @@ def fit_parallax(bars: _Bars, field: ParallaxField, axis: int, min_bars: int, ma
     k = 0.0
     for _ in range(2):
         A = np.concatenate([np.ones((len(s), 1)), s[:, sides] / (1.0 + k)], axis=1)
-        slopes = dict(zip(sides, np.linalg.lstsq(A, w[ok], rcond=None)[0][1:], strict=True))
+        coef = np.linalg.lstsq(A, w[ok], rcond=None)[0]
+        slopes = dict(zip(sides, coef[1:], strict=True))
         k = float(max(slopes.values()))
     measured = tuple(float(slopes.get(j, np.nan)) for j in (0, 1))
-    if not 0.0 < k <= max_slope:
+    if not 0.0 < k <= max_slope or k < PARALLAX_MIN_T * _slope_error(A, w[ok] - A @ coef, sides, slopes):
         return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
     return Parallax(axis, min_width_px=min_width, slopes=measured).with_slope(k)  # type: ignore[arg-type]
+
+
+def _slope_error(A: np.ndarray, residual: np.ndarray, sides: list[int], slopes: dict[int, float]) -> float:
+    """The standard error of the larger side slope of the least-squares fit ``A`` with ``residual``
+    (inf where the fit has no residual to judge it by: as many bars as unknowns)."""
+    dof = len(residual) - A.shape[1]
+    if dof < 1:
+        return np.inf
+    j = 1 + sides.index(max(slopes, key=lambda side: slopes[side]))
+    variance = float(residual @ residual) / dof * np.linalg.pinv(A.T @ A)[j, j]
+    return float(np.sqrt(max(variance, 0.0)))
 
 
 def slope_of(frame_depth_m: float, distance_m: float) -> float:

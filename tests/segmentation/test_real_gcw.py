@@ -91,3 +91,52 @@ def test_3d_panels_against_the_nominal_grid(gcw):
     wall = world @ WORLD_FROM_WALL[:3, :3]  # world -> wall frame (a rotation)
     err = grid_corner_errors_m(wall, (0.1032, 0.1532), (0.0932, 0.1432))
     assert np.median(err) <= 1.5 * 0.005  # 1.5 x the poses' own scatter
+
+
+def _scaled_copy(src, dst, scale: float) -> None:
+    """``src`` with every photo and mask resized by ``scale``, the intrinsics and the pane outlines with
+    them (pixel indices: the centre of the top-left pixel is 0)."""
+    import cv2
+
+    cams = json.loads((src / "cameras.json").read_text())
+    panes = json.loads((src / "panes.json").read_text())
+    for sub in ("images", "masks"):
+        (dst / sub).mkdir(parents=True)
+    for stem, c in cams.items():
+        W, H = round(c["width"] * scale), round(c["height"] * scale)
+        sx, sy = W / c["width"], H / c["height"]
+        photo = cv2.imread(str(src / "images" / f"{stem}.jpg"))
+        small = cv2.resize(photo, (W, H), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(dst / "images" / f"{stem}.jpg"), small, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        mask = cv2.imread(str(src / "masks" / f"{stem}.png"), cv2.IMREAD_GRAYSCALE)
+        mask = cv2.resize(mask, (W, H), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(dst / "masks" / f"{stem}.png"), np.where(mask > 127, 255, 0).astype(np.uint8))
+        K = np.array(c["K"], float)
+        K[0] *= sx
+        K[1] *= sy
+        K[0, 2], K[1, 2] = (c["K"][0][2] + 0.5) * sx - 0.5, (c["K"][1][2] + 0.5) * sy - 0.5
+        c.update(K=K.tolist(), width=W, height=H)
+        panes[stem] = [[[(x + 0.5) * sx - 0.5, (y + 0.5) * sy - 0.5] for x, y in o] for o in panes[stem]]
+    (dst / "cameras.json").write_text(json.dumps(cams))
+    (dst / "panes.json").write_text(json.dumps(panes))
+
+
+def test_the_same_photos_at_a_smaller_size_give_the_same_panels(gcw, tmp_path):
+    """Sizes are in metres on the facade: the photos at 0.6 of their size, a coarser ground sample
+    distance, give the same frames (the same frame depth, here none: these frames show no parallax a
+    view's few bars could tell from their scatter) and the same corners in the full-size photos' pixels."""
+    layout, per_photo = gcw
+    src = tmp_path / "small"
+    _scaled_copy(SRC, src, 0.6)
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_gcw_building.py"), str(src),
+                          "--building", "gcw_dev", "--data-root", str(tmp_path / "data")], cwd=REPO, env=env,
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    doit(["segment_panels", "building=gcw_dev"], env, tmp_path / "data")
+    small = BuildingLayout(tmp_path / "data", "gcw_dev")
+    depth = read_manifest(small, "segment_panels").metrics["frame_depth_m"]
+    assert depth == read_manifest(layout, "segment_panels").metrics["frame_depth_m"]
+    s, full = summary(evaluate_building(small, src)), summary(per_photo)
+    assert s["found_fraction"] >= 0.9 and s["mask_iou_median"] >= full["mask_iou_median"] - 0.03
+    assert s["corner_error_median_px"] / 0.6 <= 1.2 * full["corner_error_median_px"]

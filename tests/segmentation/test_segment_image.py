@@ -194,6 +194,32 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     assert correct_parallax(bars, fit_parallax(bars, field, 0, 7, 0.05), field) is bars
 
 
+def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scatter():
+    """Five bars right of the camera's foot whose widths grow by k = 0.01 per px of P: measured to 0.05 px
+    the slope is kept; measured to 1 px (a real photo's edges), the same growth is within the scatter and no
+    slope is taken (a frame flush with the glass would otherwise be corrected by noise). Three bars on both
+    sides of the foot fit exactly (as many bars as unknowns): no residual to judge it by, no slope."""
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.panels import ParallaxField, _Bars, fit_parallax
+
+    field = ParallaxField.about((0.0, 50.0), 600, 200)
+    line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
+    centres = np.array([60.0, 160.0, 260.0, 360.0, 460.0])
+    scatter = np.array([1.0, -1.0, 0.0, 1.0, -1.0])
+
+    def bars(widths: np.ndarray, at: np.ndarray = centres) -> _Bars:
+        return _Bars([(line(c - w / 2), line(c + w / 2)) for c, w in zip(at, widths, strict=True)], None)
+
+    growth = 8.0 + 0.01 * centres
+    assert abs(fit_parallax(bars(growth + 0.05 * scatter), field, 0, 3, 0.05).k - 0.01) < 1e-3
+    noisy = fit_parallax(bars(growth + 1.0 * scatter), field, 0, 3, 0.05)
+    assert noisy.k == 0.0 and 0.0 < noisy.slopes[1] <= 0.05  # measured, in range, and not kept
+    both_sides = ParallaxField.about((300.0, 50.0), 600, 200)
+    three = np.array([100.0, 300.0, 500.0])
+    exact = fit_parallax(bars(8.0 + 0.01 * np.abs(three - 300.0), three), both_sides, 0, 3, 0.05)
+    assert exact.k == 0.0 and np.isfinite(exact.slopes).all()
+
+
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
     """A cylinder of 6 m seen from 6 m (curved12's frontal views at half scale): frames d = 6 cm proud of
     the glass are seen shifted by (d / D) P, P growing much faster than the distance from the camera's foot
