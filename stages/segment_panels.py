@@ -166,11 +166,20 @@ def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
     median of what the views' own parallax fits give (``FrameBars.frame_depths_m``); a family without any
     is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
     widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
-    tight cylinder) or show it loosely."""
+    tight cylinder) or show it loosely. The views' exact fits (as many bars as unknowns: a few bars in a
+    small view) join the median where they agree with one another (``panels.agreeing``)."""
+    from facade_pipeline.segmentation.panels import agreeing
+
     depths: dict[str, list[float]] = {}
+    exact: dict[str, list[float]] = {}
     for f in found:
         for name, d in ({} if f is None else f.frame_depths_m()).items():
             depths.setdefault(name, []).append(d)
+        for name, d in ({} if f is None else f.frame_depths_m(unjudged=True)).items():
+            exact.setdefault(name, []).append(d)
+    for name, d in exact.items():
+        if agreeing(d):
+            depths.setdefault(name, []).extend(d)
     return {name: float(np.median(d)) for name, d in sorted(depths.items())}
 
 

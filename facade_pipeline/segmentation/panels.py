@@ -229,6 +229,9 @@ class Parallax:
     min_width_px: float = 0.0
     slopes: tuple[float, float] = (float("nan"), float("nan"))
     """The width's growth with P on either side (NaN: not measured there)."""
+    unjudged: bool = False
+    """A fit through as many bars as unknowns, its slope within range: exact, so without a residual to
+    judge it by; such slopes count where those of the building's views agree (``agreeing``)."""
 
     def with_slope(self, k: float) -> Parallax:
         """This family's parallax with the slope ``k`` (the building's frame depth, ``slope_of``): a side
@@ -250,9 +253,8 @@ def fit_parallax(bars: _Bars, field: ParallaxField, axis: int, min_bars: int, ma
     half the median (cut by the border). k is the larger side slope. A side whose slope is under half of k
     has its bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found
     is the front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars, k outside
-    (0, ``max_slope``], or k less than ``PARALLAX_MIN_T`` standard errors above 0 (a fit through as many
-    bars as unknowns has no residual to judge it by: it counts only where the building's depth, from
-    other views, applies)."""
+    (0, ``max_slope``], or k less than ``PARALLAX_MIN_T`` standard errors above 0; a fit through as many
+    bars as unknowns has no residual to judge it by: it is ``unjudged``, and corrects nothing on its own."""
     lows = np.array([e[0].a for e in bars.edges])
     highs = np.array([e[1].a for e in bars.edges])
     p_low = np.array([_coord(field, axis, e[0]) for e in bars.edges])
@@ -271,7 +273,12 @@ def fit_parallax(bars: _Bars, field: ParallaxField, axis: int, min_bars: int, ma
         slopes = dict(zip(sides, coef[1:], strict=True))
         k = float(max(slopes.values()))
     measured = tuple(float(slopes.get(j, np.nan)) for j in (0, 1))
-    if not 0.0 < k <= max_slope or k < PARALLAX_MIN_T * _slope_error(A, w[ok] - A @ coef, sides, slopes):
+    if not 0.0 < k <= max_slope:
+        return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
+    error = _slope_error(A, w[ok] - A @ coef, sides, slopes)
+    if not np.isfinite(error):
+        return Parallax(axis, min_width_px=min_width, slopes=measured, unjudged=True)  # type: ignore[arg-type]
+    if k < PARALLAX_MIN_T * error:
         return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
     return Parallax(axis, min_width_px=min_width, slopes=measured).with_slope(k)  # type: ignore[arg-type]
 
@@ -584,11 +591,27 @@ class FrameBars:
         return {name: [(hi.a - lo.a) * self.metres_per_px for lo, hi in bars.edges]
                 for name, bars in (("x", self.bars_v), ("y", self.bars_h)) if bars is not None}
 
-    def frame_depths_m(self) -> dict[str, float]:
+    def frame_depths_m(self, unjudged: bool = False) -> dict[str, float]:
         """The frame depth d = k D / (1 + k) (m) each family's own parallax fit gives ("x": the mullions,
-        "y": the transoms), where it has one and the camera's distance D to the surface is known."""
+        "y": the transoms), where it has one and the camera's distance D to the surface is known; with
+        ``unjudged``, the depths of the exact fits instead (``Parallax.unjudged``, the larger side slope)."""
         D = np.nan if self.parallax is None else self.parallax.distance_m
-        return {n: f.k / (1.0 + f.k) * D for n, f in self.fits.items() if f.k > 0.0 and np.isfinite(D)}
+        k = {n: float(np.nanmax(f.slopes)) if unjudged else f.k for n, f in self.fits.items()
+             if f.unjudged == unjudged and (unjudged or f.k > 0.0)}
+        return {n: v / (1.0 + v) * D for n, v in k.items() if np.isfinite(D)}
+
+
+def agreeing(depths: list[float]) -> bool:
+    """Do measurements without error bars of their own (``Parallax.unjudged``) agree on a depth above 0:
+    two or more, their mean above 0 by the two-sided 95 % quantile of Student's t times its standard error
+    (frames seen alike in every view give one depth; the scatter of a few bars in real photos does not)."""
+    from scipy.stats import t as student  # imported here: only a building with such fits needs it
+
+    n = len(depths)
+    if n < 2:
+        return False
+    error = float(np.std(depths, ddof=1)) / np.sqrt(n)
+    return float(np.mean(depths)) > (student.ppf(0.975, n - 1) * error if error > 0 else 0.0)
 
 
 def find_frames(

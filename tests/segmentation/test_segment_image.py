@@ -217,7 +217,31 @@ def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scat
     both_sides = ParallaxField.about((300.0, 50.0), 600, 200)
     three = np.array([100.0, 300.0, 500.0])
     exact = fit_parallax(bars(8.0 + 0.01 * np.abs(three - 300.0), three), both_sides, 0, 3, 0.05)
-    assert exact.k == 0.0 and np.isfinite(exact.slopes).all()
+    assert exact.k == 0.0 and exact.unjudged and np.isfinite(exact.slopes).all()
+    assert not noisy.unjudged
+
+
+def test_exact_parallax_fits_count_for_the_building_where_they_agree():
+    """Views whose fits are exact (three bars for three unknowns) give the building's depth where their
+    depths agree (Student's t on their mean), and none where they scatter as a few bars in real photos do;
+    a view's judged fit counts on its own."""
+    from facade_pipeline.segmentation.panels import FrameBars, Parallax, ParallaxField, agreeing
+
+    assert agreeing([0.148, 0.139, 0.155, 0.151]) and agreeing([0.12, 0.12])
+    assert not agreeing([0.0059, 0.0015, 0.0038]) and not agreeing([0.12]) and not agreeing([])
+
+    def view(kx: float, exact: bool) -> FrameBars:
+        field = dataclasses.replace(ParallaxField.about((50.0, 50.0), 100, 100), distance_m=10.0)
+        fit = Parallax(0, slopes=(kx, np.nan), unjudged=True) if exact else Parallax(0, kx)
+        return FrameBars(None, None, {"x": fit}, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
+
+    k = lambda d: d / (10.0 - d)  # noqa: E731
+    agree = [view(k(0.12), True), view(k(0.125), True), view(k(0.118), True)]
+    assert segment_panels.building_frame_depth_m(agree)["x"] == pytest.approx(0.12)
+    scatter = [view(k(0.06), True), view(k(0.005), True), view(k(0.2), True)]
+    assert segment_panels.building_frame_depth_m(scatter) == {}
+    judged = scatter + [view(k(0.1), False)]
+    assert segment_panels.building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
 
 
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
