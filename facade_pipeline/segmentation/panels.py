@@ -347,9 +347,9 @@ def find_bars(
     parallax: ParallaxField | None = None,
     planar: bool = True,
 ) -> tuple[_Bars | None, _Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
-    """Mullions and transoms of an RGB image [H, W, 3]: two MAP passes (the second takes each family's
-    evidence over the other's extent only; on a ``planar`` surface the transoms must have the mullions'
-    colour, ``frame_colour_scale``), then sub-pixel edges, with their frames' parallax fitted in the
+    """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
+    then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
+    mullions' colour, ``frame_colour_scale``), then sub-pixel edges, with their frames' parallax fitted in the
     image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
     and the two families' gradients."""
     H, W = image.shape[:2]
@@ -360,7 +360,7 @@ def find_bars(
     )
     vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
     gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
-    v = _family(gv, vseg, 0, slice(0, H), params, sizes)
+    # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole width
     h = _family(gh, hseg, 1, slice(0, W), params, sizes)
     v = _family(gv, vseg, 0, _span(h, H), params, sizes)
     # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
