@@ -42,8 +42,9 @@ corners are intersections of these edge lines (``panels.py``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -286,6 +287,56 @@ def relaxed(shifts_of_ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.n
     return cand[k, np.arange(cand.shape[1])], shifts[k] * STEP_PX
 
 
+def shift_windows(ll: np.ndarray, radius: int) -> np.ndarray:
+    """[M, 2 radius + 1], a read-only view: column radius + s holds l(c + s) at c, -inf beyond the ends
+    (``shifted`` transposed, so that one position's shifts lie side by side)."""
+    padded = np.pad(ll, radius, constant_values=-np.inf)
+    return np.lib.stride_tricks.sliding_window_view(padded, 2 * radius + 1)
+
+
+def relaxed_at(windows: np.ndarray, sigma_px: float, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``relaxed`` at the lattice positions ``at`` [N] only, to the bit (the same candidates in the same
+    order), from ``shift_windows(ll, radius)`` with a radius of at least 3 sigma."""
+    r, R = _radius(sigma_px), (windows.shape[1] - 1) // 2
+    if r > R:
+        raise ValueError(f"relaxed_at: sigma {sigma_px} px reaches {r} lattice steps, the shifts only {R}")
+    shifts = np.arange(-r, r + 1)
+    cand = windows[at, R - r : R + r + 1] - ((shifts * STEP_PX) ** 2 / (2 * sigma_px**2))[None, :]
+    k = np.argmax(cand, axis=1)
+    return cand[np.arange(len(k)), k], shifts[k] * STEP_PX
+
+
+def reach(windows: np.ndarray) -> np.ndarray:
+    """[R + 1, M]: row r holds the largest l(c + s) over |s| <= r at c, from ``shift_windows(ll, R)``."""
+    R = (windows.shape[1] - 1) // 2
+    pairs = np.maximum(windows[:, R:], windows[:, R::-1])  # column s: the larger of l(c + s) and l(c - s)
+    return np.ascontiguousarray(np.maximum.accumulate(pairs, axis=1).T)
+
+
+#: the relaxation's shifts fall in this many bands of reach for its upper bound (``relaxed_bound``): more
+#: bands bound it closer, each at the cost of one pass over the lattice
+BOUND_BANDS = 4
+#: a penalty in the bound counts this fraction less than the relaxation's own: the bound then stays above
+#: the relaxation whatever rounding the penalties' two computations take
+BOUND_PENALTY_SLACK = 1e-9
+
+
+def relaxed_bound(reaches: np.ndarray, sigmas: np.ndarray) -> np.ndarray:
+    """[S, M] an upper bound of ``relaxed``'s values at each of the ``sigmas`` [S] (px), from ``reach``: the
+    shifts of a band (r_{j-1}, r_j] of the reach r = 3 sigma in lattice steps (``BOUND_BANDS`` bands) cost
+    at least the penalty at r_{j-1} + 1, and l there is at most the reach of r_j."""
+    sigmas = np.asarray(sigmas, float)
+    r = np.array([_radius(sigma) for sigma in sigmas], dtype=int)
+    bound = np.full((len(sigmas), reaches.shape[1]), -np.inf)
+    first = np.zeros(len(sigmas), int)  # the band's nearest shift
+    for j in range(1, BOUND_BANDS + 1):
+        last = -(-r * j // BOUND_BANDS)  # ceil(r j / bands)
+        penalty = (first * STEP_PX) ** 2 / (2 * sigmas**2) * (1.0 - BOUND_PENALTY_SLACK)
+        np.maximum(bound, reaches[last] - penalty[:, None], out=bound)
+        first = np.maximum(first, last + 1)
+    return bound
+
+
 @dataclass(frozen=True)
 class FamilyFit:
     """MAP bar centres [K] (px) of one family, their widths [K] (px), pitch (px) and the MAP score (nats)."""
@@ -299,18 +350,74 @@ class FamilyFit:
 def best_run(values: np.ndarray) -> tuple[float, int, int]:
     """The best sum of a contiguous run of >= 2 terms of one row of values (-inf = unusable) and its
     [lo, hi): of the runs of the same sum, the one that starts first, then ends first. Each run's sum is
-    accumulated from its first term on, left to right (the order of a scalar loop over the runs)."""
-    n = len(values)
-    if n < 2:
-        return -np.inf, 0, 0
-    i, j = np.indices((n, n))
-    terms = np.where(j >= i, values[None, :], 0.0)  # row i: the terms from i on
-    sums = np.cumsum(terms, axis=1)  # sums[i, j] = values[i] + ... + values[j]
-    sums[(j <= i) | ~np.isfinite(sums)] = -np.inf  # two terms at least; a run holds no unusable term
-    k = int(np.argmax(sums))  # row-major: the first of equal sums by start, then by end
-    if not np.isfinite(sums.flat[k]):
-        return -np.inf, 0, 0
-    return float(sums.flat[k]), k // n, k % n + 1
+    accumulated from its first term on, left to right. A scalar loop over Python floats: a row holds a few
+    dozen terms at most, where numpy's per-call cost outweighs the arithmetic."""
+    v = values.tolist()
+    inf = math.inf
+    best, lo, hi = -inf, 0, 0
+    for i in range(len(v) - 1):
+        total = v[i]
+        for j in range(i + 1, len(v)):
+            total += v[j]
+            if not -inf < total < inf:  # an unusable term (or NaN): so is every longer run from i
+                break
+            if total > best:
+                best, lo, hi = total, i, j + 1
+    return best, lo, hi
+
+
+@dataclass(frozen=True, eq=False)
+class _PitchLattice:
+    """The grid hypotheses of every pitch of ``map_family`` for one image size: per pitch, the positions
+    ``pos`` [P, K] (px) of line k at phase p, whether their lattice index lies on the lattice (``inside``)
+    and the index kept on it (``clipped``), stored flat, pitch after pitch (from ``start``); the flat
+    hypotheses' index into an array [S, M] over the pitches (``by_pitch``), where each phase starts among
+    them (``phase_start``) and where each pitch starts among the phases (``pitch_phase_start``)."""
+
+    pitches: np.ndarray
+    shapes: list[tuple[int, int]]
+    start: np.ndarray
+    pos: np.ndarray
+    inside: np.ndarray
+    clipped: np.ndarray
+    by_pitch: np.ndarray
+    phase_start: np.ndarray
+    pitch_phase_start: np.ndarray
+
+    def of_pitch(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """pos, inside, clipped [P, K] of pitch i."""
+        a, b = self.start[i], self.start[i + 1]
+        return tuple(x[a:b].reshape(self.shapes[i]) for x in (self.pos, self.inside, self.clipped))
+
+
+@lru_cache(maxsize=8)  # the MAP passes over one family of a view share it
+def _pitch_lattice(size: int, M: int, min_pitch: float, max_pitch: float) -> _PitchLattice:
+    """The hypotheses of an image ``size`` px across with a lattice of M positions, pitches from
+    ``min_pitch`` to ``max_pitch`` (px), made as ``map_family`` made them pitch by pitch."""
+    pitches = np.arange(min_pitch, min(size, max_pitch) + STEP_PX, STEP_PX)
+    pos, shapes = [], []
+    for pitch in pitches:
+        k = np.arange(int(size / pitch) + 2)
+        phases = np.arange(0.0, pitch, STEP_PX)
+        pos.append((phases[:, None] + k[None, :] * pitch).ravel())  # [P, K] px
+        shapes.append((len(phases), len(k)))
+    sizes = [len(p) for p in pos]
+    flat = np.concatenate(pos) if pos else np.zeros(0)
+    idx = np.rint(flat / STEP_PX).astype(int)
+    clipped = np.minimum(idx, M - 1)
+    start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    pitch_of = np.repeat(np.arange(len(pitches)), sizes)
+    phase_start = [start[i] + K * np.arange(P) for i, (P, K) in enumerate(shapes)]
+    pitch_phase_start = np.concatenate([[0], np.cumsum([P for P, _ in shapes])[:-1]]).astype(int)
+    return _PitchLattice(
+        pitches, shapes, start, flat, idx < M, clipped, pitch_of * M + clipped,
+        np.concatenate(phase_start).astype(int) if shapes else np.zeros(0, int), pitch_phase_start,
+    )
+
+
+#: a pitch is passed over where its bound on the gain falls this fraction below the best score: the bound's
+#: sums run in another order than the gains', which rounding may set some ulps apart
+BOUND_SUM_MARGIN = 1e-9
 
 
 def map_family(
@@ -322,29 +429,50 @@ def map_family(
     outer: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> FamilyFit | None:
     """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines.
-    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames."""
+    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames.
+
+    Pitches run from the smallest up; at each, the phases are ranked by their gain (the sum of their
+    positive terms, which bounds any run's score) and the best few get the exact run. A pitch none of whose
+    phases can gain more than the best score so far adds nothing, so one whose bound on the relaxation
+    (``relaxed_bound``) already says so is passed over; elsewhere the relaxation is computed only where
+    its bound lets a term be positive (no other term counts in a gain), and in full on the phases that
+    get the exact run: the scores, gains and their ranking are those of the relaxation everywhere."""
     M = len(ll)
     best: tuple[float, np.ndarray, float] | None = None
-    pitches = np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX)
-    if len(pitches):  # sigma grows with the pitch: the last one reaches furthest
-        shifts_of_ll = shifted(ll, _radius(max(SIGMA_MIN_PX, params.sigma_frac * pitches[-1])))
-    for pitch in pitches:
-        sigma = max(SIGMA_MIN_PX, params.sigma_frac * pitch)
-        relaxed_ll, delta = relaxed(shifts_of_ll, sigma)
-        k = np.arange(int(size / pitch) + 2)
-        phases = np.arange(0.0, pitch, STEP_PX)
-        pos = phases[:, None] + k[None, :] * pitch  # [P, K] px
-        idx = np.rint(pos / STEP_PX).astype(int)
-        vals = np.where(idx < M, relaxed_ll[np.minimum(idx, M - 1)] - params.line_cost, -np.inf)
+    lattice = _pitch_lattice(size, M, float(sizes.min_pitch), float(sizes.max_pitch))
+    pitches = lattice.pitches
+    if not len(pitches):
+        return None
+    sigmas = [max(SIGMA_MIN_PX, params.sigma_frac * pitch) for pitch in pitches]
+    # sigma grows with the pitch: the last one reaches furthest
+    windows = shift_windows(ll, _radius(sigmas[-1]))
+    bound = relaxed_bound(reach(windows), np.array(sigmas)) - params.line_cost  # [S, M]
+    terms = np.where(lattice.inside, bound.ravel()[lattice.by_pitch], -np.inf)
+    phase_gain = np.add.reduceat(np.maximum(terms, 0.0), lattice.phase_start)
+    pitch_gain = np.maximum.reduceat(phase_gain, lattice.pitch_phase_start) * (1.0 + BOUND_SUM_MARGIN)
+    for i, pitch in enumerate(pitches):
+        if best is not None and pitch_gain[i] <= best[0]:
+            continue  # no phase's gain passes the best score: the ranked loop below would stop at once
+        sigma = sigmas[i]
+        pos, inside, clipped = lattice.of_pitch(i)
+        positive = np.flatnonzero(bound[i] > 0)
+        relaxed_ll = np.full(M, -np.inf)  # only the positive terms count in a gain
+        relaxed_ll[positive] = relaxed_at(windows, sigma, positive)[0]
+        vals = np.where(inside, relaxed_ll[clipped] - params.line_cost, -np.inf)
         gain = np.where(vals > 0, vals, 0.0).sum(axis=1)
         top = gain.argsort()[::-1][:8]  # only the most promising phases need the exact run
-        for p in top:
+        if best is not None:  # those that may beat the best score: a prefix, the gains falling
+            top = top[: int(np.count_nonzero(gain[top] > best[0]))]
+        if not len(top):
+            continue
+        value, delta = (a.reshape(len(top), -1) for a in relaxed_at(windows, sigma, clipped[top].ravel()))
+        value = np.where(inside[top], value - params.line_cost, -np.inf)
+        for n, p in enumerate(top):
             if best is not None and gain[p] <= best[0]:
                 break  # a run scores at most the sum of its positive terms: no better run from here on
-            score, lo, hi = best_run(vals[p])
+            score, lo, hi = best_run(value[n])
             if hi - lo >= 2 and (best is None or score > best[0]):
-                i = idx[p, lo:hi]
-                best = (score, pos[p, lo:hi] + delta[i], pitch)
+                best = (score, pos[p, lo:hi] + delta[n, lo:hi], pitch)
     if best is None or best[0] <= 0:
         return None
     score, centres, pitch = best

@@ -1,6 +1,7 @@
 """The segmentation grid's array helpers against slow, obviously correct references: numpy's NaN median, a
-scalar loop over every run of lattice values, one over every shift of the prior's relaxation and one over
-every row, position and width of the bar evidence."""
+scalar loop over every run of lattice values, one over every shift of the prior's relaxation (at every
+position or some), one over every row, position and width of the bar evidence, and the MAP search that
+takes the relaxation in full at every pitch."""
 
 from __future__ import annotations
 
@@ -10,14 +11,20 @@ import numpy as np
 import pytest
 
 from facade_pipeline.segmentation.grid import (
+    SIGMA_MIN_PX,
     STEP_PX,
     Gradients,
     GridParams,
     PixelSizes,
     bar_evidence,
     best_run,
+    map_family,
     nanmedian0,
+    reach,
     relaxed,
+    relaxed_at,
+    relaxed_bound,
+    shift_windows,
     shifted,
 )
 
@@ -95,6 +102,107 @@ def test_relaxed_is_the_loop_over_every_shift(seed):
 def test_relaxed_refuses_shifts_shorter_than_its_reach():
     with pytest.raises(ValueError, match="reaches 6 lattice steps"):
         relaxed(shifted(np.zeros(10), 3), 1.0)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_relaxed_at_is_the_loop_at_those_positions(seed):
+    """Shift windows made once for the widest sigma, some positions taken in any order, repeats and none."""
+    rng = np.random.default_rng(seed)
+    ll = np.round(rng.normal(0.0, 2.0, int(rng.integers(1, 60))), 1 if seed % 2 else 6)  # rounded: ties
+    widest = 4.0
+    windows = shift_windows(ll, int(np.ceil(3 * widest / STEP_PX)))
+    for sigma in (0.5, 1.3, 2.75, widest):
+        ref_value, ref_delta = _relaxed_loop(ll, sigma)
+        for at in (np.arange(len(ll)), rng.integers(0, len(ll), 7), np.zeros(0, int)):
+            value, delta = relaxed_at(windows, sigma, at)
+            assert np.array_equal(value, ref_value[at]) and np.array_equal(delta, ref_delta[at])
+    with pytest.raises(ValueError, match="reaches 6 lattice steps"):
+        relaxed_at(shift_windows(np.zeros(10), 3), 1.0, np.arange(3))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_reach_is_the_largest_value_within_each_radius(seed):
+    rng = np.random.default_rng(seed)
+    ll = np.round(rng.normal(0.0, 2.0, int(rng.integers(1, 40))), 1)
+    R = 9
+    got = reach(shift_windows(ll, R))
+    assert got.shape == (R + 1, len(ll))
+    for r in range(R + 1):
+        for c in range(len(ll)):
+            assert got[r, c] == max(ll[max(0, c - r) : c + r + 1])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_relaxed_bound_is_above_the_relaxation_and_near_it(seed):
+    """Above (or equal to) the loop's value at every position and sigma; within the penalty of one band of
+    it where l is flat (there the relaxation is l itself)."""
+    rng = np.random.default_rng(seed)
+    ll = np.round(rng.normal(0.0, 2.0, int(rng.integers(1, 80))), 1 if seed % 2 else 6)
+    sigmas = np.array([0.5, 0.8, 1.3, 2.0, 2.75, 4.0, 6.1])
+    bound = relaxed_bound(reach(shift_windows(ll, int(np.ceil(3 * sigmas[-1] / STEP_PX)))), sigmas)
+    assert bound.shape == (len(sigmas), len(ll))
+    for sigma, b in zip(sigmas, bound, strict=True):
+        assert np.all(b >= _relaxed_loop(ll, sigma)[0])
+    flat = relaxed_bound(reach(shift_windows(np.full(30, 1.5), 40)), sigmas)
+    assert np.all(flat == 1.5)
+
+
+def _map_family_search(ll: np.ndarray, widths: np.ndarray, size: int, params: GridParams,
+                       sizes: PixelSizes) -> tuple[float, np.ndarray, np.ndarray, float] | None:
+    """The reference: at every pitch the relaxation at every position, every phase's gain, and the exact run
+    of the 8 phases of highest gain in turn while their gain passes the best score so far."""
+    M = len(ll)
+    best = None
+    for pitch in np.arange(sizes.min_pitch, min(size, sizes.max_pitch) + STEP_PX, STEP_PX):
+        sigma = max(SIGMA_MIN_PX, params.sigma_frac * pitch)
+        value, delta = relaxed(shifted(ll, int(np.ceil(3 * sigma / STEP_PX))), sigma)
+        k = np.arange(int(size / pitch) + 2)
+        pos = np.arange(0.0, pitch, STEP_PX)[:, None] + k[None, :] * pitch
+        idx = np.rint(pos / STEP_PX).astype(int)
+        vals = np.where(idx < M, value[np.minimum(idx, M - 1)] - params.line_cost, -np.inf)
+        gain = np.where(vals > 0, vals, 0.0).sum(axis=1)
+        for p in gain.argsort()[::-1][:8]:
+            if best is not None and gain[p] <= best[0]:
+                break
+            score, lo, hi = _best_run_loop(vals[p])
+            if hi - lo >= 2 and (best is None or score > best[0]):
+                best = (score, pos[p, lo:hi] + delta[idx[p, lo:hi]], pitch)
+    if best is None or best[0] <= 0:
+        return None
+    score, centres, pitch = best
+    return score, centres, widths[np.clip(np.rint(centres / STEP_PX).astype(int), 0, M - 1)], pitch
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_map_family_is_the_search_with_the_relaxation_in_full(seed):
+    """Bars at a regular pitch with jitter, gaps and noise (and a view of noise alone): the bounded search
+    finds the reference's grid, score and widths to the bit."""
+    rng = np.random.default_rng(seed)
+    size = int(rng.integers(60, 160))
+    M = 2 * size + 1
+    x = np.arange(M) * STEP_PX
+    ll = rng.normal(-1.5, 0.6, M)
+    if seed < 8:
+        pitch, phase = rng.uniform(9.0, 30.0), rng.uniform(0.0, 9.0)
+        for c in np.arange(phase, size, pitch):
+            if rng.random() < 0.85:  # some bars missing
+                ll += rng.uniform(2.0, 5.0) * np.exp(-0.5 * ((x - c - rng.normal(0, 0.4)) / 0.8) ** 2)
+    ll = np.round(ll, 2 if seed % 2 else 8)  # rounded: equal gains and scores occur
+    widths = rng.integers(2, 6, M).astype(float)
+    params = GridParams(min_pitch_m=0.5, max_pitch_m=5.0, sigma_frac=0.04, line_cost=1.2, min_bar_m=0.02,
+                        max_bar_m=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+                        frame_colour_scale=0.1)  # map_family reads sigma_frac, line_cost; the sizes the rest
+    sizes = PixelSizes(min_pitch=6.3, max_pitch=45.0, min_bar=2, max_bar=5)
+    fit = map_family(ll, widths, size, params, sizes)
+    ref = _map_family_search(ll, widths, size, params, sizes)
+    if ref is None:
+        assert fit is None
+        return
+    score, centres, bar_widths, pitch = ref
+    assert fit is not None and fit.score == score and fit.pitch == pitch
+    assert np.array_equal(fit.centres, centres) and np.array_equal(fit.widths, bar_widths)
+    if seed < 8:
+        assert len(fit.centres) >= 3
 
 
 def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int,
