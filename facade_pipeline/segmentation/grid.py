@@ -43,7 +43,7 @@ corners are intersections of these edge lines (``panels.py``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
 import numpy as np
@@ -139,6 +139,8 @@ class Gradients:
     img: np.ndarray
     d: np.ndarray
     valid: np.ndarray  # [L, N] bool
+    # line colours by row span: a MAP pass's uniformity and colour prior and the bars' colour take the same
+    _line_colours: dict[tuple[int, int, int], np.ndarray] = field(default_factory=dict, repr=False)
 
     @classmethod
     def of(cls, image: np.ndarray, axis: int, valid: np.ndarray | None = None) -> Gradients:
@@ -183,14 +185,20 @@ class Gradients:
         return self._samples[rows]
 
     def line_colour(self, rows: slice) -> np.ndarray:
-        """[M, 3] median colour over ``rows`` of the image at each lattice position (NaN outside the view)."""
-        return nanmedian0(self._line_samples(rows))
+        """[M, 3] median colour over ``rows`` of the image at each lattice position (NaN outside the view);
+        read-only, kept for the span."""
+        key = rows.indices(self.img.shape[0])
+        if key not in self._line_colours:
+            colour = nanmedian0(self._line_samples(rows))
+            colour.flags.writeable = False
+            self._line_colours[key] = colour
+        return self._line_colours[key]
 
     def uniformity(self, rows: slice) -> np.ndarray:
         """v(c) [M]: median over ``rows`` of the colour distance of the image at position c (interpolated
         between pixel centres) from its median along the rows; small along a uniform frame bar."""
         col = self._line_samples(rows)  # [L, M, 3]
-        v = nanmedian0(np.linalg.norm(col - nanmedian0(col)[None], axis=2))
+        v = nanmedian0(np.linalg.norm(col - self.line_colour(rows)[None], axis=2))
         return np.where(np.isfinite(v), v, 1.0)  # positions outside the view (rectified images) are all NaN
 
 
@@ -205,29 +213,45 @@ def bar_evidence(
     |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
     agree, 0 for equal changes (a ramp, not a bar). The weaker edge counts at least its floor's fraction
     of the stronger: 0 inside the grid, where both edges must be seen; ``outer_edge_floor`` for the outer
-    frame bars."""
+    frame bars.
+
+    With s, w the stronger and weaker edge magnitude and f the floor, s max(w, f s) is computed as the
+    larger of |gL||gR| and of m (f m) over the two edges' magnitudes m: rounding is monotone, so that is
+    the product the plain expression rounds to, with m (f m) made once per position for every width."""
     g = grad.on_lattice[rows]
     mag = np.linalg.norm(g, axis=2)
+    channels = []  # [rows, M] each, laid out as the magnitudes (the lattice runs along the rows)
+    for c in range(g.shape[2]):
+        channels.append(np.empty_like(mag))
+        np.copyto(channels[-1], g[..., c])
     M = g.shape[1]
     out = [(np.zeros(M), np.zeros(M)) for _ in weak_edge_floors]
+    # an edge's magnitude times the floor's share of it; None for a floor of 0 or less, where s max(w, f s)
+    # is s w = |gL||gR| itself
+    floored = [mag * (floor * mag) if floor > 0 else None for floor in weak_edge_floors]
     for w in range(sizes.min_bar, sizes.max_bar + 1):
         h = w  # half width in lattice steps (w / 2 / STEP_PX)
         if 2 * h >= M:
             break
-        gl, gr, ml, mr = g[:, : M - 2 * h], g[:, 2 * h :], mag[:, : M - 2 * h], mag[:, 2 * h :]
-        # the arrays are [rows, M]: done in place, channel by channel, as the sum of the products over the
-        # channels would add them, so that the values are those of the plain expressions
-        dot = gl[..., 0] * gr[..., 0]
-        dot += gl[..., 1] * gr[..., 1]
-        dot += gl[..., 2] * gr[..., 2]
-        cos = np.divide(dot, np.maximum(ml * mr, 1e-12), out=dot)
-        disagree = np.subtract(1.0, cos, out=cos)
-        np.minimum(np.maximum(disagree, 0.0, out=disagree), 2.0, out=disagree)  # clip(1 - cos, 0, 2)
-        strong, weaker = np.maximum(ml, mr), np.minimum(ml, mr)
-        for floor, (best, width) in zip(weak_edge_floors, out, strict=True):
-            # an outer frame may border a background of its own colour on one side
-            e2 = np.multiply(strong, np.maximum(weaker, floor * strong))
-            e2 *= disagree
+        left, right = slice(0, M - 2 * h), slice(2 * h, M)
+        product = mag[:, left] * mag[:, right]
+        # done in place, channel by channel, as the sum of the products over the channels would add them,
+        # so that the values are those of the plain expressions
+        dot = channels[0][:, left] * channels[0][:, right]
+        for c in channels[1:]:
+            dot += c[:, left] * c[:, right]
+        cos = np.divide(dot, np.maximum(product, 1e-12), out=dot)
+        disagree = np.clip(np.subtract(1.0, cos, out=cos), 0.0, 2.0, out=cos)
+        for q, (best, width) in zip(floored, out, strict=True):
+            # an outer frame may border a background of its own colour on one side. e2 is laid out in
+            # memory as the magnitudes are (the lattice's layout), which sets the order of the sum over
+            # the rows below
+            e2 = np.empty_like(product)
+            if q is None:
+                np.multiply(product, disagree, out=e2)
+            else:
+                np.maximum(product, np.maximum(q[:, left], q[:, right]), out=e2)
+                e2 *= disagree
             e2 /= 2
             e = np.pad(np.sqrt(e2, out=e2).mean(axis=0), (h, h))
             better = e > best

@@ -1,7 +1,7 @@
 """The segmentation grid's array helpers against slow, obviously correct references: numpy's NaN median, a
 scalar loop over every run of lattice values, one over every shift of the prior's relaxation (at every
-position or some), one over every row, position and width of the bar evidence, and the MAP search that
-takes the relaxation in full at every pitch."""
+position or some), one over every row, position and width of the bar evidence (and its plain array
+expressions, to the bit), and the MAP search that takes the relaxation in full at every pitch."""
 
 from __future__ import annotations
 
@@ -249,3 +249,50 @@ def test_bar_evidence_is_the_loop_over_rows_positions_and_widths(seed):
         ref_e, ref_w = _bar_evidence_loop(grad.on_lattice[rows], 2, 5, floor)
         assert np.allclose(e, ref_e, rtol=1e-12, atol=1e-15) and np.array_equal(w, ref_w)
     assert got[0][0].max() > 0 and np.any(got[1][0] > got[0][0])  # the floor counts the one-sided edges
+
+
+def _bar_evidence_plain(g: np.ndarray, min_bar: int, max_bar: int,
+                        floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """The reference to the bit: the plain expressions over arrays of rows, sqrt(s max(w, f s) (1 - cos)
+    / 2) with s, w the stronger and weaker edge, averaged over the rows at each width, the first best width
+    kept."""
+    L, M, _ = g.shape
+    mag = np.linalg.norm(g, axis=2)
+    best, width = np.zeros(M), np.zeros(M)
+    for w in range(min_bar, max_bar + 1):
+        if 2 * w >= M:
+            break
+        gl, gr, ml, mr = g[:, : M - 2 * w], g[:, 2 * w :], mag[:, : M - 2 * w], mag[:, 2 * w :]
+        dot = gl[..., 0] * gr[..., 0] + gl[..., 1] * gr[..., 1] + gl[..., 2] * gr[..., 2]
+        cos = dot / np.maximum(ml * mr, 1e-12)
+        strong, weak = np.maximum(ml, mr), np.minimum(ml, mr)
+        e = np.sqrt(strong * np.maximum(weak, floor * strong) * np.clip(1 - cos, 0.0, 2.0) / 2).mean(axis=0)
+        e = np.pad(e, (w, w))
+        better = e > best
+        best[better], width[better] = e[better], w
+    return best, width
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
+    """Hundreds of rows (numpy sums them pairwise where they lie side by side in memory, as the lattice
+    lays them out), bars of either polarity, a one-sided edge, the edge of a rectified image's view."""
+    rng = np.random.default_rng(7 + axis)
+    image = rng.integers(0, 256, (300, 280, 3)).astype(np.uint8)
+    image[:, 40:46] = 250
+    image[:, 100:104] = 10
+    image[:, 200:] = image[:, 197:198]  # a one-sided edge: the background on one side has the frame's colour
+    image = image if axis == 0 else image.transpose(1, 0, 2).copy()
+    valid = np.ones(image.shape[:2], bool)
+    valid[:, :5] = False
+    grad = Gradients.of(image, axis, valid)
+    params = GridParams(min_pitch_m=0.5, max_pitch_m=5.0, sigma_frac=0.1, line_cost=1.0, min_bar_m=0.02,
+                        max_bar_m=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+                        frame_colour_scale=0.1)
+    sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=9)
+    floors = (0.0, 0.4, 1.5)
+    for rows in (slice(0, 300), slice(17, 260)):
+        got = bar_evidence(grad, rows, params, sizes, floors)
+        for floor, (e, w) in zip(floors, got, strict=True):
+            ref_e, ref_w = _bar_evidence_plain(grad.on_lattice[rows], 2, 9, floor)
+            assert np.array_equal(e, ref_e) and np.array_equal(w, ref_w)
