@@ -106,6 +106,42 @@ def test_quad_rasterisation_is_half_open_at_pixel_centres():
     assert abs(inside.sum() - area) < 0.1 * area
 
 
+def _inside_quads_everywhere(quads: list[np.ndarray], xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """The reference: every point against every quad's four edge equations, the first quad kept."""
+    out = np.full(xs.shape, -1)
+    for k, q in enumerate(quads):
+        q = np.asarray(q, float)
+        if 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]) < 0:
+            q = q[::-1]
+        inside = np.ones(xs.shape, bool)
+        for i in range(4):
+            (x0, y0), (x1, y1) = q[i], q[(i + 1) % 4]
+            cross = (x1 - x0) * (ys - y0) - (y1 - y0) * (xs - x0)
+            tie = -(y1 - y0) > 0 if y1 != y0 else x1 - x0 > 0
+            inside &= (cross > 0) | ((cross == 0) & tie)
+        out[inside & (out < 0)] = k
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_inside_quads_is_every_point_against_every_quad(seed):
+    """Only the points near a quad's bounding box are tested against it: the same labels as testing every
+    point, for pixel centres (many on the edges), points scattered off the grid, and overlapping quads."""
+    rng = np.random.default_rng(seed)
+    ys, xs = np.mgrid[0:40, 0:50] + 0.5
+    scattered = rng.uniform(-2, 52, (2, 3000))
+    quads = []
+    for _ in range(8):
+        c = rng.uniform(0, 50, 2)
+        half = rng.uniform(1, 12, 2)
+        q = c + np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]]) * half
+        q = q + rng.normal(0, 0.3 * (seed % 3), (4, 2))  # skewed: not a box
+        quads.append(np.round(q) + 0.5 if seed % 2 else q)  # on pixel centres: ties on the edges
+    quads.append(quads[0][::-1])  # the same quad, its corners the other way round
+    for px, py in ((xs, ys), (scattered[0], scattered[1])):
+        assert np.array_equal(inside_quads(quads, px, py), _inside_quads_everywhere(quads, px, py))
+
+
 def test_corner_order_and_rows_from_the_bottom():
     d = Drawing()
     _, seg, _ = run(d)
