@@ -43,6 +43,7 @@ corners are intersections of these edge lines (``panels.py``).
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 
@@ -204,7 +205,7 @@ class Gradients:
 
 def bar_evidence(
     grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes,
-    weak_edge_floors: tuple[float, ...] = (0.0,),
+    weak_edge_floors: tuple[float, ...] = (0.0,), pool: Executor | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px), one
     pair per floor of ``weak_edge_floors`` (the edges and their agreement are computed once for all).
@@ -217,7 +218,9 @@ def bar_evidence(
 
     With s, w the stronger and weaker edge magnitude and f the floor, s max(w, f s) is computed as the
     larger of |gL||gR| and of m (f m) over the two edges' magnitudes m: rounding is monotone, so that is
-    the product the plain expression rounds to, with m (f m) made once per position for every width."""
+    the product the plain expression rounds to, with m (f m) made once per position for every width.
+    With a ``pool``, the wider half of the widths is evaluated on it while the caller takes the narrower
+    (numpy lets go of the GIL); the best width is then taken over the widths in order as without it."""
     g = grad.on_lattice[rows]
     mag = np.linalg.norm(g, axis=2)
     channels = []  # [rows, M] each, laid out as the magnitudes (the lattice runs along the rows)
@@ -225,37 +228,52 @@ def bar_evidence(
         channels.append(np.empty_like(mag))
         np.copyto(channels[-1], g[..., c])
     M = g.shape[1]
-    out = [(np.zeros(M), np.zeros(M)) for _ in weak_edge_floors]
     # an edge's magnitude times the floor's share of it; None for a floor of 0 or less, where s max(w, f s)
     # is s w = |gL||gR| itself
     floored = [mag * (floor * mag) if floor > 0 else None for floor in weak_edge_floors]
-    for w in range(sizes.min_bar, sizes.max_bar + 1):
-        h = w  # half width in lattice steps (w / 2 / STEP_PX)
-        if 2 * h >= M:
-            break
-        left, right = slice(0, M - 2 * h), slice(2 * h, M)
-        product = mag[:, left] * mag[:, right]
-        # done in place, channel by channel, as the sum of the products over the channels would add them,
-        # so that the values are those of the plain expressions
-        dot = channels[0][:, left] * channels[0][:, right]
-        for c in channels[1:]:
-            dot += c[:, left] * c[:, right]
-        cos = np.divide(dot, np.maximum(product, 1e-12), out=dot)
-        disagree = np.clip(np.subtract(1.0, cos, out=cos), 0.0, 2.0, out=cos)
-        for q, (best, width) in zip(floored, out, strict=True):
-            # an outer frame may border a background of its own colour on one side. e2 is laid out in
-            # memory as the magnitudes are (the lattice's layout), which sets the order of the sum over
-            # the rows below
-            e2 = np.empty_like(product)
-            if q is None:
-                np.multiply(product, disagree, out=e2)
-            else:
-                np.maximum(product, np.maximum(q[:, left], q[:, right]), out=e2)
-                e2 *= disagree
-            e2 /= 2
-            e = np.pad(np.sqrt(e2, out=e2).mean(axis=0), (h, h))
+    widths = [w for w in range(sizes.min_bar, sizes.max_bar + 1) if 2 * w < M]  # w: half width in steps
+
+    def evidence(ws: list[int]) -> list[list[np.ndarray]]:
+        return [_width_evidence(mag, channels, floored, w) for w in ws]
+
+    half = (len(widths) + 1) // 2
+    wide = pool.submit(evidence, widths[half:]) if pool is not None else None
+    found = evidence(widths[:half] if wide is not None else widths)
+    if wide is not None:
+        found += wide.result()
+    out = [(np.zeros(M), np.zeros(M)) for _ in weak_edge_floors]
+    for w, per_floor in zip(widths, found, strict=True):
+        for e, (best, width) in zip(per_floor, out, strict=True):
             better = e > best
             best[better], width[better] = e[better], w
+    return out
+
+
+def _width_evidence(mag: np.ndarray, channels: list[np.ndarray], floored: list[np.ndarray | None],
+                    h: int) -> list[np.ndarray]:
+    """E_g [M] at one width of ``bar_evidence`` (h: its half width in lattice steps), per floor."""
+    M = mag.shape[1]
+    left, right = slice(0, M - 2 * h), slice(2 * h, M)
+    product = mag[:, left] * mag[:, right]
+    # done in place, channel by channel, as the sum of the products over the channels would add them, so
+    # that the values are those of the plain expressions
+    dot = channels[0][:, left] * channels[0][:, right]
+    for c in channels[1:]:
+        dot += c[:, left] * c[:, right]
+    cos = np.divide(dot, np.maximum(product, 1e-12), out=dot)
+    disagree = np.clip(np.subtract(1.0, cos, out=cos), 0.0, 2.0, out=cos)
+    out = []
+    for q in floored:
+        # an outer frame may border a background of its own colour on one side. e2 is laid out in memory
+        # as the magnitudes are (the lattice's layout), which sets the order of the sum over the rows below
+        e2 = np.empty_like(product)
+        if q is None:
+            np.multiply(product, disagree, out=e2)
+        else:
+            np.maximum(product, np.maximum(q[:, left], q[:, right]), out=e2)
+            e2 *= disagree
+        e2 /= 2
+        out.append(np.pad(np.sqrt(e2, out=e2).mean(axis=0), (h, h)))
     return out
 
 
@@ -437,6 +455,12 @@ def _pitch_lattice(size: int, M: int, min_pitch: float, max_pitch: float) -> _Pi
         pitches, shapes, start, flat, idx < M, clipped, pitch_of * M + clipped,
         np.concatenate(phase_start).astype(int) if shapes else np.zeros(0, int), pitch_phase_start,
     )
+
+
+def pitch_hypotheses(size: int, sizes: PixelSizes) -> None:
+    """Make (and keep) the grid hypotheses ``map_family`` takes for an image ``size`` px across, so that
+    they may be made ahead, beside other work."""
+    _pitch_lattice(size, int(size / STEP_PX) + 1, float(sizes.min_pitch), float(sizes.max_pitch))
 
 
 #: a pitch is passed over where its bound on the gain falls this fraction below the best score: the bound's

@@ -41,6 +41,8 @@ pixel.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -58,9 +60,11 @@ from facade_pipeline.segmentation.grid import (
     lsd_evidence,
     map_family,
     nanmedian0,
+    pitch_hypotheses,
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
 from facade_pipeline.segmentation.params import SegmentParams
+from facade_pipeline.threads import usable_cores
 
 # Image-precision constants of the segmentation. The view is resampled so that the narrowest frame bar spans
 # ``work_bar_px`` pixels (SegmentParams), so these hold at any facade scale and photo size; no building ever
@@ -116,23 +120,29 @@ class _Bars:
 
 def _family(
     grad: Gradients,
-    segments: np.ndarray,
+    segments: np.ndarray | Callable[[], np.ndarray],
     axis: int,
     span: slice,
     params: SegmentParams,
     sizes: PixelSizes,
     frame_colour: np.ndarray | None = None,
+    pool: Executor | None = None,
 ) -> FamilyFit | None:
     """MAP bars of one family (axis 0: mullions; ``grad`` its gradients) with evidence taken over ``span``
     along the bars; with ``frame_colour`` [3] (the other family's bars), bars of another colour are
-    penalised."""
+    penalised. ``segments`` (the family's LSD segments) may be a function that waits for them: they are
+    needed only once the gradient evidence is made. With a ``pool``, the uniformity and part of the bar
+    evidence are computed on it."""
+    uniformity = pool.submit(grad.uniformity, span) if pool is not None else None
     (e_grad, widths), (e_out, w_out) = bar_evidence(grad, span, params.grid, sizes,
-                                                    (0.0, params.grid.outer_edge_floor))
+                                                    (0.0, params.grid.outer_edge_floor), pool)
+    uniformity = uniformity.result() if uniformity is not None else grad.uniformity(span)
+    if callable(segments):
+        segments = segments()
     lo, hi, _ = span.indices(grad.d.shape[0])
     t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
     inside = segments[(t >= lo) & (t <= hi)]
     support = support_profile(inside, axis, grad.size, STEP_PX, LSD_SIGMA_PX)[: len(e_grad)]
-    uniformity = grad.uniformity(span)
     dist = None
     if frame_colour is not None:
         # a difference within the tolerance of frame_presence is the frames' own shading (a curved facade
@@ -353,36 +363,51 @@ def find_bars(
     image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
     and the two families' gradients."""
     H, W = image.shape[:2]
-    fam = group_segments(
-        detect_segments(image, params.upsample, MIN_SEGMENT_PX),
-        ORIENTATION_TOLERANCE_DEG,
-        ORIENTATION_SEARCH_DEG,
-    )
-    vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
-    gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
-    # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole width
-    h = _family(gh, hseg, 1, slice(0, W), params, sizes)
-    v = _family(gv, vseg, 0, _span(h, H), params, sizes)
-    # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
-    # they run the facade's full height, while the long straight lines that reflections bring (horizon,
-    # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
-    colour_h = None
-    if v is not None and params.grid.frame_colour_scale > 0 and planar:
-        colour_h = bar_colour(gv, v, _span(h, H))
-    h = _family(gh, hseg, 1, _span(v, W), params, sizes, colour_h)
-    metrics = {
-        "n_segments": len(fam.segments),
-        "n_vertical_segments": len(vseg),
-        "n_horizontal_segments": len(hseg),
-        "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
-        "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal)),
-        "mullions_found": v is not None,
-        "transoms_found": h is not None,
-    }
-    if v is None or h is None:
-        return None, None, metrics, {}, (gv, gh)
-    bars_v = _edges(v, gv, _span(h, H), params)
-    bars_h = _edges(h, gh, _span(v, W), params)
+    # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
+    # first transom pass's gradient evidence (which does not need its segments) and the making of what the
+    # later passes take (the mullions' lattice, each family's pitch hypotheses); each pass's evidence is
+    # shared out (``_family``), and the two families' edges are fitted side by side
+    with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
+        lsd = pool.submit(
+            lambda: group_segments(
+                detect_segments(image, params.upsample, MIN_SEGMENT_PX),
+                ORIENTATION_TOLERANCE_DEG,
+                ORIENTATION_SEARCH_DEG,
+            )
+        )
+        gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
+        ahead = [pool.submit(lambda: (gv.on_lattice, gv._samples))]
+        ahead += [pool.submit(pitch_hypotheses, g.size, sizes) for g in (gh, gv)]
+        # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
+        # width
+        h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W), params, sizes,
+                    pool=pool)
+        fam = lsd.result()
+        vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
+        for done in ahead:
+            done.result()
+        v = _family(gv, vseg, 0, _span(h, H), params, sizes, pool=pool)
+        # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
+        # they run the facade's full height, while the long straight lines that reflections bring (horizon,
+        # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
+        colour_h = None
+        if v is not None and params.grid.frame_colour_scale > 0 and planar:
+            colour_h = bar_colour(gv, v, _span(h, H))
+        h = _family(gh, hseg, 1, _span(v, W), params, sizes, colour_h, pool)
+        metrics = {
+            "n_segments": len(fam.segments),
+            "n_vertical_segments": len(vseg),
+            "n_horizontal_segments": len(hseg),
+            "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
+            "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal)),
+            "mullions_found": v is not None,
+            "transoms_found": h is not None,
+        }
+        if v is None or h is None:
+            return None, None, metrics, {}, (gv, gh)
+        edges_h = pool.submit(_edges, h, gh, _span(v, W), params)
+        bars_v = _edges(v, gv, _span(h, H), params)
+        bars_h = edges_h.result()
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )

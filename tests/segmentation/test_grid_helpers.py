@@ -6,6 +6,7 @@ expressions, to the bit), and the MAP search that takes the relaxation in full a
 from __future__ import annotations
 
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -276,7 +277,8 @@ def _bar_evidence_plain(g: np.ndarray, min_bar: int, max_bar: int,
 @pytest.mark.parametrize("axis", [0, 1])
 def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
     """Hundreds of rows (numpy sums them pairwise where they lie side by side in memory, as the lattice
-    lays them out), bars of either polarity, a one-sided edge, the edge of a rectified image's view."""
+    lays them out), bars of either polarity, a one-sided edge, the edge of a rectified image's view; the
+    same with half the widths evaluated on a thread pool."""
     rng = np.random.default_rng(7 + axis)
     image = rng.integers(0, 256, (300, 280, 3)).astype(np.uint8)
     image[:, 40:46] = 250
@@ -291,8 +293,11 @@ def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
                         frame_colour_scale=0.1)
     sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=9)
     floors = (0.0, 0.4, 1.5)
-    for rows in (slice(0, 300), slice(17, 260)):
-        got = bar_evidence(grad, rows, params, sizes, floors)
-        for floor, (e, w) in zip(floors, got, strict=True):
-            ref_e, ref_w = _bar_evidence_plain(grad.on_lattice[rows], 2, 9, floor)
-            assert np.array_equal(e, ref_e) and np.array_equal(w, ref_w)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for rows in (slice(0, 300), slice(17, 260)):
+            alone = bar_evidence(grad, rows, params, sizes, floors)
+            shared = bar_evidence(grad, rows, params, sizes, floors, pool)  # half the widths on the pool
+            for floor, (e, w), (e_pool, w_pool) in zip(floors, alone, shared, strict=True):
+                ref_e, ref_w = _bar_evidence_plain(grad.on_lattice[rows], 2, 9, floor)
+                assert np.array_equal(e, ref_e) and np.array_equal(w, ref_w)
+                assert np.array_equal(e_pool, ref_e) and np.array_equal(w_pool, ref_w)
