@@ -1,5 +1,5 @@
-"""The segmentation grid's array helpers against slow, obviously correct references: numpy's NaN median, a
-scalar loop over every run of lattice values, one over every shift of the prior's relaxation (at every
+"""The segmentation grid's array helpers against slow, obviously correct references: numpy's NaN median and
+norm, a scalar loop over every run of lattice values, one over every shift of the prior's relaxation (at every
 position or some), one over every row, position and width of the bar evidence (and its plain array
 expressions, to the bit), and the MAP search that takes the relaxation in full at every pitch."""
 
@@ -21,6 +21,7 @@ from facade_pipeline.segmentation.grid import (
     best_run,
     map_family,
     nanmedian0,
+    norm_last,
     reach,
     relaxed,
     relaxed_at,
@@ -48,6 +49,20 @@ def test_nanmedian0_is_numpys_nanmedian_over_the_first_axis(shape):
 
 def test_nanmedian0_of_no_rows_is_nan():
     assert np.isnan(nanmedian0(np.zeros((0, 3, 2)))).all() and nanmedian0(np.zeros((0, 3, 2))).shape == (3, 2)
+
+
+@pytest.mark.parametrize("shape", [(5, 3), (40, 30, 3), (7, 9, 2), (6, 1), (4, 9)])
+def test_norm_last_is_numpys_norm_over_the_last_axis_to_the_bit(shape):
+    """Magnitudes spread over six decades (where the order of the sum shows), NaN, and the lattice's layout
+    (the last axis innermost, the first next)."""
+    rng = np.random.default_rng(shape[-1] * 10 + len(shape))
+    a = rng.normal(size=shape) * 10.0 ** rng.integers(-3, 3, shape)
+    a.flat[0] = np.nan
+    lattice = np.moveaxis(np.ascontiguousarray(np.moveaxis(a, 0, -2)), -2, 0) if a.ndim == 3 else a
+    for x in (a, lattice):
+        ref = np.linalg.norm(x, axis=-1)
+        got = norm_last(x)
+        assert np.array_equal(got, ref, equal_nan=True)
 
 
 def _best_run_loop(values: np.ndarray) -> tuple[float, int, int]:
@@ -301,3 +316,4 @@ def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
                 ref_e, ref_w = _bar_evidence_plain(grad.on_lattice[rows], 2, 9, floor)
                 assert np.array_equal(e, ref_e) and np.array_equal(w, ref_w)
                 assert np.array_equal(e_pool, ref_e) and np.array_equal(w_pool, ref_w)
+
