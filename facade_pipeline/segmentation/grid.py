@@ -195,6 +195,12 @@ class Gradients:
         the view."""
         return self._interp(np.where(self.valid[..., None], self.img, np.nan), 0.5)
 
+    def prepare(self) -> Gradients:
+        """Make the lattice arrays the MAP passes read (kept once made), so that they may be made ahead,
+        beside other work."""
+        _ = self.on_lattice, self._samples
+        return self
+
     def _line_samples(self, rows: slice) -> np.ndarray:
         """[L', M, 3] ``_samples`` over ``rows``."""
         return self._samples[rows]

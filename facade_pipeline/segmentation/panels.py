@@ -376,7 +376,7 @@ def find_bars(
             )
         )
         gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
-        ahead = [pool.submit(lambda: (gv.on_lattice, gv._samples))]
+        ahead = [pool.submit(gv.prepare)]
         ahead += [pool.submit(pitch_hypotheses, g.size, sizes) for g in (gh, gv)]
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
         # width
