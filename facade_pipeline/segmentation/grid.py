@@ -329,36 +329,18 @@ def _radius(sigma_px: float) -> int:
     return int(np.ceil(3 * sigma_px / STEP_PX))
 
 
-def shifted(ll: np.ndarray, radius: int) -> np.ndarray:
-    """[2 radius + 1, M]: row radius + s holds l(c + s lattice steps) at c, -inf beyond the ends. Made once
-    for a family, it serves the relaxation at every pitch (``relaxed``)."""
-    M = len(ll)
-    padded = np.pad(ll, radius, constant_values=-np.inf)
-    return np.stack([padded[radius + s : radius + s + M] for s in range(-radius, radius + 1)])
-
-
-def relaxed(shifts_of_ll: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """max over delta of l(c + delta) - delta^2 / (2 sigma^2), |delta| <= 3 sigma, and the best delta (px)
-    (the first of equal ones), from ``shifted(ll, radius)`` with a radius of at least 3 sigma."""
-    r, R = _radius(sigma_px), (len(shifts_of_ll) - 1) // 2
-    if r > R:
-        raise ValueError(f"relaxed: sigma {sigma_px} px reaches {r} lattice steps, the shifts only {R}")
-    shifts = np.arange(-r, r + 1)
-    cand = shifts_of_ll[R - r : R + r + 1] - (shifts * STEP_PX)[:, None] ** 2 / (2 * sigma_px**2)
-    k = np.argmax(cand, axis=0)
-    return cand[k, np.arange(cand.shape[1])], shifts[k] * STEP_PX
-
-
 def shift_windows(ll: np.ndarray, radius: int) -> np.ndarray:
-    """[M, 2 radius + 1], a read-only view: column radius + s holds l(c + s) at c, -inf beyond the ends
-    (``shifted`` transposed, so that one position's shifts lie side by side)."""
+    """[M, 2 radius + 1], a read-only view: column radius + s holds l(c + s lattice steps) at c, -inf beyond
+    the ends (one position's shifts side by side). Made once for a family, it serves the relaxation at every
+    pitch (``relaxed_at``)."""
     padded = np.pad(ll, radius, constant_values=-np.inf)
     return np.lib.stride_tricks.sliding_window_view(padded, 2 * radius + 1)
 
 
 def relaxed_at(windows: np.ndarray, sigma_px: float, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``relaxed`` at the lattice positions ``at`` [N] only, to the bit (the same candidates in the same
-    order), from ``shift_windows(ll, radius)`` with a radius of at least 3 sigma."""
+    """The prior's relaxation at the lattice positions ``at`` [N]: max over delta of l(c + delta) - delta^2 /
+    (2 sigma^2), |delta| <= 3 sigma, and the best delta (px, the first of equal ones), from
+    ``shift_windows(ll, radius)`` with a radius of at least 3 sigma."""
     r, R = _radius(sigma_px), (windows.shape[1] - 1) // 2
     if r > R:
         raise ValueError(f"relaxed_at: sigma {sigma_px} px reaches {r} lattice steps, the shifts only {R}")
@@ -561,18 +543,21 @@ def _with_outer_frames(
     in the prior, pays for the line (module docstring)."""
     M = len(ll_outer)
     sigma = max(SIGMA_MIN_PX, params.sigma_frac * fit.pitch)
-    relaxed_ll, delta = relaxed(shifted(ll_outer, _radius(sigma)), sigma)
+    windows = shift_windows(ll_outer, _radius(sigma))
     centres, widths, score = list(fit.centres), list(fit.widths), fit.score
     for end, sign in ((-1, 1.0), (0, -1.0)):
         c = centres[end] + sign * fit.pitch
         i = int(np.rint(c / STEP_PX))
-        if not 0 <= i < M or relaxed_ll[i] - params.line_cost <= 0:
+        if not 0 <= i < M:
             continue
-        c_new = c + delta[i]
+        value, delta = (float(a[0]) for a in relaxed_at(windows, sigma, np.array([i])))
+        if value - params.line_cost <= 0:
+            continue
+        c_new = c + delta
         w = float(widths_outer[int(np.clip(np.rint(c_new / STEP_PX), 0, M - 1))])
         if c_new - w / 2 < 1.0 or c_new + w / 2 > size - 1.0:  # an outer frame lies whole in the view
             continue
-        score += relaxed_ll[i] - params.line_cost
+        score += value - params.line_cost
         if sign > 0:
             centres.append(c_new)
             widths.append(w)
