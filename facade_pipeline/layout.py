@@ -44,6 +44,7 @@ ENTRIES: dict[str, str] = {
     # ground truth of synthetic buildings (never read by the stages it evaluates)
     "gt_dir": "gt",
     "gt_manifest": "gt/manifest.json",
+    "gt_previous_outputs": "gt/.previous_outputs.json",
     "gt_scene": "gt/scene.json",
     "gt_facade_mesh": "gt/facade_mesh.ply",
     "gt_glass_mesh": "gt/glass_mesh.ply",
@@ -105,6 +106,8 @@ ENTRIES: dict[str, str] = {
     # every stage folder ends with its manifest
     "stage_dir": "{stage_dir}",
     "stage_manifest": "{stage_dir}/manifest.json",
+    # while a stage reruns: the outputs its last completed run listed, until this run replaces them
+    "stage_previous_outputs": "{stage_dir}/.previous_outputs.json",
     # doit's state, kept per building
     "doit_db": ".doit.db",
     # held by the run that works on the building (one at a time)
@@ -161,13 +164,6 @@ class BuildingLayout:
         rel = Path(os.path.normpath(os.path.abspath(path))).relative_to(self.root)
         return rel.as_posix()
 
-    def owned_patterns(self, stage: str) -> list[re.Pattern[str]]:
-        """Regular expressions of the paths (relative to the building) that ``stage`` writes: its own
-        folder's entries (a folder entry: any file under it), or raw/ and gt/ for ``synthesize``. A file
-        that matches none is not the stage's."""
-        prefixes = ("raw/", "gt/") if stage == "synthesize" else (STAGE_DIRS[stage] + "/",)
-        return [entry_regex(key) for key, pattern in ENTRIES.items() if pattern.startswith(prefixes)]
-
     # --- raw ---
     @property
     def raw_dir(self) -> Path:
@@ -222,6 +218,13 @@ class BuildingLayout:
         if stage == "synthesize":
             return self.path("gt_manifest")
         return self.path("stage_manifest", stage_dir=STAGE_DIRS[stage])
+
+    def previous_outputs(self, stage: str) -> Path:
+        """Where a rerun of ``stage`` keeps the output list of its last completed run (whose manifest it
+        deleted) until it has replaced them, so that a run interrupted in between still knows them."""
+        if stage == "synthesize":
+            return self.path("gt_previous_outputs")
+        return self.path("stage_previous_outputs", stage_dir=STAGE_DIRS[stage])
 
     # --- 01_import ---
     @property

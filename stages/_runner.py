@@ -7,6 +7,7 @@ at any point leaves no manifest: doit then reruns the stage and no downstream st
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import resource
@@ -111,9 +112,14 @@ def execute(
     runs; default.toml's when None), kept out of the manifest's parameters as out of doit's."""
     settings = settings or default_run_settings()
     manifest_path = layout.manifest(stage.NAME)
-    previous = _previous_outputs(layout, stage.NAME)
-    manifest_path.unlink(missing_ok=True)
+    record = layout.previous_outputs(stage.NAME)
     folders = output_folders(stage, layout)
+    previous = _previous_outputs(layout, stage.NAME)
+    if previous:
+        # the list outlives the manifest deleted next, so a run interrupted before it completes still
+        # knows what the last completed run wrote
+        write_json(record, {"stage": stage.NAME, "outputs": sorted(previous)})
+    manifest_path.unlink(missing_ok=True)
     for folder in folders:
         remove_stale_temporaries(folder)
     inputs = stage.inputs(layout, params)
@@ -121,7 +127,7 @@ def execute(
     report: StageReport = stage.run(layout, params, settings)
     wall = time.perf_counter() - t0
     outputs = {layout.relative(p) for p in report.outputs}
-    _remove_stale_outputs(layout, stage.NAME, folders, previous, outputs)
+    _remove_stale_outputs(layout, folders, previous - outputs)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports kB
     code = {"git": git_commit(STAGES_DIR.parent), "sources_sha256": sources_digest(source_files(stage))}
     manifest = build_manifest(
@@ -136,34 +142,36 @@ def execute(
         peak_mb,
     )
     write_json(manifest_path, manifest)
+    record.unlink(missing_ok=True)
     return manifest
 
 
 def _previous_outputs(layout: BuildingLayout, stage: str) -> set[str]:
-    """What the last completed run listed as its outputs (none when its manifest is missing or unreadable)."""
+    """What the last completed run listed as its outputs: its manifest's list, and the list a rerun that
+    was interrupted kept of it. None when neither is readable (nothing is deleted then)."""
+    listed: set[str] = set()
     try:
-        return set(read_manifest(layout, stage).outputs)
+        listed |= set(read_manifest(layout, stage).outputs)
     except PipelineError:
-        return set()
+        pass
+    try:
+        kept = json.loads(layout.previous_outputs(stage).read_text())["outputs"]
+        listed |= {rel for rel in kept if isinstance(rel, str)}
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return listed
 
 
-def _remove_stale_outputs(
-    layout: BuildingLayout, stage: str, folders: list[Path], listed: set[str], written: set[str]
-) -> None:
-    """Delete what an earlier run of this stage wrote and this one did not (left by another configuration):
-    the files its last manifest listed, and, for a run that was interrupted before writing one, files whose
-    path is one of the stage's own patterns in the layout. Anything else in its folders (a person's notes,
-    a folder that is a symlink to another disk) is left alone."""
-    owned = layout.owned_patterns(stage)
-    keep = {layout.relative(layout.manifest(stage))}
-    stale = set(listed)
-    for folder in folders:
-        for dirpath, _dirs, files in os.walk(folder):
-            for name in files:
-                rel = layout.relative(Path(dirpath) / name)
-                if any(p.match(rel) for p in owned):
-                    stale.add(rel)
-    for rel in sorted(stale - written - keep, reverse=True):
+def _remove_stale_outputs(layout: BuildingLayout, folders: list[Path], stale: set[str]) -> None:
+    """Delete the files an earlier run of this stage listed and this one did not write (left by another
+    configuration). Nothing else in its folders is touched (a person's notes, a copy they made of an
+    output, a folder that is a symlink to another disk), and a listed path outside them (a hand-edited
+    manifest) is ignored."""
+    inside = [layout.relative(f) + "/" for f in folders]
+    for rel in sorted(stale, reverse=True):
+        normal = os.path.normpath(rel)
+        if normal != rel or not rel.startswith(tuple(inside)):
+            continue
         path = layout.root / rel
         if not path.is_file() and not path.is_symlink():
             continue

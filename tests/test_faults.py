@@ -5,6 +5,7 @@ cannot be computed. Each gives a correct run or one clear line; nothing outside 
 from __future__ import annotations
 
 import errno
+import json
 import math
 import os
 import shutil
@@ -16,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from facade_pipeline.config import config_dir, default_params, default_run_settings
-from facade_pipeline.io.lock import acquire, release
+from facade_pipeline.io.lock import acquire, lock_fds, release
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import build_manifest, damaged_outputs, read_manifest
 from stages import import_photogrammetry as imp
@@ -62,11 +63,20 @@ def test_symlinked_photos_and_stage_folder_work_and_keep_a_persons_files(layout,
     m = read_manifest(layout, "import_photogrammetry")
     assert all(not rel.startswith("..") for rel in [*m.inputs, *m.outputs])
     assert any(rel.startswith("raw/images/") for rel in m.inputs)
-    stale = layout.import_image("old_view")  # an output pattern of the stage, not written by this run
-    stale.write_bytes(b"left by another configuration")
     execute(imp, layout, PARAMS)
-    assert note.read_text() == "mine" and not stale.exists()
+    assert note.read_text() == "mine"
     assert layout.stage_dir("import_photogrammetry").is_symlink()
+
+
+def test_a_persons_file_named_like_an_output_survives_a_rerun(layout):
+    """A copy a person keeps beside the outputs, under a name of the stage's own patterns, is not the
+    stage's: only what its last manifest listed is deleted."""
+    make_raw(layout)
+    execute(imp, layout, PARAMS)
+    backup = layout.import_image("frontal_0001_backup")
+    backup.write_bytes(b"a person's copy")
+    execute(imp, layout, PARAMS)
+    assert backup.read_bytes() == b"a person's copy"
 
 
 def test_stale_sweep_removes_what_the_last_manifest_listed(layout):
@@ -77,9 +87,46 @@ def test_stale_sweep_removes_what_the_last_manifest_listed(layout):
     odd.parent.mkdir()
     odd.write_bytes(b"x")
     data = m.data | {"outputs": {**m.outputs, "01_import/extra/odd.bin": "0" * 64}}
-    m.path.write_text(__import__("json").dumps(data))  # as if an earlier run had written it
+    m.path.write_text(json.dumps(data))  # as if an earlier run had written it
     execute(imp, layout, PARAMS)
     assert not odd.exists() and not odd.parent.exists()
+
+
+def test_a_rerun_interrupted_before_its_manifest_keeps_the_list_of_what_to_remove(layout, monkeypatch):
+    """Run A lists a file; a rerun is interrupted after deleting A's manifest; the next run still removes
+    A's file (the list was kept beside the manifest) and leaves the person's file."""
+    make_raw(layout)
+    execute(imp, layout, PARAMS)
+    m = read_manifest(layout, "import_photogrammetry")
+    odd = layout.stage_dir("import_photogrammetry") / "odd.bin"
+    odd.write_bytes(b"x")
+    mine = layout.stage_dir("import_photogrammetry") / "mine.bin"
+    mine.write_bytes(b"y")
+    m.path.write_text(json.dumps(m.data | {"outputs": {**m.outputs, "01_import/odd.bin": "0"}}))
+
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(imp, "run", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            execute(imp, layout, PARAMS)
+    assert not m.path.exists() and layout.previous_outputs("import_photogrammetry").is_file()
+    execute(imp, layout, PARAMS)
+    assert not odd.exists() and mine.read_bytes() == b"y"
+    assert not layout.previous_outputs("import_photogrammetry").exists()
+
+
+def test_a_listed_path_outside_the_stage_folder_is_never_deleted(layout):
+    make_raw(layout)
+    execute(imp, layout, PARAMS)
+    m = read_manifest(layout, "import_photogrammetry")
+    photo = next(layout.raw_images_dir.iterdir())
+    outside = {layout.relative(photo): "0", "01_import/../raw/coarse_mesh.ply": "0"}
+    m.path.write_text(json.dumps(m.data | {"outputs": {**m.outputs, **outside}}))
+    before = {p: p.read_bytes() for p in layout.raw_dir.rglob("*") if p.is_file()}
+    execute(imp, layout, PARAMS)
+    assert {p: p.read_bytes() for p in layout.raw_dir.rglob("*") if p.is_file()} == before
 
 
 def test_damaged_outputs_are_found_cheaply_or_by_hash(layout):
@@ -158,15 +205,15 @@ def test_lock_in_process(tmp_path):
     fd = acquire(path)
     try:
         assert path.read_text().strip() == str(os.getpid())
-        # this process's children are covered by it (a doit run's stages)
+        # a child handed the lock's descriptor joins it (a doit run's stages) and is listed as a holder
         child = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, capture_output=True,
-                               text=True)  # fmt: skip
-        assert child.returncode == 0 and child.stdout.strip() == "None", child.stderr
-        # a process that did not inherit it is refused
-        env = {k: v for k, v in os.environ.items() if k != "FACADE_BUILDING_LOCK"}
-        other = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, env=env,
-                               capture_output=True, text=True)  # fmt: skip
-        assert other.returncode != 0 and "BuildingBusyError" in other.stderr
+                               text=True, pass_fds=lock_fds())  # fmt: skip
+        assert child.returncode == 0 and child.stdout.strip() == str(fd), child.stderr
+        # a child that was not handed it is refused, though the environment names the lock
+        for env in (os.environ, {k: v for k, v in os.environ.items() if k != "FACADE_BUILDING_LOCK"}):
+            other = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, env=env,
+                                   capture_output=True, text=True)  # fmt: skip
+            assert other.returncode != 0 and "BuildingBusyError" in other.stderr
     finally:
         release(fd)
     assert "FACADE_BUILDING_LOCK" not in os.environ
