@@ -34,7 +34,7 @@ from doit.tools import config_changed
 
 from facade_pipeline.config import load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
-from facade_pipeline.io.lock import acquire
+from facade_pipeline.io.lock import acquire, lock_fds
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import damaged_outputs
 from stages import PIPELINE, load_stage
@@ -146,7 +146,8 @@ def _run_stage(name):
     ]
 
     def action():
-        code = subprocess.run(command).returncode
+        # the stage shares the building's lock: should this doit die, the stage still holds it
+        code = subprocess.run(command, pass_fds=lock_fds()).returncode
         if code == 2:  # bad input or config: the stage said which in one line
             return StageStopped(f"{name} stopped on bad input", said=True)
         if code != 0:

@@ -9,8 +9,10 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 import types
 from pathlib import Path
 
@@ -22,7 +24,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import build_manifest, damaged_outputs, read_manifest
 from stages import import_photogrammetry as imp
 from stages._runner import StageReport, execute, main
-from tests.helpers import make_raw
+from tests.helpers import make_raw, synthetic_reconstruction
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = default_params("import_photogrammetry", imp.Params)
@@ -197,6 +199,48 @@ def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
     assert layout.lock.read_text().strip() == str(holder.pid)
     _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
     assert layout.manifest("import_photogrammetry").exists()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] not in "ZX"
+    except (OSError, IndexError):
+        return False
+
+
+def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
+    """``kill -9`` of doit leaves its stage running: that stage holds the lock, so a second doit stops at
+    once naming it; once it has finished the building is free."""
+    layout, env, _ = real
+    make_raw(layout, rec=synthetic_reconstruction(n_images=40, width=480, height=360))
+    cmd = [sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), "import_photogrammetry",
+           "building=faults", f"data_root={layout.data_root}"]  # fmt: skip
+    first = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    stage = None
+    try:
+        deadline = time.monotonic() + 120
+        while stage is None:
+            assert first.poll() is None and time.monotonic() < deadline, "the stage never took the lock"
+            pids = [int(w) for w in layout.lock.read_text().split()] if layout.lock.is_file() else []
+            stage = next((p for p in pids if p != first.pid and _alive(p)), None)
+            time.sleep(0.01)
+        os.kill(stage, signal.SIGSTOP)  # the orphan stays mid-run while the second doit tries
+        first.kill()
+        first.wait()
+        second = _doit(["import_photogrammetry", "building=faults"], env, layout.data_root, check=False)
+        assert second.returncode == 2 and "Traceback" not in second.stderr, second.stdout + second.stderr
+        assert f"another run (pid {stage}) holds this building" in second.stderr
+    finally:
+        if stage is not None:
+            os.kill(stage, signal.SIGCONT)
+        first.kill()
+        first.wait()
+    deadline = time.monotonic() + 300
+    while _alive(stage):
+        assert time.monotonic() < deadline, "the orphaned stage did not finish"
+        time.sleep(0.1)
+    _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
+    assert read_manifest(layout, "import_photogrammetry")
 
 
 def test_lock_in_process(tmp_path):

@@ -1,15 +1,18 @@
 """One run per building at a time: an advisory lock on ``<building>/.lock``.
 
 Two runs on one building delete each other's manifests and outputs. The lock is an ``flock`` on a file that
-holds the holder's pid: the kernel drops it when the holder dies, however it dies, so the lock of a killed run
-is simply taken over. A doit run holds it for all of its stages; it hands them the right to run through the
-environment (``FACADE_BUILDING_LOCK``), since a stage is a child process that cannot take the lock its parent
-holds. A stage started by hand takes the lock itself.
+lists its holders' pids. An flock belongs to an open file description, which a child process shares when it
+inherits the descriptor: the lock is held until the last process holding it exits, however it exits. A doit
+run takes it and hands its descriptor to each stage it starts (``lock_fds`` for ``pass_fds``, named in
+``FACADE_BUILDING_LOCK``), so a stage that outlives a killed doit still holds the building, and a second run
+stops at once. A stage started by hand takes the lock itself. A lock whose holders all died is free again:
+its file stays and is taken over.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import os
 from pathlib import Path
@@ -18,73 +21,124 @@ from facade_pipeline.errors import PipelineError
 
 LOCK_ENV = "FACADE_BUILDING_LOCK"
 
+#: the lock descriptors this process holds (path -> fd), for ``lock_fds``
+_HELD: dict[str, int] = {}
+
 
 class BuildingBusyError(PipelineError):
     """Another process runs on this building."""
 
 
-def acquire(path: Path) -> int | None:
+def acquire(path: str | Path) -> int | None:
     """Take the lock at ``path`` and return its open descriptor (keep it open while the run lasts); None
     when the building's folder cannot be written (a read-only data root: nothing can run there, nothing to
-    guard). Raises ``BuildingBusyError`` when another live process holds it."""
+    guard). A descriptor of this lock inherited from the parent run (``FACADE_BUILDING_LOCK``) is joined:
+    this process then holds the lock too. Raises ``BuildingBusyError`` when another live process holds it."""
     path = Path(path)
-    inherited = os.environ.get(LOCK_ENV)
-    holder = _holder(path)
-    if inherited and holder is not None and holder == _parse(inherited, path):
-        return None  # our parent doit run holds it for us
+    fd = _inherited(path)
+    if fd is not None:
+        _add_holder(fd, append=True)
+        _HELD[str(path)] = fd
+        return fd
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    except (PermissionError, OSError) as e:
-        if isinstance(e, PermissionError) or e.errno == 30:  # EROFS
+    except OSError as e:
+        if isinstance(e, PermissionError) or e.errno == errno.EROFS:
             return None
         raise
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        holder = _holder(path)
+        pids = ", ".join(str(p) for p in _holders(path)) or "?"
         raise BuildingBusyError(
             path,
             "no other run on this building",
-            f"another run (pid {holder if holder else '?'}) holds this building: wait for it to finish "
-            "or stop it",
+            f"another run (pid {pids}) holds this building: wait for it to finish or stop it",
         ) from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"{os.getpid()}\n".encode())
-    os.environ[LOCK_ENV] = f"{path}:{os.getpid()}"
+    _add_holder(fd, append=False)
+    _HELD[str(path)] = fd
+    os.environ[LOCK_ENV] = f"{path}:{fd}"
     return fd
 
 
+def lock_fds() -> tuple[int, ...]:
+    """The lock descriptors this process holds: pass them to a child that works on the building
+    (``subprocess.run(..., pass_fds=lock_fds())``) so that it holds the lock as long as it runs."""
+    return tuple(_HELD.values())
+
+
 def release(fd: int | None) -> None:
-    """Give the lock back (closing its descriptor); the file stays, to be taken by the next run."""
-    if fd is not None:
-        with contextlib.suppress(OSError):
-            os.close(fd)
-        if os.environ.get(LOCK_ENV, "").endswith(f":{os.getpid()}"):
-            del os.environ[LOCK_ENV]
+    """Stop holding the lock (closing this process's descriptor; the lock is free once no process that
+    shares it is left). The file stays, to be taken by the next run."""
+    if fd is None:
+        return
+    for key, held in list(_HELD.items()):
+        if held == fd:
+            del _HELD[key]
+    with contextlib.suppress(OSError):
+        _remove_holder(fd)
+    with contextlib.suppress(OSError):
+        os.close(fd)
+    if os.environ.get(LOCK_ENV, "").endswith(f":{fd}") and not _HELD:
+        del os.environ[LOCK_ENV]
 
 
-def _holder(path: Path) -> int | None:
-    """The pid written in the lock file, if it is still locked by a live process."""
+def _inherited(path: Path) -> int | None:
+    """The descriptor of the lock at ``path`` that the parent run passed down, if this process has it."""
+    where, _, number = os.environ.get(LOCK_ENV, "").rpartition(":")
+    if where != str(path) or not number.isdigit():
+        return None
+    fd = int(number)
     try:
-        text = path.read_text().strip()
-        pid = int(text)
-    except (OSError, ValueError):
+        mine, there = os.fstat(fd), os.stat(path)
+    except OSError:
+        return None  # named but not passed down (a process the run did not start as a stage)
+    if (mine.st_dev, mine.st_ino) != (there.st_dev, there.st_ino):
         return None
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        # the same open file description as the holder's: this succeeds only if it is the held lock
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
         return None
-    except PermissionError:
-        pass
-    return pid
+    return fd
 
 
-def _parse(value: str, path: Path) -> int | None:
-    where, _, pid = value.rpartition(":")
-    if where != str(path):
-        return None
+def _add_holder(fd: int, append: bool) -> None:
+    """Write this process's pid into the lock file (a new lock: alone; a joined one: after the others)."""
+    line = f"{os.getpid()}\n".encode()
+    if append:
+        os.pwrite(fd, line, os.fstat(fd).st_size)
+    else:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, line, 0)
+
+
+def _remove_holder(fd: int) -> None:
+    size = os.fstat(fd).st_size
+    lines = os.pread(fd, size, 0).decode(errors="replace").split()
+    rest = [p for p in lines if p != str(os.getpid())]
+    if len(rest) != len(lines) and rest:
+        text = "".join(f"{p}\n" for p in rest).encode()
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, text, 0)
+
+
+def _holders(path: Path) -> list[int]:
+    """The pids written in the lock file that belong to live processes."""
     try:
-        return int(pid)
-    except ValueError:
-        return None
+        words = path.read_text().split()
+    except OSError:
+        return []
+    live = []
+    for word in words:
+        if not word.isdigit():
+            continue
+        try:
+            os.kill(int(word), 0)
+        except ProcessLookupError:
+            continue
+        except PermissionError:
+            pass
+        live.append(int(word))
+    return live
