@@ -36,7 +36,7 @@ from facade_pipeline.config import load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.lock import acquire, lock_fds
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.manifest import damaged_outputs
+from facade_pipeline.manifest import rerun_reason
 from stages import PIPELINE, load_stage
 from stages._runner import source_files
 
@@ -161,7 +161,10 @@ def _outputs_intact(stage):
     editable = getattr(stage, "EDITABLE", ())
 
     def check(task, values):
-        return not damaged_outputs(LAYOUT, stage.NAME, full_hash=VERIFY, editable=editable)
+        reason = rerun_reason(LAYOUT, stage.NAME, full_hash=VERIFY, editable=editable)
+        if reason:
+            print(reason, file=sys.stderr, flush=True)
+        return reason is None
 
     return check
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from facade_pipeline import __version__
-from facade_pipeline.errors import InputError, PipelineError, UpstreamMissingError
+from facade_pipeline.errors import InputError, UpstreamMissingError
 from facade_pipeline.layout import BuildingLayout, entry_regex
 
 MANIFEST_VERSION = 1
@@ -134,13 +134,16 @@ def damaged_outputs(
     """Outputs of ``stage``'s manifest that are missing or no longer what the stage wrote: a file whose
     size or modification time differs from the record is hashed (``full_hash``: every file is), and it
     counts if its hash differs. Files of the layout entries in ``editable`` (a mask a person may fix by
-    hand) only count when they are missing. An unreadable manifest: the stage has not completed, nothing to
-    report."""
+    hand) only count when they are missing. A manifest that exists but cannot be read is itself damaged
+    (its path is returned); a missing one means the stage has not completed: nothing to report."""
     try:
         m = read_manifest(layout, stage)
-    except PipelineError:
+    except UpstreamMissingError:
         return []
-    stats = m.data.get("output_stats", {})
+    except InputError:
+        return [layout.relative(layout.manifest(stage))]
+    stats = m.data.get("output_stats")
+    stats = stats if isinstance(stats, dict) else {}
     skip = [entry_regex(k) for k in editable]
     bad = []
     for rel, digest in m.outputs.items():
@@ -152,23 +155,52 @@ def damaged_outputs(
         except OSError:
             bad.append(rel)
             continue
-        if full_hash or now != stats.get(rel):
-            if now["size"] != stats.get(rel, now)["size"] or sha256_file(path) != digest:
+        recorded = stats.get(rel)
+        if full_hash or now != recorded:
+            size = recorded.get("size", now["size"]) if isinstance(recorded, dict) else now["size"]
+            if now["size"] != size or sha256_file(path) != digest:
                 bad.append(rel)
     return bad
 
 
+def rerun_reason(
+    layout: BuildingLayout, stage: str, full_hash: bool = False, editable: tuple[str, ...] = ()
+) -> str | None:
+    """Why ``stage`` must run again although doit's record says it is up to date, in one line (its
+    manifest is damaged, or outputs changed since it wrote them); None when nothing is wrong."""
+    bad = damaged_outputs(layout, stage, full_hash, editable)
+    if not bad:
+        return None
+    manifest = layout.manifest(stage)
+    if bad == [layout.relative(manifest)]:
+        try:
+            read_manifest(layout, stage)
+        except InputError as e:
+            return f"{stage}: {e}; running the stage again to rewrite it"
+    more = f" and {len(bad) - 1} more output(s)" if len(bad) > 1 else ""
+    return f"{stage}: {layout.root / bad[0]}{more} missing or changed since its manifest; running it again"
+
+
 def read_manifest(layout: BuildingLayout, stage: str) -> Manifest:
-    """Read ``stage``'s manifest; a missing one means the stage has not completed."""
+    """Read ``stage``'s manifest; a missing one means the stage has not completed, one that does not parse
+    or lacks its tables (``InputError``) cannot be trusted."""
     path = layout.manifest(stage)
     if not path.is_file():
         raise UpstreamMissingError(
             path, f"the manifest of a completed '{stage}' stage (run `doit {stage}`)", "no manifest"
         )
+    expected = f"a '{stage}' stage manifest (JSON with params, inputs, outputs, metrics)"
     try:
         data = json.loads(path.read_text())
-        return Manifest(stage, path, data["params"], data["inputs"], data["outputs"], data["metrics"], data)
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise InputError(
-            path, "a stage manifest (JSON with params, inputs, outputs, metrics)", f"{type(e).__name__}: {e}"
-        ) from None
+        m = Manifest(stage, path, data["params"], data["inputs"], data["outputs"], data["metrics"], data)
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
+        raise InputError(path, expected, f"{type(e).__name__}: {e}") from None
+    tables = {"params": m.params, "inputs": m.inputs, "outputs": m.outputs, "metrics": m.metrics}
+    wrong = [k for k, v in tables.items() if not isinstance(v, dict)]
+    wrong += [k for k in ("inputs", "outputs") if k not in wrong and not all(
+        isinstance(a, str) and isinstance(b, str) for a, b in tables[k].items())]  # fmt: skip
+    if data.get("stage", stage) != stage:
+        wrong.append(f"stage {data.get('stage')!r}")
+    if wrong:
+        raise InputError(path, expected, f"a damaged manifest ({', '.join(wrong)})")
+    return m

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from facade_pipeline.config import config_dir, default_params, default_run_settings
+from facade_pipeline.errors import InputError
 from facade_pipeline.io.lock import acquire, lock_fds, release
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import build_manifest, damaged_outputs, read_manifest
@@ -169,6 +170,40 @@ def test_doit_reruns_a_stage_whose_output_was_damaged(real):
                                                layout.data_root).stdout  # fmt: skip
     out = _doit(["import_photogrammetry", "building=faults", "verify=1"], env, layout.data_root)
     assert ".  import_photogrammetry" in out.stdout and layout.import_scene.read_bytes() == text
+
+
+def test_doit_reruns_a_stage_whose_manifest_is_damaged(real):
+    """A manifest that does not parse, or whose tables are not what a stage writes, is not a completed
+    run (with ``verify=1`` or without): doit says so in one line and reruns the stage, which writes a good
+    one."""
+    layout, env, _ = real
+    args = ["import_photogrammetry", "building=faults"]
+    _doit(args, env, layout.data_root)
+    path = layout.manifest("import_photogrammetry")
+    text = path.read_text()
+    half = text[: len(text) // 2]
+    as_list = json.dumps(json.loads(text) | {"outputs": ["01_import/scene.json"]})
+    for damaged, verify in ((half, "0"), (half, "1"), (as_list, "0")):
+        path.write_text(damaged)
+        out = _doit([*args, f"verify={verify}"], env, layout.data_root)
+        assert ".  import_photogrammetry" in out.stdout, out.stdout + out.stderr
+        said = [ln for ln in out.stderr.splitlines() if "manifest.json" in ln]
+        assert len(said) == 1 and "running the stage again" in said[0] and "Traceback" not in out.stderr
+        assert read_manifest(layout, "import_photogrammetry").outputs == json.loads(text)["outputs"]
+    assert "-- import_photogrammetry" in _doit(args, env, layout.data_root).stdout
+
+
+def test_a_manifest_that_does_not_hold_a_stages_tables_is_damaged(layout):
+    make_raw(layout)
+    execute(imp, layout, PARAMS)
+    m = read_manifest(layout, "import_photogrammetry")
+    for bad in ({"outputs": list(m.outputs)}, {"inputs": {"a": 1}}, {"stage": "evaluate"}):
+        m.path.write_text(json.dumps(m.data | bad))
+        assert damaged_outputs(layout, "import_photogrammetry") == ["01_import/manifest.json"]
+        with pytest.raises(InputError, match="manifest.json: expected"):
+            read_manifest(layout, "import_photogrammetry")
+    m.path.unlink()  # not completed: doit reruns it for its missing target, nothing is damaged
+    assert damaged_outputs(layout, "import_photogrammetry") == []
 
 
 def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
