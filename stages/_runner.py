@@ -2,6 +2,8 @@
 
 A run first deletes the stage's manifest and stray temporary files, so a crash, ``kill -9`` or Ctrl-C
 at any point leaves no manifest: doit then reruns the stage and no downstream stage reads its outputs.
+A stage whose result a person reads directly (``REMOVE_TARGETS_FIRST``: evaluate's report) loses those
+files even before its manifest. The outputs a rerun deletes are exactly those its last manifest listed.
 """
 
 from __future__ import annotations
@@ -111,6 +113,9 @@ def execute(
     """Run ``stage`` under the contract and return its manifest. ``settings``: the ``[run]`` table (how it
     runs; default.toml's when None), kept out of the manifest's parameters as out of doit's."""
     settings = settings or default_run_settings()
+    if getattr(stage, "REMOVE_TARGETS_FIRST", False):
+        for path in stage.targets(layout, params):
+            path.unlink(missing_ok=True)
     manifest_path = layout.manifest(stage.NAME)
     record = layout.previous_outputs(stage.NAME)
     folders = output_folders(stage, layout)

@@ -31,6 +31,10 @@ NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
 UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
 Params = EvaluateParams
+#: the runner deletes the targets (the report, its metrics and video) before the manifest, before anything
+#: else: an earlier run's report must never be readable without the manifest that vouches for it, while
+#: this run works or after it is killed
+REMOVE_TARGETS_FIRST = True
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -78,7 +82,6 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
-    # an earlier run's report must not pass for this one's while it runs, or after it is killed
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.evaluation.building import (
         body_file,
@@ -101,8 +104,6 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     from facade_pipeline.evaluation.render_views import load_trained
     from facade_pipeline.training.trainer import resolve_device
 
-    for path in targets(layout, params):
-        path.unlink(missing_ok=True)
     scene = ImportedScene.load(layout)
     device = resolve_device(settings.device)
     truth = (
