@@ -132,26 +132,6 @@ def test_a_listed_path_outside_the_stage_folder_is_never_deleted(layout):
     assert {p: p.read_bytes() for p in layout.raw_dir.rglob("*") if p.is_file()} == before
 
 
-def test_an_interrupted_evaluate_leaves_no_earlier_report(layout, monkeypatch):
-    """Killed in its first seconds (here: while it lists its inputs), evaluate has already removed the
-    previous report, which must never be read without its manifest."""
-    from stages import evaluate
-
-    params = default_params("evaluate", evaluate.Params)
-    report = evaluate.targets(layout, params)
-    for path in [*report, layout.manifest("evaluate")]:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text("an earlier run's")
-
-    def killed(*args):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(evaluate, "inputs", killed)
-    with pytest.raises(KeyboardInterrupt):
-        execute(evaluate, layout, params)
-    assert [p for p in [*report, layout.manifest("evaluate")] if p.exists()] == []
-
-
 def test_damaged_outputs_are_found_cheaply_or_by_hash(layout):
     make_raw(layout)
     execute(imp, layout, PARAMS)
