@@ -20,14 +20,18 @@ prints its own line and doit exits 2 too, adding nothing (``OneLineReporter``).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
+import sqlite3
 import subprocess
 import sys
 import tempfile
 from typing import NoReturn
 
 from doit import get_var
+from doit.dependency import Dependency, SqliteDB
 from doit.exceptions import BaseFail, TaskError, TaskFailed
 from doit.reporter import ConsoleReporter
 from doit.tools import config_changed
@@ -82,6 +86,60 @@ elif _command(sys.argv[1:]) not in READ_ONLY_COMMANDS:
         _LOCK = acquire(LAYOUT.lock)  # held until doit exits
     except PipelineError as e:
         _stop(str(e))
+
+
+def _interrupt(signum, frame) -> NoReturn:
+    """Ctrl-C outside a stage: one line, exit code 130; doit writes the state of the stages that completed
+    on its way out (SystemExit passes through its task loop, KeyboardInterrupt would end in a traceback)."""
+    print("doit: interrupted", file=sys.stderr, flush=True)
+    raise SystemExit(130)
+
+
+_SIGINT_WHILE_A_STAGE_RAN: list[int] = []
+if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (a background job)
+    signal.signal(signal.SIGINT, _interrupt)
+
+
+def _save_state_per_stage() -> None:
+    """doit writes its state once, on its way out: a full disk then loses the record of every stage that
+    completed in this run (they all rerun) and ends in a traceback. Here each completed stage is written at
+    once, and a state that cannot be written is one line naming the file and the free space."""
+    save_success = Dependency.save_success
+    dump = SqliteDB.dump
+
+    def save_now(self, task, result_hash=None):
+        save_success(self, task, result_hash)
+        if isinstance(self.backend, SqliteDB):
+            try:
+                dump(self.backend)  # writes and closes; the next stage reopens it
+            except (sqlite3.Error, OSError) as e:
+                _say_unsaved(self.backend.name, e)
+                with contextlib.suppress(sqlite3.Error):
+                    self.backend._conn.close()  # its rows stay marked unsaved, for the next try
+            self.backend._conn = self.backend._sqlite3(self.backend.name)
+
+    def dump_or_say(self):
+        try:
+            dump(self)
+        except (sqlite3.Error, OSError) as e:
+            if self._dirty:  # (else only the record of a failed stage could not be deleted: it reruns anyway)
+                _say_unsaved(self.name, e)
+
+    Dependency.save_success = save_now
+    SqliteDB.dump = dump_or_say
+
+
+def _say_unsaved(path: str, e: Exception) -> None:
+    if _UNSAVED_SAID:
+        return
+    _UNSAVED_SAID.append(path)
+    free = shutil.disk_usage(os.path.dirname(path) or ".").free / 2**20
+    print(f"doit: {path}: could not write doit's state ({e}; {free:.0f} MiB free): a stage that completed "
+          "since it was last written runs again", file=sys.stderr, flush=True)  # fmt: skip
+
+
+_UNSAVED_SAID: list[str] = []
+_save_state_per_stage()
 
 
 class StageStopped(TaskError):
@@ -146,8 +204,20 @@ def _run_stage(name):
     ]
 
     def action():
-        # the stage shares the building's lock: should this doit die, the stage still holds it
-        code = subprocess.run(command, pass_fds=lock_fds()).returncode
+        if _SIGINT_WHILE_A_STAGE_RAN:  # a Ctrl-C that came while the last stage completed
+            _interrupt(signal.SIGINT, None)
+        # Ctrl-C reaches the stage too (the terminal signals the whole job): it says so and exits 130; this
+        # process waits for it rather than leaving it half-stopped
+        previous = signal.getsignal(signal.SIGINT)
+        if previous is not signal.SIG_IGN:
+            signal.signal(signal.SIGINT, lambda signum, frame: _SIGINT_WHILE_A_STAGE_RAN.append(signum))
+        try:
+            # the stage shares the building's lock: should this doit die, the stage still holds it
+            code = subprocess.run(command, pass_fds=lock_fds()).returncode
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        if code in (130, -signal.SIGINT):  # the stage said it was interrupted
+            raise SystemExit(130)
         if code == 2:  # bad input or config: the stage said which in one line
             return StageStopped(f"{name} stopped on bad input", said=True)
         if code != 0:

@@ -23,7 +23,7 @@ from typing import Any
 
 import facade_pipeline
 from facade_pipeline.config import RunSettings, default_run_settings, load_building_config, to_dict
-from facade_pipeline.errors import PipelineError
+from facade_pipeline.errors import InputError, PipelineError
 from facade_pipeline.io.atomic import remove_stale_temporaries, write_json
 from facade_pipeline.io.lock import acquire, release
 from facade_pipeline.layout import BuildingLayout
@@ -113,12 +113,14 @@ def execute(
     """Run ``stage`` under the contract and return its manifest. ``settings``: the ``[run]`` table (how it
     runs; default.toml's when None), kept out of the manifest's parameters as out of doit's."""
     settings = settings or default_run_settings()
+    folders = output_folders(stage, layout)
+    for folder in folders:
+        _check_reachable(folder)
     if getattr(stage, "REMOVE_TARGETS_FIRST", False):
         for path in stage.targets(layout, params):
             path.unlink(missing_ok=True)
     manifest_path = layout.manifest(stage.NAME)
     record = layout.previous_outputs(stage.NAME)
-    folders = output_folders(stage, layout)
     previous = _previous_outputs(layout, stage.NAME)
     if previous:
         # the list outlives the manifest deleted next, so a run interrupted before it completes still
@@ -149,6 +151,18 @@ def execute(
     write_json(manifest_path, manifest)
     record.unlink(missing_ok=True)
     return manifest
+
+
+def _check_reachable(folder: Path) -> None:
+    """A stage folder that is a symlink to a folder that is not there (a disk that is not mounted) stops
+    the stage before any work, rather than at its first write, maybe hours later."""
+    if folder.is_symlink() and not folder.exists():
+        raise InputError(
+            folder,
+            "a stage folder, or a symlink to a folder that exists",
+            f"a symlink to {os.readlink(folder)}, which does not exist (a disk that is not mounted?): "
+            "mount it, or delete the symlink to write here",
+        )
 
 
 def _previous_outputs(layout: BuildingLayout, stage: str) -> set[str]:

@@ -132,6 +132,36 @@ def test_a_listed_path_outside_the_stage_folder_is_never_deleted(layout):
     assert {p: p.read_bytes() for p in layout.raw_dir.rglob("*") if p.is_file()} == before
 
 
+def test_a_stage_folder_on_a_disk_that_is_not_there_stops_before_any_work(layout, tmp_path, monkeypatch):
+    make_raw(layout)
+    layout.stage_dir("import_photogrammetry").symlink_to(tmp_path / "unmounted" / "01_import")
+    monkeypatch.setattr(imp, "inputs", lambda *a: pytest.fail("the stage started its work"))
+    with pytest.raises(InputError) as e:
+        execute(imp, layout, PARAMS)
+    assert "01_import: expected a stage folder" in str(e.value) and "unmounted/01_import" in str(e.value)
+    assert "not mounted" in str(e.value)
+
+
+def test_an_unreadable_mesh_is_one_line_and_nothing_on_the_terminal(tmp_path, capfd):
+    """open3d's PLY reader prints a line per bad element from C++ (40 for a cut-short mesh): kept off the
+    terminal, the first one is quoted in the error."""
+    from facade_pipeline.io.meshes import read_mesh, read_points, write_mesh
+
+    good = tmp_path / "mesh.ply"
+    import open3d as o3d
+
+    write_mesh(good, o3d.geometry.TriangleMesh.create_sphere(resolution=20))
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    capfd.readouterr()
+    for read in (read_mesh, read_points):
+        with pytest.raises(InputError, match=r"cut.ply: expected .*found a damaged or truncated file \(RPly"):
+            read(cut)
+    assert read_mesh(good).has_triangles()
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+
+
 def test_damaged_outputs_are_found_cheaply_or_by_hash(layout):
     make_raw(layout)
     execute(imp, layout, PARAMS)
@@ -276,6 +306,87 @@ def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
         time.sleep(0.1)
     _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
     assert read_manifest(layout, "import_photogrammetry")
+
+
+def _stage_pid(layout, name: str, doit: subprocess.Popen, timeout: float = 300) -> int:
+    """The pid of stage ``name`` once doit has started it and it holds the building with doit."""
+    deadline = time.monotonic() + timeout
+    while True:
+        assert doit.poll() is None and time.monotonic() < deadline, f"{name} never started"
+        for word in layout.lock.read_text().split() if layout.lock.is_file() else []:
+            try:
+                cmdline = Path(f"/proc/{word}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if cmdline[1:4] == [b"-m", b"stages", name.encode()] and _alive(int(word)):
+                return int(word)
+        time.sleep(0.01)
+
+
+def test_ctrl_c_during_a_stage_is_its_line_and_exit_130_and_the_completed_stages_stay_done(real):
+    """Ctrl-C (SIGINT to the whole job, as a terminal sends it) while the second stage runs: that stage's
+    line, exit code 130, no traceback; the first stage is not run again."""
+    layout, env, _ = real
+    cmd = [sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), "rectify", "building=faults",
+           f"data_root={layout.data_root}"]  # fmt: skip
+    # its own process group, SIGINT handled as in a terminal (a background job would start with it ignored)
+    run = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+    try:
+        stage = _stage_pid(layout, "rectify", run)
+        os.kill(stage, signal.SIGSTOP)  # so that the signal finds it mid-run, however loaded the machine
+        os.killpg(run.pid, signal.SIGINT)
+        os.kill(stage, signal.SIGCONT)
+        out, err = run.communicate(timeout=300)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+    assert run.returncode == 130, out + err
+    assert "Traceback" not in err and "rectify: interrupted" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    again = _doit(["rectify", "building=faults"], env, layout.data_root)
+    assert "-- import_photogrammetry" in again.stdout and ".  rectify" in again.stdout
+
+
+def test_a_disk_that_fills_during_a_stage_is_one_line_and_keeps_the_completed_stages(real, tmp_path):
+    """The data root on a small disk that fills while the second stage runs: the stage's one line names the
+    file and the free space, doit adds no traceback, and the first stage stays done."""
+    layout, env, _ = real
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(disk)],
+                      capture_output=True).returncode != 0:  # fmt: skip
+        pytest.skip("a small disk needs a tmpfs mount (root with CAP_SYS_ADMIN), not permitted here")
+    try:
+        shutil.copytree(layout.root, disk / layout.building)
+        small = BuildingLayout(disk, layout.building)
+        cmd = [sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), "rectify", "building=faults",
+               f"data_root={disk}"]  # fmt: skip
+        run = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)  # fmt: skip
+        try:
+            stage = _stage_pid(small, "rectify", run)
+            os.kill(stage, signal.SIGSTOP)
+            with open(disk / "ballast", "wb") as f:  # everything that is left
+                with pytest.raises(OSError):
+                    while True:
+                        f.write(b"\0" * (1 << 16))
+                        f.flush()
+            os.kill(stage, signal.SIGCONT)
+            out, err = run.communicate(timeout=300)
+        finally:
+            run.kill()
+            run.wait()
+        assert run.returncode == 2 and "Traceback" not in err, out + err
+        (line,) = err.strip().splitlines()
+        assert line.startswith("rectify: ") and "No space left on device" in line and "MiB free" in line
+        assert str(small.stage_dir("rectify")) in line
+        (disk / "ballast").unlink()
+        again = _doit(["rectify", "building=faults"], env, disk)
+        assert "-- import_photogrammetry" in again.stdout and ".  rectify" in again.stdout
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
 
 
 def test_lock_in_process(tmp_path):

@@ -122,6 +122,21 @@ def _corrupt(layout):
     (layout.raw_sparse_dir / "images.bin").write_bytes(b"\x07\x00\x00\x00garbage")
 
 
+def _cut_short(name, keep=None):
+    def damage(layout):
+        path = layout.raw_sparse_dir / name
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) - 10 if keep is None else keep])
+
+    return damage
+
+
+def _truncated_mesh(layout):
+    p = layout.raw_coarse_mesh_candidates[0]
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) * 2 // 3])
+
+
 def _missing_image(layout):
     next(layout.raw_images_dir.iterdir()).unlink()
 
@@ -195,7 +210,11 @@ def _nan_pose(layout):
         (_two_images_one_stem, "raw/images", ".jpg"),
         (_nan_pose, "sparse/0", "NaN or Inf"),
         (_missing_model, "sparse/0", "missing cameras, images, points3D"),
-        (_corrupt, "sparse/0", "damaged model"),
+        (_corrupt, "sparse/0/images.bin", "ends after 11 bytes, inside its first record"),
+        (_cut_short("cameras.bin"), "sparse/0/cameras.bin", "inside camera 1 of the 1 it declares"),
+        (_cut_short("points3D.bin", keep=0), "sparse/0/points3D.bin", "an empty file"),
+        (_cut_short("points3D.bin"), "sparse/0/points3D.bin", "cut short"),
+        (_truncated_mesh, "coarse_mesh.ply", "damaged or truncated file (RPly"),
         (_missing_image, "raw/images/", "no file"),
         (_wrong_size, "raw/images/", "12x10"),
         (_no_faces, "coarse_mesh.ply", "no face"),
@@ -211,6 +230,7 @@ def test_bad_input_names_the_file(layout, damage, file_part, words):
         execute(stage, layout, PARAMS)
     msg = str(e.value)
     assert file_part in msg and words in msg and "expected" in msg, msg
+    assert "np." not in msg and "std::" not in msg, msg  # words, not a library's reprs
     assert tree_digest(layout.raw_dir) == before
     assert not layout.manifest(stage.NAME).exists()
 

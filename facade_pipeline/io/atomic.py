@@ -7,8 +7,10 @@ temporary file (``.tmp-*``) that no reader trusts and that the next run of the s
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,8 +30,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
+        try:
+            yield tmp_path
+        except Exception as e:
+            # a writer that fails on a full disk says so in its own words (torch: "file write failed", a
+            # plain write: no file name); name the file, so that the stage's one line does
+            if not (isinstance(e, OSError) and e.filename) and _out_of_space(path.parent):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path)) from e
+            raise
         if not tmp_path.exists() or (tmp_path.stat().st_size == 0 and not _allow_empty(path)):
+            if _out_of_space(path.parent):  # a writer that reports failure by a return value (OpenCV)
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
             raise OSError(f"{path}: writer produced no data in {tmp_path}")
         os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600 files; give outputs the usual mode
         _fsync(tmp_path)
@@ -38,6 +49,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+def _out_of_space(folder: Path) -> bool:
+    try:
+        return shutil.disk_usage(folder).free < 1 << 20
+    except OSError:
+        return False
 
 
 def _umask() -> int:

@@ -7,6 +7,7 @@ versions, Metashape or DJI Terra (binary or text) are read the same way.
 from __future__ import annotations
 
 import shutil
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,15 +47,94 @@ def read_reconstruction(model_dir: str | Path) -> pycolmap.Reconstruction:
             "COLMAP files cameras, images, points3D (.bin or .txt)",
             f"missing {', '.join(missing)}",
         )
+    check_binary_files(model_dir, walk_all=False)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # pycolmap raises ValueError, IndexError, RuntimeError for damaged files
+    except Exception as e:  # pycolmap raises ValueError, IndexError, RuntimeError, MemoryError
+        check_binary_files(model_dir, walk_all=True)  # a truncated file: say which
         raise InputError(
             model_dir, "a readable COLMAP model", f"a damaged model ({type(e).__name__}: {e})"
         ) from None
     if rec.num_reg_images() == 0:
         raise InputError(model_dir, "a COLMAP model with registered images", "no registered image")
     return rec
+
+
+# COLMAP's binary records (src/colmap/scene/reconstruction_io_binary.cc): after a uint64 count, cameras
+# are (uint32 id, int32 model, uint64 width, uint64 height, double params[n(model)]), images (uint32 id,
+# double qvec[4], double tvec[3], uint32 camera id, NUL-terminated name, uint64 n, n x (double x, double y,
+# uint64 point id)), points (uint64 id, double xyz[3], uint8 rgb[3], double error, uint64 n,
+# n x (uint32 image id, uint32 point index)).
+_RECORD_NAMES = {"cameras": "camera", "images": "image", "points3D": "point"}
+
+
+def check_binary_files(model_dir: Path, walk_all: bool) -> None:
+    """Raise ``InputError`` naming a binary model file that is empty or ends inside a record (a copy cut
+    short); pycolmap itself reads such files as zeros or fails with a bare ``std::bad_alloc``. cameras.bin
+    is always walked (it is tiny, and a truncated one reads as a camera with zero parameters); images.bin
+    and points3D.bin are walked when ``walk_all`` (after pycolmap failed on the model)."""
+    for name in MODEL_FILES:
+        path = model_dir / f"{name}.bin"
+        if not path.is_file():
+            continue
+        size = path.stat().st_size
+        if size < 8:
+            raise InputError(
+                path,
+                f"a COLMAP {name}.bin (at least its 8-byte count of {_RECORD_NAMES[name]}s)",
+                f"{'an empty file' if size == 0 else f'a file of {size} bytes'}: copy it again from the "
+                "photogrammetry export",
+            )
+        if name == "cameras" or walk_all:
+            where = _truncated_record(name, path.read_bytes())
+            if where is not None:
+                raise InputError(
+                    path,
+                    f"a complete COLMAP {name}.bin",
+                    f"a file that ends after {size} bytes, inside {where} (cut short: copy it again "
+                    "from the photogrammetry export)",
+                )
+
+
+def _truncated_record(name: str, data: bytes) -> str | None:
+    """Where ``data`` (a whole ``<name>.bin``) ends before its declared records do, in words; None if not
+    (or if a record cannot be judged: an unknown camera model, which pycolmap reports itself)."""
+    (count,) = struct.unpack_from("<Q", data, 0)
+    at, done = 8, 0
+    try:
+        while done < count:
+            if name == "cameras":
+                _, model, _, _ = struct.unpack_from("<iiQQ", data, at)
+                n_params = _num_params(model)
+                if n_params is None:
+                    return None
+                at += 24 + 8 * n_params
+            elif name == "images":
+                end = data.index(b"\0", at + 4 + 8 * 7 + 4)
+                (n,) = struct.unpack_from("<Q", data, end + 1)
+                at = end + 9 + 24 * n
+            else:
+                (n,) = struct.unpack_from("<Q", data, at + 8 + 24 + 3 + 8)
+                at += 8 + 24 + 3 + 8 + 8 + 8 * n
+            if at > len(data):
+                break
+            done += 1
+    except (struct.error, ValueError):
+        pass
+    record = _RECORD_NAMES[name]
+    if done == count:
+        return None
+    if count > len(data):  # not a count at all: the file is damaged from its start
+        return f"its first record, after a count of {count} {record}s that no file this size holds"
+    return f"{record} {done + 1} of the {count} it declares"
+
+
+def _num_params(model_id: int) -> int | None:
+    try:
+        model = pycolmap.CameraModelId(model_id)
+        return len(pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params)
+    except (ValueError, TypeError):
+        return None
 
 
 def camera_model_name(camera: pycolmap.Camera) -> str:

@@ -3,6 +3,14 @@ clear ``InputError``. Coordinates stay float64 in memory (georeferenced inputs n
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import io
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,13 +19,45 @@ import open3d as o3d
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import atomic_path
 
+_LIBC = ctypes.CDLL(None)
+
+
+@contextlib.contextmanager
+def _reader_messages(path: Path, expected: str) -> Iterator[None]:
+    """Keep open3d's reader messages off the terminal (its PLY parser, RPly, prints one line per bad element
+    to the process's stderr from C; open3d prints its warnings through Python's stdout) and turn a failed
+    read into one ``InputError`` quoting the first."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    logged = io.StringIO()  # open3d's Python module prints its warnings through Python's sys.stdout
+    with tempfile.TemporaryFile() as caught:
+        for fd in saved:
+            os.dup2(caught.fileno(), fd)
+        try:
+            with contextlib.redirect_stdout(logged):
+                yield
+        finally:
+            _LIBC.fflush(None)  # C's buffered streams: their lines must land here, not after
+            for fd, copy in saved.items():
+                os.dup2(copy, fd)
+                os.close(copy)
+        caught.seek(0)
+        text = caught.read().decode(errors="replace") + logged.getvalue()
+    text = re.sub(r"\x1b\[[0-9;]*m", "", text)  # colour codes
+    failed = [ln.strip() for ln in text.splitlines() if ln.startswith("RPly") or "failed" in ln.lower()]
+    if failed:
+        more = f" and {len(failed) - 1} more" if len(failed) > 1 else ""
+        raise InputError(path, expected, f"a damaged or truncated file ({failed[0]}{more})")
+
 
 def read_mesh(path: str | Path) -> o3d.geometry.TriangleMesh:
     """Read a triangle mesh and check it has faces and finite vertices."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "a triangle mesh (PLY or OBJ)", "no file")
-    mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False, print_progress=False)
+    with _reader_messages(path, "a readable triangle mesh (PLY or OBJ)"):
+        mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False, print_progress=False)
     n_v, n_f = len(mesh.vertices), len(mesh.triangles)
     if n_v == 0:
         raise InputError(
@@ -40,7 +80,8 @@ def read_points(path: str | Path) -> o3d.geometry.PointCloud:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "a point cloud (PLY)", "no file")
-    pcd = o3d.io.read_point_cloud(str(path), print_progress=False)
+    with _reader_messages(path, "a readable point cloud (PLY)"):
+        pcd = o3d.io.read_point_cloud(str(path), print_progress=False)
     if len(pcd.points) == 0:
         raise InputError(path, "a point cloud with points", "no point (empty or unreadable file)")
     p = np.asarray(pcd.points)
