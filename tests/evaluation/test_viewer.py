@@ -6,6 +6,8 @@ and reads out a frame rate."""
 
 from __future__ import annotations
 
+import base64
+import io
 import json
 import re
 import shutil
@@ -31,7 +33,6 @@ from facade_pipeline.view import (
     Scene,
     ViewCamera,
     Viewer,
-    browser_screenshot,
     fov_of,
     headless_page,
     pose_of,
@@ -212,19 +213,31 @@ def test_a_browser_shows_the_facade(scene, tmp_path):
         browser = shutil.which("chromium") or shutil.which("chromium-browser")
         if browser is None:
             pytest.skip("no Chromium: `make test` installs Debian's chromium package where apt can")
-        shot = tmp_path / "shot.png"
-        shot.write_bytes(browser_screenshot(browser, url, lambda: len(viewer.last_image) > 0, tmp_path))
-        img = np.asarray(Image.open(shot).convert("RGB")).astype(float)
+
+        def correlation(png: bytes) -> float:
+            """How well the screenshot shows the server's last render: brightness patterns where no overlay
+            covers the canvas (the sidebar is top right, the frustums are thin lines)."""
+            img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(float)
+            (sent,) = viewer.last_image.values()
+            h, w = img.shape[:2]
+            sent = np.asarray(Image.fromarray(sent).resize((w, h), Image.Resampling.BILINEAR)).astype(float)
+            region = (slice(h // 2, h - 40), slice(110, w // 2))
+            a, b = img[region].mean(axis=2).ravel(), sent[region].mean(axis=2).ravel()
+            return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else 0.0
+
+        with headless_page(browser, url, tmp_path) as call:
+            _wait("the viewer sends a render", lambda: len(viewer.last_image) > 0)
+            shots: list[bytes] = []
+
+            def shows_the_render() -> bool:
+                # the image travels and is drawn (software WebGL) in its own time: look until it is there
+                shots.append(base64.b64decode(call("Page.captureScreenshot", format="png")["data"]))
+                return correlation(shots[-1]) > 0.7
+
+            _wait("the screenshot shows the render", shows_the_render, 60,
+                  lambda: f"(correlation {correlation(shots[-1]):.2f})")  # fmt: skip
+        img = np.asarray(Image.open(io.BytesIO(shots[-1])).convert("RGB")).astype(float)
         assert img.std() > 5.0, "a blank screenshot"
-        # the canvas shows what the server rendered for this browser: compare brightness patterns where no
-        # overlay covers the canvas (the sidebar is top right, the frustums are thin lines)
-        (sent,) = viewer.last_image.values()
-        h, w = img.shape[:2]
-        sent = np.asarray(Image.fromarray(sent).resize((w, h), Image.Resampling.BILINEAR)).astype(float)
-        region = (slice(h // 2, h - 40), slice(110, w // 2))
-        a, b = img[region].mean(axis=2).ravel(), sent[region].mean(axis=2).ravel()
-        corr = np.corrcoef(a, b)[0, 1]
-        assert corr > 0.7, f"the screenshot does not show the render (correlation {corr:.2f})"
     finally:
         viewer.stop()
 
