@@ -1,0 +1,109 @@
+"""The Dask cluster a batch runs on: a ``LocalCluster`` on this machine (the default), a running scheduler
+at an address, or Slurm jobs through ``dask-jobqueue`` (``[batch.slurm]`` of configs/default.toml).
+
+Every worker runs one task at a time (one stage, whose thread pools use the worker's cores); a worker with
+GPUs declares the Dask resource ``GPU``, which train_gs and evaluate ask for when the building's ``[run]
+device`` wants CUDA. A task whose worker dies is retried once (the scheduler's ``allowed-failures``),
+then fails its building."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from contextlib import ExitStack
+from dataclasses import dataclass
+
+from facade_pipeline.threads import usable_cores
+
+#: a task is retried once after its worker died (then ``KilledWorker``); set before a scheduler starts
+ALLOWED_FAILURES = 1
+
+
+@dataclass
+class Cluster:
+    client: object
+    """the ``distributed.Client``"""
+    threads: int | None
+    """threads per stage where this process knows the workers' cores (a LocalCluster), else None"""
+    stack: ExitStack
+
+    def gpu_workers(self) -> int:
+        """Workers that declare the ``GPU`` resource."""
+        info = self.client.scheduler_info(n_workers=-1)["workers"]
+        return sum(1 for w in info.values() if w.get("resources", {}).get("GPU", 0) >= 1)
+
+    def close(self) -> None:
+        self.stack.close()
+
+
+def local_gpus() -> int:
+    """CUDA devices on this machine (``nvidia-smi -L``: no torch import for a count)."""
+    smi = shutil.which("nvidia-smi")
+    if smi is None:
+        return 0
+    try:
+        out = subprocess.run([smi, "-L"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return 0
+    return sum(line.startswith("GPU ") for line in out.splitlines())
+
+
+def connect(scheduler: str, workers: int | None) -> Cluster:
+    """``scheduler``: "local", "slurm" or a scheduler's address (``tcp://host:8786``)."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES})
+    stack = ExitStack()
+    threads = None
+    if scheduler == "local":
+        n = workers or max(1, min(usable_cores(), 4))
+        gpus = local_gpus()
+        cluster = stack.enter_context(
+            LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                resources={"GPU": 1} if gpus else None,
+                dashboard_address=None,
+            )
+        )
+        threads = max(1, usable_cores() // n)
+    elif scheduler == "slurm":
+        if shutil.which("sbatch") is None:
+            raise BatchError("--scheduler slurm: expected Slurm's sbatch on this machine's PATH, found none: "
+                             "run facade-batch on a Slurm login node")
+        cluster = stack.enter_context(slurm_cluster())
+        cluster.scale(jobs=workers or cluster.jobs)
+        threads = cluster.job_cpu
+    else:
+        cluster = scheduler
+    client = stack.enter_context(Client(cluster))
+    return Cluster(client, threads, stack)
+
+
+class BatchError(Exception):
+    """A batch cannot start: one line says why and what to do."""
+
+
+def slurm_cluster():
+    """A ``dask_jobqueue.SLURMCluster`` of ``[batch.slurm]``'s jobs (none started yet: ``scale``), one
+    worker process per job with one thread."""
+    from dask_jobqueue import SLURMCluster
+
+    from facade_pipeline.batch.params import BatchSettings
+    from facade_pipeline.config import default_params
+
+    s = default_params("batch", BatchSettings).slurm
+    cluster = SLURMCluster(
+        queue=s.queue or None,
+        cores=1,  # Dask threads: one stage at a time, which uses every core of the job
+        job_cpu=s.cores,
+        processes=1,
+        memory=s.memory,
+        walltime=s.walltime,
+        job_extra_directives=[f"--gres=gpu:{s.gpus}"] if s.gpus else [],
+        worker_extra_args=["--resources", f"GPU={s.gpus}"] if s.gpus else [],
+    )
+    cluster.job_cpu, cluster.jobs = s.cores, s.jobs
+    return cluster
