@@ -125,6 +125,8 @@ class RunSettings:
     """iterations between train_gs's checkpoints (0: only at the end)"""
     overlay_scale: Positive
     """rectify's and segment_panels' overlay images are drawn this many times the view's size"""
+    view_workers: Count
+    """processes over which a stage's per-view loop runs (1: the stage's own; 0: one per core)"""
 
 
 def default_run_settings(directory: Path | None = None) -> RunSettings:

@@ -50,7 +50,7 @@ def wants_gpu(building: str, stage: str, gpu_workers: int) -> bool:
 def run(args: argparse.Namespace) -> int:
     from distributed import as_completed
 
-    from .cluster import BatchError, connect
+    from .cluster import STAGE, BatchError, connect
     from .task import check_data_root, run_stage
 
     data_root = resolve_data_root(args.data_root)
@@ -82,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
             for line in unseen:
                 print(f"facade-batch: {line}", file=sys.stderr)
             return 2
-        gpus = cluster.gpu_workers()
+        gpus = cluster.workers_with("GPU")
+        slots = cluster.workers_with(STAGE) > 0
+        address = client.scheduler.address if slots else None
         for b, stages in plans.items():
             for s in stages:
                 if wants_gpu(b, s, gpus) and gpus == 0:
@@ -95,11 +97,11 @@ def run(args: argparse.Namespace) -> int:
         for b, stages in plans.items():
             previous = None
             for i, s in enumerate(stages):
+                resources = ({STAGE: 1} if slots else {}) | ({"GPU": 1} if wants_gpu(b, s, gpus) else {})
                 previous = client.submit(
                     run_stage, b, s, str(data_root), str(config_dir()), cluster.threads,
-                    stages if i == 0 else None, previous,
-                    key=f"{b}/{s}-{token}", pure=False,
-                    resources={"GPU": 1} if wants_gpu(b, s, gpus) else None,
+                    stages if i == 0 else None, address, previous,
+                    key=f"{b}/{s}-{token}", pure=False, resources=resources or None,
                 )
                 futures.append(previous)
         n_workers = len(client.scheduler_info()["workers"])

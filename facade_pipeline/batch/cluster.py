@@ -1,10 +1,12 @@
 """The Dask cluster a batch runs on: a ``LocalCluster`` on this machine (the default), a running scheduler
 at an address, or Slurm jobs through ``dask-jobqueue`` (``[batch.slurm]`` of configs/default.toml).
 
-Every worker runs one task at a time (one stage, whose thread pools use the worker's cores); a worker with
-GPUs declares the Dask resource ``GPU``, which train_gs and evaluate ask for when the building's ``[run]
-device`` wants CUDA. A task whose worker dies is retried once (the scheduler's ``allowed-failures``),
-then fails its building."""
+Every worker runs one stage at a time (the Dask resource ``stage``; the stage's thread pools use the
+worker's cores), and the views that stage fans out (``fanout``) on its free threads; a worker with GPUs
+declares the resource ``GPU``, which train_gs and evaluate ask for when the building's ``[run] device``
+wants CUDA. Workers that declare no ``stage`` (started by hand without it) run one task per thread, and
+their stages keep their views to themselves. A task whose worker dies is retried once (the scheduler's
+``allowed-failures``), then fails its building."""
 
 from __future__ import annotations
 
@@ -15,6 +17,9 @@ from dataclasses import dataclass
 
 from facade_pipeline.threads import usable_cores
 
+#: the Dask resource of a worker's one stage at a time. A stage task holds it while it waits for its doit
+#: run, having left the worker's thread (``secede``) so that the views it fans out can run there too
+STAGE = "stage"
 #: a task is retried once after its worker died (then ``KilledWorker``); set before a scheduler starts
 ALLOWED_FAILURES = 1
 
@@ -27,10 +32,10 @@ class Cluster:
     """threads per stage where this process knows the workers' cores (a LocalCluster), else None"""
     stack: ExitStack
 
-    def gpu_workers(self) -> int:
-        """Workers that declare the ``GPU`` resource."""
+    def workers_with(self, resource: str) -> int:
+        """Workers that declare at least one of ``resource``."""
         info = self.client.scheduler_info(n_workers=-1)["workers"]
-        return sum(1 for w in info.values() if w.get("resources", {}).get("GPU", 0) >= 1)
+        return sum(1 for w in info.values() if w.get("resources", {}).get(resource, 0) >= 1)
 
     def close(self) -> None:
         self.stack.close()
@@ -64,7 +69,7 @@ def connect(scheduler: str, workers: int | None) -> Cluster:
                 n_workers=n,
                 threads_per_worker=1,
                 processes=True,
-                resources={"GPU": 1} if gpus else None,
+                resources={STAGE: 1, **({"GPU": 1} if gpus else {})},
                 dashboard_address=None,
             )
         )
@@ -103,7 +108,7 @@ def slurm_cluster():
         memory=s.memory,
         walltime=s.walltime,
         job_extra_directives=[f"--gres=gpu:{s.gpus}"] if s.gpus else [],
-        worker_extra_args=["--resources", f"GPU={s.gpus}"] if s.gpus else [],
+        worker_extra_args=["--resources", f"{STAGE}=1" + (f",GPU={s.gpus}" if s.gpus else "")],
     )
     cluster.job_cpu, cluster.jobs = s.cores, s.jobs
     return cluster

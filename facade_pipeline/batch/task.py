@@ -8,6 +8,7 @@ the building; the record (``record``) says running, done or failed with the stag
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import socket
@@ -25,6 +26,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.threads import COUNT_VARS
 
 from . import record
+from .fanout import SCHEDULER_ENV
 
 DODO = Path(facade_pipeline.__file__).resolve().parents[1] / "dodo.py"
 #: how long a task waits for the building's lock: a killed worker's stage is being ended by its guard
@@ -66,11 +68,13 @@ def run_stage(
     config_dir: str,
     threads: int | None,
     first_of: list[str] | None,
+    scheduler: str | None = None,
     after: Any = None,
 ) -> dict[str, Any]:
     """Run ``stage`` of ``building`` and return {"building", "stage", "ran", "seconds", "worker"}; raise
     ``StageFailed`` with the one-line error. ``first_of``: the building's stages, for the first task of a
-    batch (the record starts anew); ``after``: the previous stage's result (Dask waits for it)."""
+    batch (the record starts anew); ``scheduler``: the address the stage fans its views out to (None:
+    its own process); ``after``: the previous stage's result (Dask waits for it)."""
     bad = check_data_root(data_root)
     if bad is not None:
         raise StageFailed(bad)
@@ -84,7 +88,7 @@ def run_stage(
     try:
         _wait_for_lock(layout)
         log = layout.path("batch_log", stage=stage)
-        code = _run_doit(building, stage, data_root, config_dir, threads, log)
+        code = _run_doit(building, stage, data_root, config_dir, threads, scheduler, log)
         text = log.read_text(errors="replace")
     except (PipelineError, OSError) as e:
         code, text = -1, f"{stage}: {e}"
@@ -113,16 +117,35 @@ def _wait_for_lock(layout: BuildingLayout) -> None:
 
 
 def _run_doit(building: str, stage: str, data_root: str, config_dir: str, threads: int | None,
-              log: Path) -> int:
+              scheduler: str | None, log: Path) -> int:
     env = {**os.environ, CONFIG_DIR_ENV: config_dir, "TQDM_DISABLE": "1"}
+    env.pop(SCHEDULER_ENV, None)
     if threads is not None:  # the worker's share of its machine's cores
         env |= {var: str(threads) for var in COUNT_VARS}
+    if scheduler is not None:
+        env[SCHEDULER_ENV] = scheduler
     command = [sys.executable, "-m", "facade_pipeline.batch.guard", sys.executable, "-m", "doit", "-f",
                str(DODO), "-s", stage, f"building={building}", f"data_root={data_root}"]
     log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as out:
+    with open(log, "w") as out, _off_the_thread(scheduler is not None):
         return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env,
                               cwd=DODO.parent).returncode
+
+
+@contextlib.contextmanager
+def _off_the_thread(leave: bool):
+    """While the stage runs, leave the worker's thread to the views it fans out (the task keeps its
+    ``stage`` resource, so no second stage comes in), and take a thread back after."""
+    if not leave:
+        yield
+        return
+    from distributed import rejoin, secede
+
+    secede()
+    try:
+        yield
+    finally:
+        rejoin()
 
 
 _EXCEPTION = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\b")
