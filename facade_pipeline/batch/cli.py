@@ -76,7 +76,13 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         client = cluster.client
-        client.wait_for_workers(1, timeout=args.wait_workers)
+        try:
+            client.wait_for_workers(1, timeout=args.wait_workers)
+        except TimeoutError:
+            wait = f"{args.wait_workers:g} s"
+            print(f"facade-batch: --scheduler {args.scheduler}: expected a worker within {wait}, found none: "
+                  "start workers (or wait longer: --wait-workers)", file=sys.stderr)
+            return 2
         unseen = [line for line in client.run(check_data_root, str(data_root)).values() if line]
         if unseen:
             for line in unseen:

@@ -22,6 +22,8 @@ from facade_pipeline.threads import usable_cores
 STAGE = "stage"
 #: a task is retried once after its worker died (then ``KilledWorker``); set before a scheduler starts
 ALLOWED_FAILURES = 1
+#: how long to try reaching a scheduler (s)
+CONNECT_TIMEOUT_S = 30
 
 
 @dataclass
@@ -83,7 +85,12 @@ def connect(scheduler: str, workers: int | None) -> Cluster:
         threads = cluster.job_cpu
     else:
         cluster = scheduler
-    client = stack.enter_context(Client(cluster))
+    try:
+        client = stack.enter_context(Client(cluster, timeout=CONNECT_TIMEOUT_S))
+    except (OSError, TimeoutError) as e:
+        stack.close()
+        found = f"none ({e})"
+        raise BatchError(f"--scheduler {scheduler}: expected a Dask scheduler there, found {found}") from None
     return Cluster(client, threads, stack)
 
 
