@@ -2,7 +2,7 @@
 at an address, or Slurm jobs through ``dask-jobqueue`` (``[batch.slurm]`` of configs/default.toml).
 
 Every worker runs one stage at a time (the Dask resource ``stage``; the stage's thread pools use the
-worker's cores), and the views that stage fans out (``fanout``) on its free threads; a worker with GPUs
+worker's cores), and the views that stages fan out (``fanout``) on a second thread; a worker with GPUs
 declares the resource ``GPU``, which train_gs and evaluate ask for when the building's ``[run] device``
 wants CUDA. Workers that declare no ``stage`` (started by hand without it) run one task per thread, and
 their stages keep their views to themselves. A task whose worker dies is retried once (the scheduler's
@@ -17,9 +17,12 @@ from dataclasses import dataclass
 
 from facade_pipeline.threads import usable_cores
 
-#: the Dask resource of a worker's one stage at a time. A stage task holds it while it waits for its doit
-#: run, having left the worker's thread (``secede``) so that the views it fans out can run there too
+#: the Dask resource of a worker's one stage at a time; a worker has one thread more than stages, on which
+#: the views that the stages fan out run. (A stage task that left its thread while it waits, ``secede``,
+#: looked idle to the scheduler, which then queued every stage on one worker behind the resource.)
 STAGE = "stage"
+#: Dask threads of a worker: its one stage, and the views fanned out to it
+WORKER_THREADS = 2
 #: a task is retried once after its worker died (then ``KilledWorker``); set before a scheduler starts
 ALLOWED_FAILURES = 1
 #: how long to try reaching a scheduler (s)
@@ -69,7 +72,7 @@ def connect(scheduler: str, workers: int | None) -> Cluster:
         cluster = stack.enter_context(
             LocalCluster(
                 n_workers=n,
-                threads_per_worker=1,
+                threads_per_worker=WORKER_THREADS,
                 processes=True,
                 resources={STAGE: 1, **({"GPU": 1} if gpus else {})},
                 dashboard_address=None,
@@ -100,7 +103,7 @@ class BatchError(Exception):
 
 def slurm_cluster():
     """A ``dask_jobqueue.SLURMCluster`` of ``[batch.slurm]``'s jobs (none started yet: ``scale``), one
-    worker process per job with one thread."""
+    worker process per job."""
     from dask_jobqueue import SLURMCluster
 
     from facade_pipeline.batch.params import BatchSettings
@@ -109,7 +112,7 @@ def slurm_cluster():
     s = default_params("batch", BatchSettings).slurm
     cluster = SLURMCluster(
         queue=s.queue or None,
-        cores=1,  # Dask threads: one stage at a time, which uses every core of the job
+        cores=WORKER_THREADS,  # Dask threads: one stage at a time (which uses every core), views beside it
         job_cpu=s.cores,
         processes=1,
         memory=s.memory,

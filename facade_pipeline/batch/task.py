@@ -8,7 +8,6 @@ the building; the record (``record``) says running, done or failed with the stag
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 import socket
@@ -127,25 +126,9 @@ def _run_doit(building: str, stage: str, data_root: str, config_dir: str, thread
     command = [sys.executable, "-m", "facade_pipeline.batch.guard", sys.executable, "-m", "doit", "-f",
                str(DODO), "-s", stage, f"building={building}", f"data_root={data_root}"]
     log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as out, _off_the_thread(scheduler is not None):
+    with open(log, "w") as out:
         return subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=env,
                               cwd=DODO.parent).returncode
-
-
-@contextlib.contextmanager
-def _off_the_thread(leave: bool):
-    """While the stage runs, leave the worker's thread to the views it fans out (the task keeps its
-    ``stage`` resource, so no second stage comes in), and take a thread back after."""
-    if not leave:
-        yield
-        return
-    from distributed import rejoin, secede
-
-    secede()
-    try:
-        yield
-    finally:
-        rejoin()
 
 
 _EXCEPTION = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\b")

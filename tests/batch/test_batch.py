@@ -122,7 +122,7 @@ def test_slurm_jobs_come_from_the_batch_table_which_no_building_sets(tmp_path, c
     finally:
         cluster.close()
     assert "--cpus-per-task=8" in script and "--gres=gpu:1" in script and "-t 24:00:00" in script
-    assert "--nthreads 1" in script and "--resources GPU=1" in script
+    assert "--nthreads 2" in script and "--resources stage=1,GPU=1" in script
     (cfg / "buildings" / "broken.toml").write_text(
         '[building]\nkind = "real"\ndescription = "test"\n[batch.slurm]\ncores = 4\n')
     with pytest.raises(ConfigError, match=r"broken.toml: expected \[batch\] only in default.toml"):
