@@ -9,9 +9,12 @@
 
 Each stage task declares: the exact files it reads as ``file_dep`` (computed by a hidden ``_inputs:<stage>``
 task through doit's ``calc_dep``, from raw/ and the upstream manifests, since they are only known once the
-upstream stage ran), its own source files, its targets (the outputs known in advance and its manifest), and
-``config_changed`` of its parameters, and that the outputs its manifest lists are still what it wrote (a file
-whose size or time changed is hashed; one that was damaged or deleted reruns the stage). doit's state is kept
+upstream stage ran), its own source files, its targets (the outputs known in advance and its manifest),
+``config_changed`` of its parameters, the output hashes its upstream manifests list, and that the outputs its
+own manifest lists are still what it wrote (a file whose size or time changed is hashed; one that was damaged
+or deleted reruns the stage). An upstream manifest is a dependency through its output hashes only, never its
+bytes (which hold wall time and peak memory): an upstream stage that reruns and writes the same outputs
+reruns nothing after it. doit's state is kept
 per building in ``<building>/.doit.db``. A run holds ``<building>/.lock`` so that a second one stops at once.
 
 A bad config or building name stops here with one line and exit code 2; a stage that stops on bad input
@@ -21,6 +24,8 @@ prints its own line and doit exits 2 too, adding nothing (``OneLineReporter``).
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import os
 import shutil
 import signal
@@ -40,7 +45,7 @@ from facade_pipeline.config import load_building_config, to_dict
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.lock import acquire, lock_fds
 from facade_pipeline.layout import BuildingLayout
-from facade_pipeline.manifest import rerun_reason
+from facade_pipeline.manifest import read_manifest, rerun_reason
 from stages import PIPELINE, load_stage
 from stages._runner import source_files
 
@@ -239,6 +244,32 @@ def _outputs_intact(stage):
     return check
 
 
+class upstream_outputs_unchanged:
+    """doit ``uptodate``: true while the upstream manifests list the same output hashes as when the stage last
+    ran (a missing or unreadable manifest counts as a change)."""
+
+    KEY = "_upstream_outputs"
+
+    def __init__(self, upstream: list[str]):
+        self.upstream = upstream
+
+    def digest(self) -> str:
+        listed = {}
+        for u in self.upstream:
+            try:
+                listed[u] = read_manifest(LAYOUT, u).outputs
+            except PipelineError:
+                listed[u] = None
+        return hashlib.sha256(json.dumps(listed, sort_keys=True).encode()).hexdigest()
+
+    def configure_task(self, task):
+        # saved after a successful run, when the upstream outputs are still those the stage read
+        task.value_savers.append(lambda: {self.KEY: self.digest()})
+
+    def __call__(self, task, values):
+        return values.get(self.KEY) == self.digest()
+
+
 def _stage_tasks(name):
     stage = load_stage(name)
     try:
@@ -263,11 +294,12 @@ def _stage_tasks(name):
         "doc": stage.DOC,
         "actions": [_run_stage(name)],
         "calc_dep": [f"_inputs:{name}"],
-        "file_dep": [str(p) for p in source_files(stage)] + [str(LAYOUT.manifest(u)) for u in upstream],
+        "file_dep": [str(p) for p in source_files(stage)],
         "targets": [str(p) for p in stage.targets(LAYOUT, params)] + [str(LAYOUT.manifest(name))],
         "uptodate": [
             # [run] is not in params: a run setting reruns nothing
             config_changed(to_dict(params)),
+            upstream_outputs_unchanged(upstream),
             _outputs_intact(stage),
         ],
         "clean": True,

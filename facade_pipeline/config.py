@@ -106,6 +106,7 @@ class BuildingParams:
 #: top-level tables that only synthetic buildings have (configs/synthetic.toml): the simulator's
 SYNTHETIC_TABLES = ("synthesize",)
 SYNTHETIC_FILE = "synthetic.toml"
+DEFAULT_FILE = "default.toml"
 
 
 @dataclass(frozen=True)
@@ -124,6 +125,8 @@ class RunSettings:
     """iterations between train_gs's checkpoints (0: only at the end)"""
     overlay_scale: Positive
     """rectify's and segment_panels' overlay images are drawn this many times the view's size"""
+    view_workers: Count
+    """processes over which a stage's per-view loop runs (1: the stage's own; 0: one per core)"""
 
 
 def default_run_settings(directory: Path | None = None) -> RunSettings:
@@ -379,10 +382,18 @@ FIXED = {
 RENAMED |= {key: f"none: a constant in {where}" for where, keys in FIXED.items() for key in keys}
 
 
+#: top-level tables of default.toml that describe the machines, not a building: a building's file may not
+#: set them (it would change nothing)
+MACHINE_TABLES = ("batch",)
+
+
 def _check_known_keys(override: dict, default: dict, file: Path, prefix: str) -> None:
     """Every key of a building file must exist in default.toml (catches typos before anything runs)."""
     for key, value in override.items():
         where = f"{prefix}{key}"
+        if not prefix and key in MACHINE_TABLES:
+            raise ConfigError(file, f"[{key}] only in {DEFAULT_FILE} (it describes the machines)",
+                              f"a [{key}] table in a building's file")
         if where in RENAMED:
             raise ConfigError(file, f"'{where}' replaced by {RENAMED[where]}", f"the old key '{where}'")
         if key not in default:

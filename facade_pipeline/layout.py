@@ -112,6 +112,9 @@ ENTRIES: dict[str, str] = {
     "doit_db": ".doit.db",
     # held by the run that works on the building (one at a time)
     "lock": ".lock",
+    # facade-batch's record of the building's stages, and each stage's output on the worker that ran it
+    "batch_record": ".batch/status.json",
+    "batch_log": ".batch/{stage}.log",
 }
 
 

@@ -11,6 +11,7 @@ gt/ (metrics only).
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.batch.fanout import map_views, shared
 from facade_pipeline.config import PosInt, RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.layout import BuildingLayout
@@ -29,6 +31,7 @@ from facade_pipeline.scene import ImportedScene, View
 from stages._runner import StageReport, main
 
 if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
+    from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.synthetic.truth import SyntheticTruth
 
 NAME = "bake_normals"
@@ -75,36 +78,60 @@ def _truth(
     return err, float(iou), float(iou_f)
 
 
-def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+def _bake_inputs(
+    layout: BuildingLayout, mesh_path: Path, labels_path: Path, scene_path: Path
+) -> tuple[MeshRaycaster, np.ndarray, SyntheticTruth | None]:
+    """A ray caster of the corrected mesh, its triangle labels and, on a synthetic building, the truth."""
     # imported here, not at the top: doit loads every stage module to build its task list
-    from facade_pipeline.bake.maps import BakedPrior, bake_view
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.io.meshes import read_mesh
     from facade_pipeline.synthetic.truth import SyntheticTruth
 
-    scene = ImportedScene.load(layout)
-    mesh = read_mesh(layout.path("correct_mesh"))
+    mesh = read_mesh(mesh_path)
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
-    labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
+    labels = read_labels(labels_path, len(mesh.triangles))
+    georef = ImportedScene.load(layout).georef_from_local
+    truth = SyntheticTruth.load(layout, georef) if layout.gt_dir.is_dir() else None
+    return rc, labels, truth
+
+
+def bake_one(layout: BuildingLayout, params: Params, v: View) -> dict:
+    """Bake one view and write its maps (in whichever process ``map_views`` runs it); returns its outputs,
+    ray counts, cast time and its figures against the truth."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.bake.maps import BakedPrior, bake_view
+
+    mesh, labels = layout.path("correct_mesh"), layout.path("correct_mesh_labels")
+    rc, labels, truth = shared(_bake_inputs, layout, mesh, labels, layout.import_scene)
+    t0 = time.perf_counter()
+    baked = bake_view(rc, v.camera, params.chunk_rays, None, labels)
+    seconds = time.perf_counter() - t0
+    glass, facade = baked.label == GLASS, baked.label >= FRAME
+    outputs = BakedPrior(v.stem, baked.normal, baked.valid, baked.depth, facade, glass).save(layout)
+    against = _truth(truth, v, baked.normal, baked.valid, glass, facade)
+    return {"outputs": outputs, "rays": baked.valid.size, "valid": int(baked.valid.sum()), "seconds": seconds,
+            "against": against}
+
+
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    scene = ImportedScene.load(layout)
     views = scene.uav_views
-    truth = SyntheticTruth.load(layout, scene.georef_from_local) if layout.gt_dir.is_dir() else None
     outputs: list[Path] = []
     errs, ious, ious_f, n_rays, n_valid, t_cast = [], {}, [], 0, 0, 0.0
     total = sum(v.camera.width * v.camera.height for v in views)
     with tqdm(total=total, desc="bake: rays", unit="ray", unit_scale=True, file=sys.stderr) as bar:
-        for v in views:
-            t0 = time.perf_counter()
-            baked = bake_view(rc, v.camera, params.chunk_rays, bar.update, labels)
-            t_cast += time.perf_counter() - t0
-            glass, facade = baked.label == GLASS, baked.label >= FRAME
-            outputs += BakedPrior(v.stem, baked.normal, baked.valid, baked.depth, facade, glass).save(layout)
-            n_rays += baked.valid.size
-            n_valid += int(baked.valid.sum())
-            against = _truth(truth, v, baked.normal, baked.valid, glass, facade)
-            if against is not None:
-                errs.append(against[0])
-                ious[v.stem] = round(against[1], 4)
-                ious_f.append(against[2])
+        one = functools.partial(bake_one, layout, params)
+        results = map_views(one, views, settings.view_workers, lambda r: bar.update(r["rays"]))
+    for v, r in zip(views, results, strict=True):
+        outputs += r["outputs"]
+        n_rays += r["rays"]
+        n_valid += r["valid"]
+        t_cast += r["seconds"]
+        against = r["against"]
+        if against is not None:
+            errs.append(against[0])
+            ious[v.stem] = round(against[1], 4)
+            ious_f.append(against[2])
     if views and n_valid == 0:
         raise InputError(
             layout.path("correct_mesh"),

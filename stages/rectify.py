@@ -15,6 +15,7 @@ the fitted surface and an overlay.
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 import time
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Annotated, Literal
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.batch.fanout import map_views, shared
 from facade_pipeline.config import Range, RunSettings
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.io.atomic import write_json
@@ -144,20 +146,35 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+def _coarse_geometry(points_path: Path, mesh_path: Path) -> tuple[np.ndarray, MeshRaycaster]:
+    """The coarse points and a ray caster of the coarse mesh, which every view reads."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.io.meshes import read_mesh, read_points
 
+    points = np.asarray(read_points(points_path).points)
+    coarse = read_mesh(mesh_path)
+    return points, MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
+
+
+def _rectify_view(
+    layout: BuildingLayout, params: Params, overlay_scale: float, view: View
+) -> tuple[list[Path], dict]:
+    """``rectify_one`` in whichever process ``map_views`` runs it, the coarse geometry loaded once there."""
+    points, mesh = shared(_coarse_geometry, layout.import_coarse_points, layout.import_coarse_mesh)
+    return rectify_one(layout, view, points, params, mesh, overlay_scale)
+
+
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     scene = ImportedScene.load(layout)
-    points = np.asarray(read_points(layout.import_coarse_points).points)
-    coarse = read_mesh(layout.import_coarse_mesh)
-    mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
     views = scene.frontal_views
-    for view in tqdm(views, desc="rectify: frontal views", unit="img", file=sys.stderr):
-        outs, per_view[view.stem] = rectify_one(layout, view, points, params, mesh, settings.overlay_scale)
+    one = functools.partial(_rectify_view, layout, params, settings.overlay_scale)
+    with tqdm(total=len(views), desc="rectify: frontal views", unit="img", file=sys.stderr) as bar:
+        results = map_views(one, views, settings.view_workers, lambda _: bar.update())
+    for view, (outs, metrics) in zip(views, results, strict=True):
+        per_view[view.stem] = metrics
         outputs += outs
     kinds = [m["kind"] for m in per_view.values()]
     return StageReport(

@@ -13,6 +13,7 @@ images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md (
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from pathlib import Path
@@ -21,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
+from facade_pipeline.batch.fanout import map_views, shared
 from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import UpstreamMissingError
 from facade_pipeline.layout import BuildingLayout
@@ -246,18 +248,29 @@ def segment_one(
     return out, metrics
 
 
-def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+def _coarse_raycaster(mesh_path: Path) -> MeshRaycaster:
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.io.meshes import read_mesh
 
+    coarse = read_mesh(mesh_path)
+    return MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
+
+
+def _find_view(
+    layout: BuildingLayout, params: Params, view: View
+) -> tuple[ViewRectification, FrameBars | None, float]:
+    """``find_one`` in whichever process ``map_views`` runs it, the coarse mesh loaded once there."""
+    return find_one(layout, view, params, shared(_coarse_raycaster, layout.import_coarse_mesh))
+
+
+def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     views = ImportedScene.load(layout).frontal_views
-    coarse = read_mesh(layout.import_coarse_mesh)
-    mesh = MeshRaycaster(np.asarray(coarse.vertices), np.asarray(coarse.triangles))
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
-    found = [find_one(layout, v, params, mesh) for v in tqdm(views, desc="segment_panels: frame bars",
-                                                              unit="img", file=sys.stderr)]
+    with tqdm(total=len(views), desc="segment_panels: frame bars", unit="img", file=sys.stderr) as bar:
+        found = map_views(functools.partial(_find_view, layout, params), views, settings.view_workers,
+                          lambda _: bar.update())
     depth = building_frame_depth_m([f for _, f, _ in found])
     width = building_bar_width_m([f for _, f, _ in found])
     for view, (rect, frames, seconds) in zip(views, found, strict=True):

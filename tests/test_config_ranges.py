@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal, get_args, get_origin
 
 import pytest
 
+from facade_pipeline.batch.params import BatchSettings
 from facade_pipeline.config import (
     SYNTHETIC_TABLES,
     BuildingParams,
@@ -28,7 +29,7 @@ from stages import PIPELINE, load_stage
 
 def _sections() -> list[tuple[str, type]]:
     stages = [(name, load_stage(name).Params) for name in PIPELINE]
-    return [("building", BuildingParams), ("run", RunSettings), *stages]
+    return [("building", BuildingParams), ("run", RunSettings), ("batch", BatchSettings), *stages]
 
 
 def unranged_numbers(tp: Any, key: str) -> list[str]:

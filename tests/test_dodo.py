@@ -14,6 +14,7 @@ import pytest
 
 from facade_pipeline.config import config_dir
 from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
 from stages import PIPELINE
 from tests.helpers import make_raw
 
@@ -155,3 +156,26 @@ def test_a_run_setting_reruns_nothing(real):
         '[building]\nkind = "real"\ndescription = "test"\n[rectify]\nmax_size_factor = 3.0\n'
     )
     assert executed(doit(["rectify", "building=testreal"], env, root)) == ["rectify"]
+
+
+def test_a_rerun_that_writes_the_same_outputs_stops_the_cascade(real):
+    """Early cutoff: a stage forced to rerun (`doit forget`) writes a new manifest (another wall time) with
+    the same output hashes; the stages after it depend on those hashes, not on the manifest's bytes, so only
+    it reruns."""
+    layout, env, _ = real
+    root = layout.data_root
+    assert executed(doit(["rectify", "building=testreal"], env, root)) == [IMPORT, "rectify"]
+    before = layout.manifest(IMPORT).read_bytes()
+    outputs = read_manifest(layout, IMPORT).outputs
+    doit(["forget", IMPORT, "building=testreal"], env, root)
+    assert executed(doit(["rectify", "building=testreal"], env, root)) == [IMPORT]
+    assert layout.manifest(IMPORT).read_bytes() != before  # a new manifest ...
+    assert read_manifest(layout, IMPORT).outputs == outputs  # ... listing the same outputs
+    # an upstream output that does change reruns the stages after it
+    img = next(layout.raw_images_dir.iterdir())
+    from facade_pipeline.io.images import read_image, write_image
+
+    pixels = read_image(img)
+    pixels[0, 0] = 255 - pixels[0, 0]
+    write_image(img, pixels)
+    assert executed(doit(["rectify", "building=testreal"], env, root)) == [IMPORT, "rectify"]
