@@ -10,6 +10,7 @@ import math
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -249,7 +250,7 @@ def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
         assert holder.stdout.readline().strip() == "held"
         out = _doit(["import_photogrammetry", "building=faults"], env, layout.data_root, check=False)
         assert out.returncode == 2 and "Traceback" not in out.stderr
-        assert f"another run (pid {holder.pid}) holds this building" in out.stderr
+        assert f"another run (pid {holder.pid} on {socket.gethostname()}) holds this building" in out.stderr
         assert not layout.manifest("import_photogrammetry").exists()
         # a stage run by hand is refused as well
         cli = subprocess.run(
@@ -261,7 +262,7 @@ def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
         holder.kill()
         holder.wait()
     # the holder was killed: its lock file remains, with its pid, and is taken over
-    assert layout.lock.read_text().strip() == str(holder.pid)
+    assert layout.lock.read_text().strip() == f"{holder.pid}@{socket.gethostname()}"
     _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
     assert layout.manifest("import_photogrammetry").exists()
 
@@ -286,7 +287,8 @@ def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
         deadline = time.monotonic() + 120
         while stage is None:
             assert first.poll() is None and time.monotonic() < deadline, "the stage never took the lock"
-            pids = [int(w) for w in layout.lock.read_text().split()] if layout.lock.is_file() else []
+            words = layout.lock.read_text().split() if layout.lock.is_file() else []
+            pids = [int(w.split("@")[0]) for w in words]
             stage = next((p for p in pids if p != first.pid and _alive(p)), None)
             time.sleep(0.01)
         os.kill(stage, signal.SIGSTOP)  # the orphan stays mid-run while the second doit tries
@@ -294,7 +296,7 @@ def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
         first.wait()
         second = _doit(["import_photogrammetry", "building=faults"], env, layout.data_root, check=False)
         assert second.returncode == 2 and "Traceback" not in second.stderr, second.stdout + second.stderr
-        assert f"another run (pid {stage}) holds this building" in second.stderr
+        assert f"another run (pid {stage} on {socket.gethostname()}) holds this building" in second.stderr
     finally:
         if stage is not None:
             os.kill(stage, signal.SIGCONT)
@@ -313,7 +315,8 @@ def _stage_pid(layout, name: str, doit: subprocess.Popen, timeout: float = 300) 
     deadline = time.monotonic() + timeout
     while True:
         assert doit.poll() is None and time.monotonic() < deadline, f"{name} never started"
-        for word in layout.lock.read_text().split() if layout.lock.is_file() else []:
+        for holder in layout.lock.read_text().split() if layout.lock.is_file() else []:
+            word = holder.split("@")[0]
             try:
                 cmdline = Path(f"/proc/{word}/cmdline").read_bytes().split(b"\0")
             except OSError:
@@ -394,7 +397,8 @@ def test_lock_in_process(tmp_path):
     script = "import sys; from facade_pipeline.io.lock import acquire; print(acquire(sys.argv[1]))"
     fd = acquire(path)
     try:
-        assert path.read_text().strip() == str(os.getpid())
+        # the holder by pid and host: the workers of a batch on several machines share the data root
+        assert path.read_text().strip() == f"{os.getpid()}@{socket.gethostname()}"
         # a child handed the lock's descriptor joins it (a doit run's stages) and is listed as a holder
         child = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, capture_output=True,
                                text=True, pass_fds=lock_fds())  # fmt: skip
@@ -404,6 +408,7 @@ def test_lock_in_process(tmp_path):
             other = subprocess.run([sys.executable, "-c", script, str(path)], cwd=REPO, env=env,
                                    capture_output=True, text=True)  # fmt: skip
             assert other.returncode != 0 and "BuildingBusyError" in other.stderr
+            assert f"pid {os.getpid()} on {socket.gethostname()}" in other.stderr
     finally:
         release(fd)
     assert "FACADE_BUILDING_LOCK" not in os.environ

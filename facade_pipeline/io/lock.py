@@ -1,12 +1,13 @@
 """One run per building at a time: an advisory lock on ``<building>/.lock``.
 
 Two runs on one building delete each other's manifests and outputs. The lock is an ``flock`` on a file that
-lists its holders' pids. An flock belongs to an open file description, which a child process shares when it
-inherits the descriptor: the lock is held until the last process holding it exits, however it exits. A doit
-run takes it and hands its descriptor to each stage it starts (``lock_fds`` for ``pass_fds``, named in
-``FACADE_BUILDING_LOCK``), so a stage that outlives a killed doit still holds the building, and a second run
-stops at once. A stage started by hand takes the lock itself. A lock whose holders all died is free again:
-its file stays and is taken over.
+lists its holders as ``pid@host`` (with the host because the workers of a batch on several machines share
+the data root, where a pid alone names no process). An flock belongs to an open file description, which a
+child process shares when it inherits the descriptor: the lock is held until the last process holding it
+exits, however it exits. A doit run takes it and hands its descriptor to each stage it starts (``lock_fds``
+for ``pass_fds``, named in ``FACADE_BUILDING_LOCK``), so a stage that outlives a killed doit still holds the
+building, and a second run stops at once. A stage started by hand takes the lock itself. A lock whose
+holders all died is free again: its file stays and is taken over.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import contextlib
 import errno
 import fcntl
 import os
+import socket
 from pathlib import Path
 
 from facade_pipeline.errors import PipelineError
@@ -50,11 +52,11 @@ def acquire(path: str | Path) -> int | None:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        pids = ", ".join(str(p) for p in _holders(path)) or "?"
+        holders = ", ".join(f"pid {pid} on {host}" for pid, host in _holders(path)) or "pid ?"
         raise BuildingBusyError(
             path,
             "no other run on this building",
-            f"another run (pid {pids}) holds this building: wait for it to finish or stop it",
+            f"another run ({holders}) holds this building: wait for it to finish or stop it",
         ) from None
     _add_holder(fd, append=False)
     _HELD[str(path)] = fd
@@ -105,8 +107,9 @@ def _inherited(path: Path) -> int | None:
 
 
 def _add_holder(fd: int, append: bool) -> None:
-    """Write this process's pid into the lock file (a new lock: alone; a joined one: after the others)."""
-    line = f"{os.getpid()}\n".encode()
+    """Write this process's ``pid@host`` into the lock file (a new lock: alone; a joined one: after the
+    others)."""
+    line = f"{_me()}\n".encode()
     if append:
         os.pwrite(fd, line, os.fstat(fd).st_size)
     else:
@@ -117,28 +120,37 @@ def _add_holder(fd: int, append: bool) -> None:
 def _remove_holder(fd: int) -> None:
     size = os.fstat(fd).st_size
     lines = os.pread(fd, size, 0).decode(errors="replace").split()
-    rest = [p for p in lines if p != str(os.getpid())]
+    rest = [p for p in lines if p != _me()]
     if len(rest) != len(lines) and rest:
         text = "".join(f"{p}\n" for p in rest).encode()
         os.ftruncate(fd, 0)
         os.pwrite(fd, text, 0)
 
 
-def _holders(path: Path) -> list[int]:
-    """The pids written in the lock file that belong to live processes."""
+def _me() -> str:
+    return f"{os.getpid()}@{socket.gethostname()}"
+
+
+def _holders(path: Path) -> list[tuple[int, str]]:
+    """The holders (pid, host) written in the lock file, less the processes of this host that are gone (one
+    of another host cannot be asked: it is listed)."""
     try:
         words = path.read_text().split()
     except OSError:
         return []
+    here = socket.gethostname()
     live = []
     for word in words:
-        if not word.isdigit():
+        pid, _, host = word.partition("@")
+        if not pid.isdigit():
             continue
-        try:
-            os.kill(int(word), 0)
-        except ProcessLookupError:
-            continue
-        except PermissionError:
-            pass
-        live.append(int(word))
+        host = host or here
+        if host == here:
+            try:
+                os.kill(int(pid), 0)
+            except ProcessLookupError:
+                continue
+            except PermissionError:
+                pass
+        live.append((int(pid), host))
     return live
