@@ -213,7 +213,12 @@ def building_data(a, base: TrainParams) -> tuple[TrainData, str]:
         from stages.train_gs import load_train_data
 
         return load_train_data(layout, base), "baked (06_bake_normals)"
-    return gt_data(layout, base.test_every), "ground truth (gt/; bake_normals not run)"
+    data = gt_data(layout, base.test_every)
+    if base.exposure_estimate:
+        from facade_pipeline.training.exposure import with_exposure_estimate
+
+        data = with_exposure_estimate(data, base.seed)
+    return data, "ground truth (gt/; bake_normals not run)"
 
 
 def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, rows, device) -> None:

@@ -129,7 +129,12 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
                 f"only in held-out views ({len(views) - len(empty)} of {len(views)}): change "
                 "[train_gs] test_every",
             )
-    return TrainData(views, train_idx, test_idx, init)
+    data = TrainData(views, train_idx, test_idx, init)
+    if params.exposure_estimate:
+        from facade_pipeline.training.exposure import with_exposure_estimate
+
+        data = with_exposure_estimate(data, params.seed)
+    return data
 
 
 def fingerprint(layout: BuildingLayout, params: Params) -> str:

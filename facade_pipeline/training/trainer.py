@@ -28,15 +28,15 @@ from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training.batches import (
     ViewTensors,
     camera,
-    estimate_view_exposures,
     exposure_gain,
     random_int,
     random_window,
     view_tensors,
+    views_on_device,
 )
 from facade_pipeline.training.checkpoints import read_checkpoint, save_checkpoint
 from facade_pipeline.training.corrections import ViewCorrections
-from facade_pipeline.training.data import TrainData
+from facade_pipeline.training.data import ExposureEstimate, TrainData
 from facade_pipeline.training.densify import (
     DENSIFY_END_FRACTION,
     DENSIFY_START_FRACTION,
@@ -47,7 +47,6 @@ from facade_pipeline.training.densify import (
     reset_opacity,
     view_space_grad,
 )
-from facade_pipeline.training.exposure import ExposureEstimate
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
 from facade_pipeline.training.losses import compute_losses, psnr
 from facade_pipeline.training.model import GaussianModel
@@ -107,6 +106,18 @@ class Trainer:
     exposure: ExposureEstimate | None = None
     """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
 
+    views: tuple[ViewTensors, ...] = field(init=False, repr=False)
+    """every view's data on the device (``batches.views_on_device``)"""
+    gains: Tensor | None = field(init=False, repr=False)
+    """[V, 3] the exposure gains on the device (``exposure``), else None"""
+
+    def __post_init__(self) -> None:
+        self.views = views_on_device(self.data.views, self.params.mask_by_facade, self.device)
+        self.gains = None
+        if self.exposure is not None:
+            log_gain = torch.as_tensor(self.exposure.log_gain, dtype=torch.float32, device=self.device)
+            self.gains = log_gain.exp()
+
     @property
     def extent(self) -> float:
         return self.data.extent
@@ -161,6 +172,19 @@ def _build_corrections(
     return corr, corr.optimizer(LR_POSE_ROTATION, LR_POSE_TRANSLATION, lr_exposure=0.0)
 
 
+def _exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
+    if not p.exposure_estimate:
+        return None
+    if data.exposure is None:
+        raise PipelineError(
+            None,
+            "the views' exposure estimate in the training data (train_gs.exposure_estimate = true)",
+            "none: build the data with training.exposure.with_exposure_estimate (a bundle written without "
+            "it: write it again) or set exposure_estimate = false",
+        )
+    return data.exposure
+
+
 def build_trainer(
     p: TrainParams, data: TrainData, rasterize: Rasterizer, device: torch.device | str = "cpu"
 ) -> Trainer:
@@ -202,7 +226,7 @@ def build_trainer(
         cameras,
         corrections=corrections,
         opt_corrections=opt_corrections,
-        exposure=estimate_view_exposures(p, data),
+        exposure=_exposure(p, data),
     )
 
 
@@ -250,7 +274,7 @@ def load_checkpoint(
         list(state["log"]),
         corrections,
         opt_corrections,
-        estimate_view_exposures(p, data),
+        _exposure(p, data),
     )
 
 
@@ -284,7 +308,7 @@ def render_window(
     refined, and with its exposure gain, if exposures are); returns it with the view's data there. ``cam``
     replaces the view's camera."""
     cam = camera(tr, index) if cam is None else cam
-    vt = view_tensors(tr.data.views[index], window, tr.params.mask_by_facade, tr.device)
+    vt = view_tensors(tr.views[index], window)
     r = render_view(
         tr.model,
         tr.reflection,

@@ -13,7 +13,7 @@ import torch
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.splatting.types import NEAR_M
-from facade_pipeline.training import batches, losses
+from facade_pipeline.training import exposure, losses
 from facade_pipeline.training import trainer as trainer_module
 from facade_pipeline.training.batches import camera
 from facade_pipeline.training.checkpoints import save_checkpoint
@@ -283,8 +283,12 @@ def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkey
     views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
     data = dataclasses.replace(data64, views=tuple(views))
     est = ExposureParams(samples=40000, min_samples=10)  # small photos
-    monkeypatch.setattr(batches, "EXPOSURE_ESTIMATE", est)
-    tr = build_trainer(small_params(exposure_estimate=True), data, RASTER)
+    monkeypatch.setattr(exposure, "EXPOSURE_ESTIMATE", est)
+    p = small_params(exposure_estimate=True)
+    with pytest.raises(PipelineError, match="exposure estimate"):
+        build_trainer(p, data, RASTER)  # the estimate travels with the data
+    data = exposure.with_exposure_estimate(data, p.seed)
+    tr = build_trainer(p, data, RASTER)
     assert tr.corrections is None
     g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
     others = [i for i in data.train_idx if i != dark]
@@ -369,6 +373,8 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
         pose_refinement=refine == "pose",
         exposure_estimate=refine == "estimate",
     )
+    if p.exposure_estimate:
+        data64 = exposure.with_exposure_estimate(data64, p.seed)
     every = {"log_every": 5, "checkpoint_every": 3}
     ref = train(build_trainer(p, data64, RASTER), **every)
     ckpt = tmp_path / "ckpt.pt"
