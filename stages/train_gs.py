@@ -200,7 +200,9 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
 
         def progress(it: int, total: int, out: dict) -> None:
             bar.update(it - bar.n)
-            bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", n=out["n"], refresh=False)
+            if "loss" in out:  # the figures of the last log line ([run] log_every)
+                figures = {"loss": f"{out['loss']:.4f}", "psnr": f"{out['psnr']:.2f}"}
+                bar.set_postfix(**figures, n=out["n"], refresh=False)
 
         train(
             tr,

@@ -368,7 +368,8 @@ class Surroundings(nn.Module):
         the sky). Finite for any input; on the rays' device."""
         x, w = x.detach(), w.detach()
         ok = torch.isfinite(x).all(1) & torch.isfinite(w).all(1) & (w.norm(dim=1) > 0.5)
-        up = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device)
+        up = torch.zeros_like(w[:1])
+        up[0, 2] = 1.0  # filled on the device: a tensor made from host values would be a copy from the host
         w = torch.where(ok[:, None], w, up)
         o = torch.where(ok[:, None], x, torch.zeros_like(x)) + RAY_OFFSET_M * w
         t_obj = self.cast(o, w)
@@ -378,11 +379,12 @@ class Surroundings(nn.Module):
         t_floor = torch.where(down, height / torch.where(down, -wz, torch.ones_like(wz)), math.inf)
         on_floor = down & (t_floor < t_obj)
         on_obj = torch.isfinite(t_obj) & ~on_floor
-        eye = torch.tensor(self.eye_xy, dtype=x.dtype, device=x.device)
-        floor_xy = o[:, :2] + torch.where(on_floor, t_floor, 0.0)[:, None] * w[:, :2] - eye
+        ex, ey = self.eye_xy
+        floor_xy = o[:, :2] + torch.where(on_floor, t_floor, 0.0)[:, None] * w[:, :2]
+        floor_xy = torch.stack([floor_xy[:, 0] - ex, floor_xy[:, 1] - ey], 1)
         floor_uv = torch.clamp(floor_xy / self.reach_m, -1.0, 1.0)
         p = o + torch.where(on_obj, t_obj, 0.0)[:, None] * w
-        rel = p[:, :2] - eye
+        rel = torch.stack([p[:, 0] - ex, p[:, 1] - ey], 1)
         obj_az = torch.atan2(rel[:, 1], rel[:, 0])
         obj_el = torch.atan2(p[:, 2] - self.ground_z, rel.norm(dim=1))
         obj_v = -1.0 + torch.clamp(obj_el / self.top, 0.0, 1.0)
