@@ -197,15 +197,14 @@ def render_view(
         candidates = torch.zeros_like(candidates)
     chosen = candidates if select is None else select(candidates)
     specular = torch.zeros_like(diffuse)
-    if reflection is not None and diffuse.device.type == "cpu":
-        # R where it is needed only: gathering the chosen pixels reads how many there are, free on the CPU
+    if reflection is not None and gathers_chosen(diffuse.device):
         if bool(chosen.any()):
             w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
             x = deferred.normalize_to_bounds(points[chosen], shading.bounds_lo, shading.bounds_hi)
             specular = specular.index_put((chosen,), _eval_chunked(reflection, x, w_r, chunk))
     elif reflection is not None:
-        # on a GPU that read would make the host wait for the device in every step: R at every pixel, kept
-        # where chosen (the others get neither R nor a gradient, and finite inputs, so none is NaN)
+        # R at every pixel, kept where chosen (the others get neither R nor a gradient, and finite inputs, so
+        # that no NaN reaches the gradients through them)
         c = chosen.unsqueeze(-1)
         w_r = torch.where(c, deferred.reflect(w_o, n_unit), w_o)
         x = deferred.normalize_to_bounds(torch.where(c, points, 0.0), shading.bounds_lo, shading.bounds_hi)
@@ -226,6 +225,13 @@ def render_view(
         ras.distortion,
         points,
     )
+
+
+def gathers_chosen(device: torch.device) -> bool:
+    """Whether R is evaluated at the chosen pixels only (gathered), else at every pixel and masked. Gathering
+    reads how many pixels are chosen: free on the CPU, where it saves evaluating R at the others; on a GPU
+    a wait for the device in every step, where evaluating R everywhere costs less."""
+    return device.type == "cpu"
 
 
 def _sub_pixel_view(

@@ -439,3 +439,27 @@ def test_save_checkpoint_is_atomic(data64, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(tr, ckpt, "fp")
     assert ckpt.read_bytes() == good and [q.name for q in tmp_path.iterdir()] == ["c.pt"]
+
+
+def test_reflection_evaluated_everywhere_and_masked_equals_gathered(data64, monkeypatch):
+    """R at every pixel kept where chosen (the GPU's way, ``render.gathers_chosen``) renders and
+    differentiates as R at the chosen pixels only (the CPU's), the environment proxy included."""
+    from facade_pipeline.training import render
+
+    tr = build_trainer(small_params(proxy_channels=2, mlp_max_pixels=0), data64, RASTER)
+    index = data64.train_idx[0]
+    out = []
+    for gathered in (True, False):
+        monkeypatch.setattr(render, "gathers_chosen", lambda device, g=gathered: g)
+        r, _ = render_window(tr, index, (0, 0, 48, 40))
+        (r.rgb * torch.linspace(0.5, 1.5, r.rgb.numel()).view_as(r.rgb)).sum().backward()
+        params = [*tr.model.params().values(), *tr.reflection.parameters()]
+        out.append((r.rgb.detach(), r.spec_pixels, [q.grad.clone() for q in params if q.grad is not None]))
+        for q in params:
+            q.grad = None
+    (a, chosen_a, grads_a), (b, chosen_b, grads_b) = out
+    assert bool(chosen_a.any()) and torch.equal(chosen_a, chosen_b)
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    assert len(grads_a) == len(grads_b)
+    for ga, gb in zip(grads_a, grads_b, strict=True):
+        torch.testing.assert_close(ga, gb, rtol=1e-4, atol=1e-6)
