@@ -23,11 +23,11 @@ highest block's, ``top``), and the sky at the ray's own azimuth and elevation (t
 maps are read where the ray meets the ground, out to ``reach_m`` and clamped beyond.
 
 The heights are a buffer of the module, so they are saved with the proxy's weights (``reflection.pt``,
-checkpoints) and a loaded model casts against the same surface without the points. The casts run in torch
-on the rays' device, batched, without gradient (a hit is a step function of the ray, and the features learn
-from every ray that reads them) and without a copy to the host, so that a training step on a GPU never
-waits for one (``cast_blocks``). ``surface_mesh`` is the same surface as triangles, for viewers and for the
-tests, which cast against it with open3d.
+checkpoints) and a loaded model casts against the same surface without the points. The casts run without
+gradient (a hit is a step function of the ray, and the features learn from every ray that reads them) on the
+rays' device: on a GPU in torch, batched and without a copy to the host, so that a training step never waits
+for one (``cast_blocks``); on the CPU through open3d against the same blocks as triangles
+(``surface_mesh``) where it is installed, in torch where it is not.
 """
 
 from __future__ import annotations
@@ -312,6 +312,7 @@ class Surroundings(nn.Module):
         near = np.maximum(np.linalg.norm(rel, axis=1) - 0.71 * self.cell_m, self.cell_m)
         elevation = float(np.arctan2(top[i, j], near).max()) if len(i) else 0.0
         self._top = float(np.clip(elevation, math.radians(1.0), MAX_ELEVATION))
+        self._caster = None  # the mesh of other heights
 
     @property
     def top(self) -> float:
@@ -347,8 +348,31 @@ class Surroundings(nn.Module):
     @torch.no_grad()
     def cast(self, o: Tensor, d: Tensor) -> Tensor:
         """Distance [P] along unit ``d`` [P, 3] from ``o`` [P, 3] (m) to the first hit on the surface model's
-        blocks (inf: none; the ground is not part of it), on the rays' device, ``CAST_CHUNK_PAIRS`` (ray,
-        cell) pairs at a time."""
+        blocks (inf: none; the ground is not part of it), on the rays' device. On the CPU through open3d
+        (Embree walks a tree of the blocks' faces: about 50 times faster there than ``cast_torch``'s walk
+        of every cell on the way, benchmarks/RESULTS.md) where it is installed; elsewhere ``cast_torch``."""
+        caster = self._mesh_caster() if o.device.type == "cpu" else None
+        if caster is None:
+            return self.cast_torch(o, d)
+        t = caster.cast(o.detach().numpy(), d.detach().numpy()).t
+        return torch.as_tensor(t, dtype=o.dtype)
+
+    def _mesh_caster(self):
+        """open3d's caster of the blocks' mesh (``surface_mesh``), made once per heights; None where open3d
+        is not importable (a machine with torch alone)."""
+        if self._caster is None:
+            try:
+                from facade_pipeline.geometry.raycast import MeshRaycaster
+            except ImportError:
+                self._caster = False
+            else:
+                self._caster = MeshRaycaster(*self.mesh())
+        return self._caster or None
+
+    @torch.no_grad()
+    def cast_torch(self, o: Tensor, d: Tensor) -> Tensor:
+        """``cast`` in torch on the rays' device (``cast_blocks``), ``CAST_CHUNK_PAIRS`` (ray, cell) pairs at
+        a time: no copy to the host, so a training step on a GPU never waits for one."""
         grid = self.blocks(o.dtype)
         if grid is None or len(o) == 0:
             return torch.full_like(o[:, 0], math.inf)

@@ -249,8 +249,8 @@ def _kind(o: np.ndarray, d: np.ndarray, t: np.ndarray, ground_z: float) -> np.nd
 
 @pytest.mark.parametrize("kind", ["random", "grazing", "inside"])
 def test_torch_cast_matches_open3d_on_the_blocks_mesh(kind):
-    """The cast in torch against open3d's cast against the blocks as triangles (``surface_mesh``): the same
-    rays hit, within 1e-4 m, and the rays meet the floor, a block or the sky alike."""
+    """The cast in torch (a GPU's) against open3d's cast against the blocks as triangles (``surface_mesh``,
+    the CPU's): the same rays hit, within 1e-4 m, and the rays meet the floor, a block or the sky alike."""
     pytest.importorskip("open3d")
     from facade_pipeline.geometry.raycast import MeshRaycaster
 
@@ -259,7 +259,8 @@ def test_torch_cast_matches_open3d_on_the_blocks_mesh(kind):
     o, d = _rays(kind, s, rng)
     hits = MeshRaycaster(*s.mesh()).cast(o, d)
     ref = hits.t.astype(np.float64)
-    got = s.cast(torch.as_tensor(o, dtype=torch.float32), torch.as_tensor(d, dtype=torch.float32)).numpy()
+    o32, d32 = (torch.as_tensor(a, dtype=torch.float32) for a in (o, d))
+    got = s.cast_torch(o32, d32).numpy()
     if kind == "inside":
         assert np.isfinite(ref).mean() > 0.5  # most leave through a face (the rest through the ground)
     assert (np.isfinite(ref) == np.isfinite(got)).all()
