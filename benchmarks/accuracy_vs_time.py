@@ -43,7 +43,7 @@ from facade_pipeline.evaluation.render_views import from_trainer  # noqa: E402
 from facade_pipeline.evaluation.report import pareto_front, svg_scatter  # noqa: E402
 from facade_pipeline.geometry.camera import PinholeCamera  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
-from facade_pipeline.training.data import TrainData, TrainView  # noqa: E402
+from facade_pipeline.training.data import TrainView  # noqa: E402
 from facade_pipeline.training.params import TrainParams, replace_keys  # noqa: E402
 from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
 from facade_pipeline.training.trained import TrainedModelFiles  # noqa: E402
@@ -153,7 +153,7 @@ def child(
     p = apply(base_params(building, quick), changes)
     full = train_stage.load_train_data(layout, p)
     scale = float(changes.get("scale", 1.0))
-    data = TrainData(tuple(downscale(v, scale) for v in full.views), full.train_idx, full.test_idx, full.init)
+    data = dataclasses.replace(full, views=tuple(downscale(v, scale) for v in full.views))
     run = load_building_config(building).run
     device = resolve_device(run.device)
     t0 = time.perf_counter()

@@ -10,10 +10,15 @@ has completed, else the ground truth of gt/ (stated in the table). Every variant
 initialisation with the building's [train_gs] parameters (demo's carry a CPU budget: the one `make run`
 trains with), overridden by the command-line options that are given.
 
-On a GPU machine without the I/O stack (open3d, OpenEXR, pycolmap), train from a bundle made here:
+On a GPU machine without the I/O stack (open3d, OpenEXR, pycolmap), train from a bundle made here (it holds
+the exposure estimate, made here with open3d):
 
     .venv/bin/python benchmarks/bench_train.py --data-root /tmp/bench --save-bundle demo.npz
     python benchmarks/bench_train.py --bundle demo.npz --device cuda --iterations 3000 --patch-px 0
+
+``--speed N`` measures instead of training to the end: milliseconds per iteration over N iterations after
+``--warmup`` ones (the device synchronised around them) and the peak memory of the device, for each variant
+of ``--only`` (benchmarks/gpu_check.sh runs it on a GPU).
 """
 
 from __future__ import annotations
@@ -140,7 +145,10 @@ def main() -> None:
     ap.add_argument("--init-points", type=int, default=0, help="0: the building's")
     ap.add_argument("--max-gaussians", type=int, default=0, help="0: the building's")
     ap.add_argument("--supersample", type=int, default=0, help="samples per pixel side; 0: the building's")
+    ap.add_argument("--lowpass-sigma-px", type=float, default=0.0, help="0: the building's")
     ap.add_argument("--only", default="", help="comma-separated variant names to run (default: all)")
+    ap.add_argument("--speed", type=int, default=0, help="time this many iterations per variant (0: train)")
+    ap.add_argument("--warmup", type=int, default=20, help="iterations before --speed's timing")
     ap.add_argument("--no-write", action="store_true")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
@@ -162,6 +170,7 @@ def main() -> None:
             "reflection.mlp.depth": a.mlp_depth or mlp.depth,
             "supersample": a.supersample or base.supersample,
             "densify.max_gaussians": a.max_gaussians or base.densify.max_gaussians,
+            "lowpass_sigma_px": a.lowpass_sigma_px or base.lowpass_sigma_px,
         },
     )
     data, prior = building_data(a, base)
@@ -172,6 +181,9 @@ def main() -> None:
         return
     device = resolve_device(a.device)
     raster = splatting_rasterizer(cfg.run.raster_backend, base.lowpass_sigma_px)
+    if a.speed > 0:
+        speed(a, base, data, raster, device)
+        return
     rows = []
     for name, p in variants(base):
         if a.only and name not in a.only.split(","):
@@ -189,6 +201,52 @@ def main() -> None:
             flush=True,
         )
     report(a, base, align, prior, data, rows, device)
+
+
+def speed(a, base: TrainParams, data: TrainData, raster, device) -> None:
+    """ms per iteration and the device's peak memory of each variant (``--speed``)."""
+    import torch
+
+    def sync() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    rows = []
+    for name, p in variants(base):
+        if a.only and name not in a.only.split(","):
+            continue
+        p = dataclasses.replace(p, iterations=a.warmup + a.speed)
+        tr = build_trainer(p, data, raster, device)
+        train(tr, stop_at=a.warmup)
+        sync()
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        t0 = time.perf_counter()
+        train(tr)
+        sync()
+        ms = 1000.0 * (time.perf_counter() - t0) / a.speed
+        mem = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")
+        rows.append((name, ms, mem, tr.model.n))
+        print(f"{name}: {ms:.1f} ms per iteration, peak {mem:.2f} GiB, {tr.model.n} splats", flush=True)
+    where = machine()
+    if device.type == "cuda":
+        where += f" GPU: {torch.cuda.get_device_name(device)} (torch {torch.__version__})."
+    v = data.views[0].camera
+    lines = [
+        "\n## train_gs speed\n",
+        f"{where}\n",
+        f"Building `{a.building}` ({v.width} x {v.height} px), {a.speed} iterations after {a.warmup}, "
+        f"{base.patch_px or 'whole-image'} px windows, low-pass sigma {base.lowpass_sigma_px} px, "
+        f"{base.supersample} x {base.supersample} samples per pixel, at most {base.densify.max_gaussians} "
+        "splats.\n",
+        "| variant | ms per iteration | peak device memory GiB | splats |",
+        "| --- | --- | --- | --- |",
+        *(f"| {n} | {ms:.1f} | {mem:.2f} | {k} |" for n, ms, mem, k in rows),
+    ]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if not a.no_write:
+        record_results(text)
 
 
 def measure(tr, name: str, data: TrainData, align: AlignParams) -> tuple[dict, dict | None]:
@@ -213,7 +271,12 @@ def building_data(a, base: TrainParams) -> tuple[TrainData, str]:
         from stages.train_gs import load_train_data
 
         return load_train_data(layout, base), "baked (06_bake_normals)"
-    return gt_data(layout, base.test_every), "ground truth (gt/; bake_normals not run)"
+    data = gt_data(layout, base.test_every)
+    if base.exposure_estimate:
+        from facade_pipeline.training.exposure import with_exposure_estimate
+
+        data = with_exposure_estimate(data, base.seed)
+    return data, "ground truth (gt/; bake_normals not run)"
 
 
 def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, rows, device) -> None:

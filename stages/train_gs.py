@@ -129,7 +129,12 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
                 f"only in held-out views ({len(views) - len(empty)} of {len(views)}): change "
                 "[train_gs] test_every",
             )
-    return TrainData(views, train_idx, test_idx, init)
+    data = TrainData(views, train_idx, test_idx, init)
+    if params.exposure_estimate:
+        from facade_pipeline.training.exposure import with_exposure_estimate
+
+        data = with_exposure_estimate(data, params.seed)
+    return data
 
 
 def fingerprint(layout: BuildingLayout, params: Params) -> str:
@@ -195,7 +200,9 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
 
         def progress(it: int, total: int, out: dict) -> None:
             bar.update(it - bar.n)
-            bar.set_postfix(loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", n=out["n"], refresh=False)
+            if "loss" in out:  # the figures of the last log line ([run] log_every)
+                figures = {"loss": f"{out['loss']:.4f}", "psnr": f"{out['psnr']:.2f}"}
+                bar.set_postfix(**figures, n=out["n"], refresh=False)
 
         train(
             tr,

@@ -23,14 +23,17 @@ highest block's, ``top``), and the sky at the ray's own azimuth and elevation (t
 maps are read where the ray meets the ground, out to ``reach_m`` and clamped beyond.
 
 The heights are a buffer of the module, so they are saved with the proxy's weights (``reflection.pt``,
-checkpoints) and a loaded model casts against the same surface without the points. The casts run on the
-host through open3d (``geometry.raycast``), without gradient: a hit is a step function of the ray, and the
-features learn from every ray that reads them.
+checkpoints) and a loaded model casts against the same surface without the points. The casts run without
+gradient (a hit is a step function of the ray, and the features learn from every ray that reads them) on the
+rays' device: on a GPU in torch, batched and without a copy to the host, so that a training step never waits
+for one (``cast_blocks``); on the CPU through open3d against the same blocks as triangles
+(``surface_mesh``) where it is installed, in torch where it is not.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -48,6 +51,11 @@ MAX_ELEVATION = math.radians(60.0)
 MAX_CELLS = 4096
 #: Below this, a ray's vertical component counts as zero: it never meets the ground.
 _EPS = 1e-6
+#: Ray direction components below this are this (with their sign) in the cast: a crossing that far away
+#: is never reached, and no division is by zero.
+_TINY = 1e-12
+#: The cast works on at most this many (ray, cell) pairs at once (bounded memory for any number of rays).
+CAST_CHUNK_PAIRS = 1 << 22
 
 
 def _filter3(a: np.ndarray, reduce) -> np.ndarray:
@@ -133,6 +141,118 @@ def surface_mesh(heights: np.ndarray, cell_m: float, centre_xy: np.ndarray, grou
     return q.reshape(-1, 3), np.concatenate([k + [0, 1, 2], k + [0, 2, 3]]).astype(np.int64)
 
 
+
+def _safe(d: Tensor) -> Tensor:
+    """``d`` with components nearer zero than ``_TINY`` set to +-``_TINY``: no division by zero, and the
+    crossings of a plane the ray runs along land beyond any distance cast."""
+    return torch.where(d.abs() < _TINY, torch.where(d < 0, -_TINY, _TINY), d)
+
+
+def _slab(p: Tensor, d: Tensor, lo: float, hi: float) -> tuple[Tensor, Tensor]:
+    """The interval of t in which p + t d is in [lo, hi] (``d`` from ``_safe``)."""
+    t1, t2 = (lo - p) / d, (hi - p) / d
+    return torch.minimum(t1, t2), torch.maximum(t1, t2)
+
+
+def _cell(v: Tensor, dv: Tensor, entering: bool) -> Tensor:
+    """The cell index of coordinate ``v`` of a ray moving by ``dv``; on a cell border, the cell it enters
+    there (``entering``) or the one it leaves."""
+    ahead = dv >= 0 if entering else dv < 0
+    return torch.where(ahead, torch.floor(v), torch.ceil(v) - 1.0)
+
+
+@dataclass(frozen=True)
+class BlockGrid:
+    """The blocks of a surface model as the cast needs them: cell (i, j) of an ``nx`` x ``ny`` grid of
+    ``cell_m`` cells (x from ``corner[0] + i cell_m``, y likewise) holds a block from ``zlo[i, j]`` to
+    ``zhi[i, j]`` (m; ``zlo`` -inf where it stands on the ground, which the cast leaves to the floor), where
+    ``present``. ``z_range``: the heights the blocks span (m)."""
+
+    zlo: Tensor  # [nx * ny]
+    zhi: Tensor  # [nx * ny]
+    present: Tensor  # [nx * ny] bool
+    nx: int
+    ny: int
+    corner: tuple[float, float]
+    cell_m: float
+    z_range: tuple[float, float]
+
+
+def cast_blocks(o: Tensor, d: Tensor, grid: BlockGrid, columns: int) -> Tensor:
+    """Distance [P] along unit ``d`` [P, 3] from ``o`` [P, 3] (m) to the first crossing of the blocks'
+    surface: from outside the blocks where the ray first enters one, from inside one where it leaves them
+    (as a ray cast against a mesh of their outer surface); inf where it does neither. ``columns``: at least
+    the number of columns of the ray's major axis (x or y) it crosses inside the grid and the blocks'
+    heights; ``grid.nx`` + ``grid.ny`` always is.
+
+    Each ray walks the columns of its major axis in order. Within a column (one cell wide) it crosses at
+    most two cells of the other axis, so each column gives two (cell, t-interval) pairs, the second empty
+    where it stays in one cell; the cells' blocks cut each interval to where the ray is inside them."""
+    nx, ny = grid.nx, grid.ny
+    p = torch.stack([(o[:, 0] - grid.corner[0]) / grid.cell_m, (o[:, 1] - grid.corner[1]) / grid.cell_m], -1)
+    q = _safe(d[:, :2] / grid.cell_m)
+    dz = _safe(d[:, 2])
+    (x0, x1), (y0, y1) = _slab(p[:, 0], q[:, 0], 0.0, nx), _slab(p[:, 1], q[:, 1], 0.0, ny)
+    z0, z1 = _slab(o[:, 2], dz, *grid.z_range)
+    box_out = torch.minimum(x1, y1)
+    t0 = torch.clamp(torch.maximum(torch.maximum(x0, y0), z0), min=0.0)
+    t1 = torch.minimum(box_out, z1)
+    # the major axis, and the ray in (u, v): u along it, v across
+    major_x = q[:, 0].abs() >= q[:, 1].abs()
+    u0, v0 = torch.where(major_x, p[:, 0], p[:, 1]), torch.where(major_x, p[:, 1], p[:, 0])
+    du, dv = torch.where(major_x, q[:, 0], q[:, 1]), torch.where(major_x, q[:, 1], q[:, 0])
+    nu = torch.where(major_x, nx, ny)
+    nv = torch.where(major_x, ny, nx)
+    step = torch.where(du >= 0, 1.0, -1.0)
+    k0 = _cell(u0 + t0 * du, du, entering=True)
+    m = torch.arange(columns, device=o.device, dtype=o.dtype)
+    k = k0[:, None] + step[:, None] * m  # [P, M] column indices in the order the ray meets them
+    u_in, u_out = k + (step[:, None] < 0), k + (step[:, None] > 0)
+    t_in = torch.maximum(t0[:, None], (u_in - u0[:, None]) / du[:, None])
+    t_out = torch.minimum(t1[:, None], (u_out - u0[:, None]) / du[:, None])
+    col_ok = (k >= 0) & (k < nu[:, None]) & (t_in <= t_out)
+    r_a = _cell(v0[:, None] + t_in * dv[:, None], dv[:, None], entering=True)
+    r_b = _cell(v0[:, None] + t_out * dv[:, None], dv[:, None], entering=False)
+    r_a = torch.minimum(torch.maximum(r_a, torch.zeros_like(r_a)), nv[:, None] - 1.0)
+    r_b = torch.minimum(torch.maximum(r_b, torch.zeros_like(r_b)), nv[:, None] - 1.0)
+    t_c = (torch.maximum(r_a, r_b) - v0[:, None]) / _safe(dv)[:, None]
+    t_c = torch.minimum(torch.maximum(t_c, t_in), t_out)
+    two = r_a != r_b
+    # the pairs [P, 2M]: per column its first cell, then its second
+    ta = torch.stack([t_in, torch.where(two, t_c, t_in)], -1).flatten(1)
+    tb = torch.stack([torch.where(two, t_c, t_out), t_out], -1).flatten(1)
+    rows = torch.stack([r_a, r_b], -1).flatten(1)
+    cols = k.repeat_interleave(2, dim=1)
+    real = (col_ok[..., None] & torch.stack([torch.ones_like(two), two], -1)).flatten(1)
+    kc = cols.clamp(0, None).long()
+    rc = rows.long()
+    mx = major_x[:, None]
+    flat = torch.where(mx, kc * ny + rc, rc * ny + kc).clamp(0, nx * ny - 1)
+    zlo, zhi = grid.zlo[flat], grid.zhi[flat]
+    tz0 = torch.minimum((zlo - o[:, 2:3]) / dz[:, None], (zhi - o[:, 2:3]) / dz[:, None])
+    tz1 = torch.maximum((zlo - o[:, 2:3]) / dz[:, None], (zhi - o[:, 2:3]) / dz[:, None])
+    a = torch.maximum(ta, tz0)
+    b = torch.minimum(tb, tz1)
+    inside = real & grid.present[flat] & (a <= b)
+    inf = torch.full_like(a, math.inf)
+    enter = torch.where(inside, a, inf).amin(1)
+    # from inside a block: the first pair (of positive length) that the blocks do not fill ends it
+    eps = 1e-6 * (1.0 + tb.abs())
+    full = inside & (a <= ta + eps) & (b >= tb - eps)
+    gap = real & (tb > ta + eps) & ~full
+    first = gap.to(torch.uint8).argmax(1, keepdim=True)
+    ends = torch.where(inside & (a <= ta + eps), b, ta).gather(1, first)[:, 0]
+    # filled to the end: out through the grid's side (a wall), or through its heights (none: the floor)
+    leave = torch.where(gap.any(1), ends, torch.where(box_out <= z1, t1, math.inf))
+    ix = torch.floor(p[:, 0]).clamp(0, nx - 1).long()
+    iy = torch.floor(p[:, 1]).clamp(0, ny - 1).long()
+    c0 = ix * ny + iy
+    in_grid = (p[:, 0] >= 0) & (p[:, 0] < nx) & (p[:, 1] >= 0) & (p[:, 1] < ny)
+    start_inside = in_grid & grid.present[c0] & (grid.zlo[c0] <= o[:, 2]) & (o[:, 2] <= grid.zhi[c0])
+    out = torch.where(start_inside, leave, enter)
+    return torch.where(t0 <= t1, out, torch.full_like(out, math.inf))
+
+
 class Surroundings(nn.Module):
     """The surface model as the proxy's shape: ``hit`` gives where a ray meets it (see the module
     docstring for the coordinates)."""
@@ -171,26 +291,33 @@ class Surroundings(nn.Module):
         self.cell_m = float(cell_m)
         self.reach_m = float(reach_m)
         self.register_buffer("heights", torch.as_tensor(heights, dtype=torch.float32))
-        self._caster = None
-        self._top: float | None = None
+        self._describe()
 
     def _load_from_state_dict(self, *args, **kwargs):
-        self._caster, self._top = None, None  # new heights: a new mesh
         super()._load_from_state_dict(*args, **kwargs)
+        self._describe()  # new heights
+
+    def _describe(self) -> None:
+        """What the casts need to know of the heights on the host, read once when they change (never in a
+        cast, which would wait for the device): the cells with blocks (their bounding box of cells), the
+        heights they span and the highest elevation (``top``)."""
+        h = self.heights.detach().cpu().double().numpy()
+        bottom, top = h
+        i, j = np.nonzero(top > 0)
+        n = top.shape[0]
+        self._box = (int(i.min()), int(i.max()) + 1, int(j.min()), int(j.max()) + 1) if len(i) else None
+        self._z_range = (self.ground_z, self.ground_z + float(top.max()))
+        # the cell's nearest point to the eye, horizontally
+        rel = (np.stack([i, j], 1) - 0.5 * n + 0.5) * self.cell_m
+        near = np.maximum(np.linalg.norm(rel, axis=1) - 0.71 * self.cell_m, self.cell_m)
+        elevation = float(np.arctan2(top[i, j], near).max()) if len(i) else 0.0
+        self._top = float(np.clip(elevation, math.radians(1.0), MAX_ELEVATION))
+        self._caster = None  # the mesh of other heights
 
     @property
     def top(self) -> float:
         """The highest elevation of the surface seen from the eye (rad; at least 1 deg, at most
         ``MAX_ELEVATION``): the wall maps' object half spans 0 to this."""
-        if self._top is None:
-            h = self.heights[1].cpu().double().numpy()
-            i, j = np.nonzero(h > 0)
-            n = h.shape[0]
-            # the cell's nearest point to the eye, horizontally
-            rel = (np.stack([i, j], 1) - 0.5 * n + 0.5) * self.cell_m
-            near = np.maximum(np.linalg.norm(rel, axis=1) - 0.71 * self.cell_m, self.cell_m)
-            top = float(np.arctan2(h[i, j], near).max()) if len(i) else 0.0
-            self._top = float(np.clip(top, math.radians(1.0), MAX_ELEVATION))
         return self._top
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
@@ -198,46 +325,111 @@ class Surroundings(nn.Module):
         h = self.heights.cpu().double().numpy()
         return surface_mesh(h, self.cell_m, np.array(self.eye_xy), self.ground_z)
 
-    def _cast(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def blocks(self, dtype: torch.dtype = torch.float32) -> BlockGrid | None:
+        """The blocks on the heights' device in ``dtype``, over the bounding box of the cells that have one
+        (None: no cell has)."""
+        if self._box is None:
+            return None
+        i0, i1, j0, j1 = self._box
+        bottom, top = self.heights[:, i0:i1, j0:j1].to(dtype)
+        half = 0.5 * self.heights.shape[1]
+        corner = (self.eye_xy[0] + (i0 - half) * self.cell_m, self.eye_xy[1] + (j0 - half) * self.cell_m)
+        return BlockGrid(
+            zlo=torch.where(bottom > 0, self.ground_z + bottom, -math.inf).flatten(),
+            zhi=(self.ground_z + top).flatten(),
+            present=(top > 0).flatten(),
+            nx=i1 - i0,
+            ny=j1 - j0,
+            corner=corner,
+            cell_m=self.cell_m,
+            z_range=self._z_range,
+        )
+
+    @torch.no_grad()
+    def cast(self, o: Tensor, d: Tensor) -> Tensor:
+        """Distance [P] along unit ``d`` [P, 3] from ``o`` [P, 3] (m) to the first hit on the surface model's
+        blocks (inf: none; the ground is not part of it), on the rays' device. On the CPU through open3d
+        (Embree walks a tree of the blocks' faces: about 50 times faster there than ``cast_torch``'s walk
+        of every cell on the way, benchmarks/RESULTS.md) where it is installed; elsewhere ``cast_torch``."""
+        caster = self._mesh_caster() if o.device.type == "cpu" else None
+        if caster is None:
+            return self.cast_torch(o, d)
+        t = caster.cast(o.detach().numpy(), d.detach().numpy()).t
+        return torch.as_tensor(t, dtype=o.dtype)
+
+    def _mesh_caster(self):
+        """open3d's caster of the blocks' mesh (``surface_mesh``), made once per heights; None where open3d
+        is not importable (a machine with torch alone)."""
         if self._caster is None:
             try:
                 from facade_pipeline.geometry.raycast import MeshRaycaster
-            except ImportError as e:
-                raise ImportError(
-                    f"the environment proxy's surroundings cast rays with open3d, which is not importable "
-                    f"({e}); install it or train with [train_gs.reflection.proxy] channels = 0"
-                ) from e
-            self._caster = MeshRaycaster(*self.mesh())
-        return self._caster.cast(o, d).t.astype(np.float64)
+            except ImportError:
+                self._caster = False
+            else:
+                self._caster = MeshRaycaster(*self.mesh())
+        return self._caster or None
+
+    @torch.no_grad()
+    def cast_torch(self, o: Tensor, d: Tensor) -> Tensor:
+        """``cast`` in torch on the rays' device (``cast_blocks``), ``CAST_CHUNK_PAIRS`` (ray, cell) pairs at
+        a time: no copy to the host, so a training step on a GPU never waits for one."""
+        grid = self.blocks(o.dtype)
+        if grid is None or len(o) == 0:
+            return torch.full_like(o[:, 0], math.inf)
+        # every column a ray can cross; on the CPU, where reading a value costs no wait, the most any of
+        # these rays crosses (far fewer for rays that leave the blocks' heights soon)
+        columns = max(grid.nx, grid.ny) + 1
+        if o.device.type == "cpu":
+            columns = min(columns, _columns_needed(o, d, grid))
+        chunk = max(1, CAST_CHUNK_PAIRS // (2 * columns))
+        return torch.cat([cast_blocks(o[a : a + chunk], d[a : a + chunk], grid, columns)
+                          for a in range(0, len(o), chunk)])  # fmt: skip
 
     @torch.no_grad()
     def hit(self, x: Tensor, w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Rays x + t w (t > 0; x [P, 3] m, w [P, 3] unit) -> ``on_floor`` [P] bool, floor coordinates
         [P, 2] in [-1, 1] and wall coordinates [P, 2] in [-1, 1] (lower half: the surface model, upper half:
-        the sky). Finite for any input."""
-        xn = x.detach().double().cpu().numpy()
-        wn = w.detach().double().cpu().numpy()
-        ok = np.isfinite(xn).all(1) & np.isfinite(wn).all(1) & (np.linalg.norm(wn, axis=1) > 0.5)
-        wn = np.where(ok[:, None], wn, [0.0, 0.0, 1.0])
-        o = np.where(ok[:, None], xn, 0.0) + RAY_OFFSET_M * wn
-        t_obj = self._cast(o, wn) if len(o) else np.zeros(0)
-        down = wn[:, 2] < -_EPS
-        height = np.maximum(o[:, 2] - self.ground_z, 0.0)
-        t_floor = np.where(down, height / np.where(down, -wn[:, 2], 1.0), np.inf)
+        the sky). Finite for any input; on the rays' device."""
+        x, w = x.detach(), w.detach()
+        ok = torch.isfinite(x).all(1) & torch.isfinite(w).all(1) & (w.norm(dim=1) > 0.5)
+        up = torch.zeros_like(w[:1])
+        up[0, 2] = 1.0  # filled on the device: a tensor made from host values would be a copy from the host
+        w = torch.where(ok[:, None], w, up)
+        o = torch.where(ok[:, None], x, torch.zeros_like(x)) + RAY_OFFSET_M * w
+        t_obj = self.cast(o, w)
+        wz = w[:, 2]
+        down = wz < -_EPS
+        height = torch.clamp(o[:, 2] - self.ground_z, min=0.0)
+        t_floor = torch.where(down, height / torch.where(down, -wz, torch.ones_like(wz)), math.inf)
         on_floor = down & (t_floor < t_obj)
-        on_obj = np.isfinite(t_obj) & ~on_floor
-        eye = np.array(self.eye_xy)
-        floor_xy = o[:, :2] + np.where(on_floor, t_floor, 0.0)[:, None] * wn[:, :2] - eye
-        floor_uv = np.clip(floor_xy / self.reach_m, -1.0, 1.0)
-        p = o + np.where(on_obj, t_obj, 0.0)[:, None] * wn
-        rel = p[:, :2] - eye
-        top = self.top
-        obj_az = np.arctan2(rel[:, 1], rel[:, 0])
-        obj_el = np.arctan2(p[:, 2] - self.ground_z, np.linalg.norm(rel, axis=1))
-        obj_v = -1.0 + np.clip(obj_el / top, 0.0, 1.0)
-        sky_az = np.arctan2(wn[:, 1], wn[:, 0] + np.where(np.abs(wn[:, :2]).sum(1) < _EPS, _EPS, 0.0))
-        sky_v = np.arcsin(np.clip(wn[:, 2], 0.0, 1.0)) / (0.5 * math.pi)
-        wall_u = np.where(on_obj, obj_az, sky_az) / math.pi
-        wall_uv = np.stack([wall_u, np.where(on_obj, obj_v, sky_v)], axis=1)
-        as_t = lambda a, dtype: torch.as_tensor(np.nan_to_num(a), dtype=dtype, device=x.device)  # noqa: E731
-        return as_t(on_floor, torch.bool), as_t(floor_uv, x.dtype), as_t(np.clip(wall_uv, -1.0, 1.0), x.dtype)
+        on_obj = torch.isfinite(t_obj) & ~on_floor
+        ex, ey = self.eye_xy
+        floor_xy = o[:, :2] + torch.where(on_floor, t_floor, 0.0)[:, None] * w[:, :2]
+        floor_xy = torch.stack([floor_xy[:, 0] - ex, floor_xy[:, 1] - ey], 1)
+        floor_uv = torch.clamp(floor_xy / self.reach_m, -1.0, 1.0)
+        p = o + torch.where(on_obj, t_obj, 0.0)[:, None] * w
+        rel = torch.stack([p[:, 0] - ex, p[:, 1] - ey], 1)
+        obj_az = torch.atan2(rel[:, 1], rel[:, 0])
+        obj_el = torch.atan2(p[:, 2] - self.ground_z, rel.norm(dim=1))
+        obj_v = -1.0 + torch.clamp(obj_el / self.top, 0.0, 1.0)
+        flat = w[:, :2].abs().sum(1) < _EPS
+        sky_az = torch.atan2(w[:, 1], w[:, 0] + torch.where(flat, _EPS, 0.0))
+        up_z = torch.clamp(wz, 0.0, 1.0)
+        # asin as atan2: the same angle, and torch's CPU asin is many times slower than its atan2
+        sky_v = torch.atan2(up_z, torch.sqrt(torch.clamp(1.0 - up_z * up_z, min=0.0))) / (0.5 * math.pi)
+        wall_u = torch.where(on_obj, obj_az, sky_az) / math.pi
+        wall_uv = torch.stack([wall_u, torch.where(on_obj, obj_v, sky_v)], dim=1)
+        return on_floor, torch.nan_to_num(floor_uv), torch.clamp(torch.nan_to_num(wall_uv), -1.0, 1.0)
+
+
+def _columns_needed(o: Tensor, d: Tensor, grid: BlockGrid) -> int:
+    """The most columns of their major axis that rays ``o`` + t ``d`` cross inside ``grid`` and its heights
+    (reads the rays' values: for the CPU)."""
+    p = torch.stack([(o[:, 0] - grid.corner[0]) / grid.cell_m, (o[:, 1] - grid.corner[1]) / grid.cell_m], -1)
+    q = _safe(d[:, :2] / grid.cell_m)
+    (x0, x1), (y0, y1) = _slab(p[:, 0], q[:, 0], 0.0, grid.nx), _slab(p[:, 1], q[:, 1], 0.0, grid.ny)
+    z0, z1 = _slab(o[:, 2], _safe(d[:, 2]), *grid.z_range)
+    t0 = torch.clamp(torch.maximum(torch.maximum(x0, y0), z0), min=0.0)
+    t1 = torch.minimum(torch.minimum(x1, y1), z1)
+    span = torch.where(t1 >= t0, (t1 - t0) * q.abs().amax(1), 0.0)
+    return int(torch.nan_to_num(span, posinf=0.0).max()) + 2

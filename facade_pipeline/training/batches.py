@@ -1,13 +1,13 @@
 """What one training step looks at: the window of a view (the whole image or a random patch on the
 facade, ``random_window``), its data on the device (``view_tensors`` -> ``ViewTensors``), the view's camera
 as training sees it (``camera``: with its pose correction) and its exposure gain (estimated from the photos
-before training, ``estimate_view_exposures``; applied through ``exposure_gain``). Here apart from the loop
-so that a step reads as draw, render, compare, update; every random draw comes from the trainer's one
-generator, in the order the step makes them."""
+before training and carried by the data, ``training.exposure``; applied through ``exposure_gain``). Here
+apart from the loop so that a step reads as draw, render, compare, update; every random draw comes from
+the trainer's one generator, in the order the step makes them."""
 
 from __future__ import annotations
 
-import logging
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -15,17 +15,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from facade_pipeline.training.data import TrainData, TrainView
-from facade_pipeline.training.exposure import ExposureEstimate, ExposureParams, estimate_exposures
-from facade_pipeline.training.params import TrainParams
+from facade_pipeline.training.data import TrainView
 from facade_pipeline.training.render import Camera, Window
 
 if TYPE_CHECKING:
     from facade_pipeline.training.trainer import Trainer
 
-log = logging.getLogger(__name__)
-#: How the per-view exposure gains are estimated before training (``training.exposure``): its defaults.
-EXPOSURE_ESTIMATE = ExposureParams()
 
 
 def random_int(gen: torch.Generator, high: int) -> int:
@@ -66,26 +61,33 @@ class ViewTensors:
     prior_valid: Tensor  # [H, W] bool
 
 
-def view_tensors(view: TrainView, window: Window, mask_by_facade: bool, device: torch.device) -> ViewTensors:
-    """``view``'s photo, masks and normal prior inside ``window`` (x0, y0, w, h) on ``device``."""
-    x0, y0, w, h = window
-    sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+def views_on_device(
+    views: tuple[TrainView, ...], mask_by_facade: bool, device: torch.device
+) -> tuple[ViewTensors, ...]:
+    """Every view's whole photo, masks and normal prior on ``device``, moved there once before training so
+    that a step slices its window there instead of copying it from the host (on the CPU the tensors share
+    the arrays' memory)."""
 
     def t(a: np.ndarray, dtype=torch.float32) -> Tensor:
-        return torch.as_tensor(np.ascontiguousarray(a[sl]), dtype=dtype, device=device)
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
 
-    mask = (
-        t(view.facade_mask, torch.bool)
-        if mask_by_facade
-        else torch.ones(h, w, dtype=torch.bool, device=device)
+    return tuple(
+        ViewTensors(
+            t(v.image),
+            t(v.facade_mask if mask_by_facade else np.ones_like(v.facade_mask), torch.bool),
+            t(v.glass_mask, torch.bool),
+            t(v.normal_prior),
+            t(v.normal_valid, torch.bool),
+        )
+        for v in views
     )
-    return ViewTensors(
-        t(view.image),
-        mask,
-        t(view.glass_mask, torch.bool),
-        t(view.normal_prior),
-        t(view.normal_valid, torch.bool),
-    )
+
+
+def view_tensors(view: ViewTensors, window: Window) -> ViewTensors:
+    """``view``'s data (``views_on_device``) inside ``window`` (x0, y0, w, h)."""
+    x0, y0, w, h = window
+    sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+    return ViewTensors(*(getattr(view, f.name)[sl] for f in dataclasses.fields(ViewTensors)))
 
 
 def camera(tr: Trainer, index: int) -> Camera:
@@ -96,34 +98,13 @@ def camera(tr: Trainer, index: int) -> Camera:
     return Camera(cam.K, tr.corrections.cam_from_world(index, cam.cam_from_world), cam.width, cam.height)
 
 
-def estimate_view_exposures(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
-    """The training views' exposure gains estimated from the photos (``exposure_estimate``), else None; a
-    warning names the views with too few samples to estimate (their gain stays 1)."""
-    if not p.exposure_estimate:
-        return None
-    m = data.init
-    est = estimate_exposures(
-        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, EXPOSURE_ESTIMATE, p.seed
-    )
-    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < EXPOSURE_ESTIMATE.min_samples]
-    if few:
-        shown = ", ".join(few[:5]) + (f" and {len(few) - 5} more" if len(few) > 5 else "")
-        log.warning(
-            "exposure estimate: %d of %d training views have fewer than %d usable samples of the facade's "
-            "opaque parts (non-glass points of the corrected mesh inside their facade mask) (%s); their gain "
-            "stays 1. Expected where the mesh covers little of a view",
-            len(few), len(data.train_idx), EXPOSURE_ESTIMATE.min_samples, shown,
-        )  # fmt: skip
-    return est
-
-
 def exposure_gain(tr: Trainer, index: int) -> Tensor | None:
     """View ``index``'s exposure gain per colour channel [3] as estimated before training
     (``exposure_estimate``), relative to the training views' geometric mean so that the splats keep the
     mean exposure; None for held-out views and without the estimate."""
-    if index not in tr.data.train_idx or tr.exposure is None:
+    if index not in tr.data.train_idx or tr.gains is None:
         return None
-    return torch.as_tensor(tr.exposure.log_gain[index], device=tr.device).exp()
+    return tr.gains[index]
 
 
 @torch.no_grad()

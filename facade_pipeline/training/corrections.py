@@ -64,7 +64,8 @@ class ViewCorrections(nn.Module):
         if self.rotation is None or self.translation is None:
             return cam_from_world
         top = torch.cat([so3_exp(self.rotation[index]), self.translation[index, :, None]], dim=1)
-        bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=top.dtype, device=top.device)
+        bottom = torch.zeros_like(top[:1])
+        bottom[0, 3] = 1.0  # filled on the device: no copy from the host in a training step
         return torch.cat([top, bottom]).to(cam_from_world.dtype) @ cam_from_world
 
     def expose(self, index: int, rgb: Tensor) -> Tensor:  # [..., 3] -> [..., 3]

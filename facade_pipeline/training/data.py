@@ -1,6 +1,8 @@
 """Training data in memory: the views with their images, masks and normal priors, the held-out split, the
-facade bounds and the initial geometry. Built by the stage from the upstream hand-offs; tests build it from
-gt/."""
+facade bounds, the initial geometry and what the I/O stack estimates before training (the views' exposure
+gains, ``training.exposure``). Built by the stage from the upstream hand-offs; tests build it from gt/.
+Training itself needs torch alone: whatever needs open3d, OpenEXR or pycolmap is done when the data is
+built, so that a bundle of it (``save_bundle``) trains on a machine without them."""
 
 from __future__ import annotations
 
@@ -47,12 +49,24 @@ class InitGeometry:
     mesh_glass: np.ndarray | None = None  # [T] bool: glass triangles (correct_mesh's labels); None: unknown
 
 
+@dataclass(frozen=True)
+class ExposureEstimate:
+    """Per view: the log gain per colour channel [V, 3] (geometric mean 1 over the reference views) and
+    the samples it rests on [V] (``training.exposure``)."""
+
+    log_gain: np.ndarray
+    samples: np.ndarray
+
+
 @dataclass(frozen=True, eq=False)
 class TrainData:
     views: tuple[TrainView, ...]
     train_idx: tuple[int, ...]
     test_idx: tuple[int, ...]
     init: InitGeometry
+    exposure: ExposureEstimate | None = None
+    """the views' exposure gains estimated from the photos (``training.exposure.with_exposure_estimate``);
+    None: not estimated"""
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -93,6 +107,9 @@ def save_bundle(data: TrainData, path) -> None:
     }
     if data.init.mesh_glass is not None:
         arrays["init_mesh_glass"] = data.init.mesh_glass
+    if data.exposure is not None:
+        arrays["exposure_log_gain"] = data.exposure.log_gain
+        arrays["exposure_samples"] = data.exposure.samples
     for i, v in enumerate(data.views):
         c = v.camera
         arrays[f"v{i}_camera"] = np.concatenate([c.K.ravel(), c.cam_from_world.ravel(), [c.width, c.height]])
@@ -115,5 +132,8 @@ def load_bundle(path) -> TrainData:
             )  # fmt: skip
         glass = z["init_mesh_glass"] if "init_mesh_glass" in z else None
         init = InitGeometry(*(z[f"init_{k}"] for k in INIT_FIELDS), mesh_glass=glass)
+        exposure = None
+        if "exposure_log_gain" in z:
+            exposure = ExposureEstimate(z["exposure_log_gain"], z["exposure_samples"])
         return TrainData(tuple(views), tuple(int(i) for i in z["train_idx"]),
-                         tuple(int(i) for i in z["test_idx"]), init)  # fmt: skip
+                         tuple(int(i) for i in z["test_idx"]), init, exposure)  # fmt: skip

@@ -21,21 +21,32 @@ channel, and the gains follow from the photos and the corrected mesh alone:
   the reference (training) views.
 
 A view with fewer than ``min_samples`` usable samples keeps a gain of 1 and is reported.
+
+The estimate casts rays with open3d, so it is made where the training data is built
+(``with_exposure_estimate``: the stage, the benchmarks) and travels with it (``TrainData.exposure``, a
+bundle); training reads it there and needs torch alone.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
 
 from facade_pipeline.config import Count, NonNeg, PosInt
-from facade_pipeline.geometry.raycast import MeshRaycaster
-from facade_pipeline.training.data import TrainView
+from facade_pipeline.training.data import ExposureEstimate, TrainData, TrainView
 from facade_pipeline.training.init import sample_mesh
+
+if TYPE_CHECKING:  # open3d is imported where rays are cast (``estimate_exposures``)
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+
+log = logging.getLogger(__name__)
 
 #: Channel values outside this range are left out: the log of sensor noise, and clipping.
 _VALID = (0.02, 0.98)
@@ -59,13 +70,8 @@ class ExposureParams:
     """alternating-median rounds (-)"""
 
 
-@dataclass(frozen=True)
-class ExposureEstimate:
-    """Per view: the log gain per colour channel [V, 3] (geometric mean 1 over the reference views) and
-    the samples it rests on [V]."""
-
-    log_gain: np.ndarray
-    samples: np.ndarray
+#: How the per-view exposure gains are estimated before training: its defaults.
+EXPOSURE_ESTIMATE = ExposureParams()
 
 
 def usable_mask(view: TrainView, erode_px: int) -> np.ndarray:
@@ -142,9 +148,31 @@ def estimate_exposures(
     seed: int,
 ) -> ExposureEstimate:
     """Each view's log gain per channel from the colours of the corrected mesh's opaque parts."""
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+
     tris = np.asarray(triangles, np.int64).reshape(-1, 3)
     opaque = tris if glass_triangles is None else tris[~np.asarray(glass_triangles, bool)]
     verts = np.asarray(vertices, np.float64)
     pts, _, _ = sample_mesh(verts, opaque, params.samples, np.random.default_rng(seed))
     obs = observe(views, pts, MeshRaycaster(verts, tris), params)
     return solve_log_gains(obs, reference, params.iterations, params.min_samples)
+
+
+def with_exposure_estimate(data: TrainData, seed: int) -> TrainData:
+    """``data`` with its training views' exposure gains estimated from the photos (``EXPOSURE_ESTIMATE``;
+    ``seed`` draws the mesh samples); a warning names the views with too few samples to estimate (their
+    gain stays 1)."""
+    m = data.init
+    est = estimate_exposures(
+        data.views, m.mesh_vertices, m.mesh_triangles, m.mesh_glass, data.train_idx, EXPOSURE_ESTIMATE, seed
+    )
+    few = [data.views[i].stem for i in data.train_idx if est.samples[i] < EXPOSURE_ESTIMATE.min_samples]
+    if few:
+        shown = ", ".join(few[:5]) + (f" and {len(few) - 5} more" if len(few) > 5 else "")
+        log.warning(
+            "exposure estimate: %d of %d training views have fewer than %d usable samples of the facade's "
+            "opaque parts (non-glass points of the corrected mesh inside their facade mask) (%s); their gain "
+            "stays 1. Expected where the mesh covers little of a view",
+            len(few), len(data.train_idx), EXPOSURE_ESTIMATE.min_samples, shown,
+        )  # fmt: skip
+    return dataclasses.replace(data, exposure=est)

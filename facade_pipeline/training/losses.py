@@ -6,7 +6,6 @@ over the pixels of its mask and returns 0 (not NaN) on an empty mask."""
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import torch
@@ -119,11 +118,15 @@ def psnr(pred: Tensor, gt: Tensor, mask: Tensor, data_range: float = 1.0) -> flo
     """PSNR (dB) over the masked pixels and all channels, 10 log10(R^2 / MSE) with MSE in float64: the one
     PSNR of the project (training logs, ``evaluation.metrics.psnr`` through its input checks). pred, gt:
     [H, W, C]; mask: [H, W] bool. +inf for a perfect match, NaN for an empty mask."""
-    if not bool(mask.any()):
-        return float("nan")
+    return float(psnr_tensor(pred, gt, mask, data_range))
+
+
+def psnr_tensor(pred: Tensor, gt: Tensor, mask: Tensor, data_range: float = 1.0) -> Tensor:
+    """``psnr`` as a float64 tensor on the inputs' device, for a loop that reads it only now and then."""
     d = pred.detach().double() - gt.detach().double()
-    mse = float(masked_mean(d * d, mask))
-    return math.inf if mse == 0.0 else 10.0 * math.log10(data_range * data_range / mse)
+    m = mask.to(d.dtype).unsqueeze(-1).expand_as(d)
+    mse = (d * d * m).sum() / m.sum()  # 0 / 0: NaN for an empty mask
+    return 10.0 * torch.log10(data_range * data_range / mse)
 
 
 def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -> dict[str, Tensor]:

@@ -197,10 +197,19 @@ def render_view(
         candidates = torch.zeros_like(candidates)
     chosen = candidates if select is None else select(candidates)
     specular = torch.zeros_like(diffuse)
-    if reflection is not None and bool(chosen.any()):
-        w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
-        x = deferred.normalize_to_bounds(points[chosen], shading.bounds_lo, shading.bounds_hi)
-        specular = specular.index_put((chosen,), _eval_chunked(reflection, x, w_r, chunk))
+    if reflection is not None and gathers_chosen(diffuse.device):
+        if bool(chosen.any()):
+            w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
+            x = deferred.normalize_to_bounds(points[chosen], shading.bounds_lo, shading.bounds_hi)
+            specular = specular.index_put((chosen,), _eval_chunked(reflection, x, w_r, chunk))
+    elif reflection is not None:
+        # R at every pixel, kept where chosen (the others get neither R nor a gradient, and finite inputs, so
+        # that no NaN reaches the gradients through them)
+        c = chosen.unsqueeze(-1)
+        w_r = torch.where(c, deferred.reflect(w_o, n_unit), w_o)
+        x = deferred.normalize_to_bounds(torch.where(c, points, 0.0), shading.bounds_lo, shading.bounds_hi)
+        all_r = _eval_chunked(reflection, x.reshape(-1, 3), w_r.reshape(-1, 3), chunk).view_as(diffuse)
+        specular = torch.where(c, all_r, specular)
     rgb = diffuse if reflection is None else deferred.composite(diffuse, refl, fresnel, specular)
     return Render(
         rgb,
@@ -216,6 +225,13 @@ def render_view(
         ras.distortion,
         points,
     )
+
+
+def gathers_chosen(device: torch.device) -> bool:
+    """Whether R is evaluated at the chosen pixels only (gathered), else at every pixel and masked. Gathering
+    reads how many pixels are chosen: free on the CPU, where it saves evaluating R at the others; on a GPU
+    a wait for the device in every step, where evaluating R everywhere costs less."""
+    return device.type == "cpu"
 
 
 def _sub_pixel_view(
@@ -265,7 +281,10 @@ def _eval_chunked(module: nn.Module, x: Tensor, w: Tensor, chunk: int) -> Tensor
 
 
 def random_subset(candidates: Tensor, max_count: int, generator: torch.Generator) -> Tensor:  # [H, W] bool
-    """At most ``max_count`` of the True pixels of ``candidates``, uniformly at random (0: all of them)."""
+    """At most ``max_count`` of the True pixels of ``candidates``, uniformly at random (0: all of them). A
+    cap reads the candidates' count from the device (a wait on a GPU, where whole images leave it at 0)."""
+    if max_count <= 0:
+        return candidates
     idx = candidates.flatten().nonzero().squeeze(-1)
     if max_count <= 0 or idx.numel() <= max_count:
         return candidates

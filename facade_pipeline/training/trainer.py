@@ -28,15 +28,15 @@ from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training.batches import (
     ViewTensors,
     camera,
-    estimate_view_exposures,
     exposure_gain,
     random_int,
     random_window,
     view_tensors,
+    views_on_device,
 )
 from facade_pipeline.training.checkpoints import read_checkpoint, save_checkpoint
 from facade_pipeline.training.corrections import ViewCorrections
-from facade_pipeline.training.data import TrainData
+from facade_pipeline.training.data import ExposureEstimate, TrainData
 from facade_pipeline.training.densify import (
     DENSIFY_END_FRACTION,
     DENSIFY_START_FRACTION,
@@ -47,9 +47,8 @@ from facade_pipeline.training.densify import (
     reset_opacity,
     view_space_grad,
 )
-from facade_pipeline.training.exposure import ExposureEstimate
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
-from facade_pipeline.training.losses import compute_losses, psnr
+from facade_pipeline.training.losses import compute_losses, psnr_tensor
 from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.optimizers import gaussian_optimizer, reflection_optimizer, set_learning_rates
 from facade_pipeline.training.params import (
@@ -107,6 +106,18 @@ class Trainer:
     exposure: ExposureEstimate | None = None
     """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
 
+    views: tuple[ViewTensors, ...] = field(init=False, repr=False)
+    """every view's data on the device (``batches.views_on_device``)"""
+    gains: Tensor | None = field(init=False, repr=False)
+    """[V, 3] the exposure gains on the device (``exposure``), else None"""
+
+    def __post_init__(self) -> None:
+        self.views = views_on_device(self.data.views, self.params.mask_by_facade, self.device)
+        self.gains = None
+        if self.exposure is not None:
+            log_gain = torch.as_tensor(self.exposure.log_gain, dtype=torch.float32, device=self.device)
+            self.gains = log_gain.exp()
+
     @property
     def extent(self) -> float:
         return self.data.extent
@@ -161,6 +172,19 @@ def _build_corrections(
     return corr, corr.optimizer(LR_POSE_ROTATION, LR_POSE_TRANSLATION, lr_exposure=0.0)
 
 
+def _exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
+    if not p.exposure_estimate:
+        return None
+    if data.exposure is None:
+        raise PipelineError(
+            None,
+            "the views' exposure estimate in the training data (train_gs.exposure_estimate = true)",
+            "none: build the data with training.exposure.with_exposure_estimate (a bundle written without "
+            "it: write it again) or set exposure_estimate = false",
+        )
+    return data.exposure
+
+
 def build_trainer(
     p: TrainParams, data: TrainData, rasterize: Rasterizer, device: torch.device | str = "cpu"
 ) -> Trainer:
@@ -202,7 +226,7 @@ def build_trainer(
         cameras,
         corrections=corrections,
         opt_corrections=opt_corrections,
-        exposure=estimate_view_exposures(p, data),
+        exposure=_exposure(p, data),
     )
 
 
@@ -250,7 +274,7 @@ def load_checkpoint(
         list(state["log"]),
         corrections,
         opt_corrections,
-        estimate_view_exposures(p, data),
+        _exposure(p, data),
     )
 
 
@@ -284,7 +308,7 @@ def render_window(
     refined, and with its exposure gain, if exposures are); returns it with the view's data there. ``cam``
     replaces the view's camera."""
     cam = camera(tr, index) if cam is None else cam
-    vt = view_tensors(tr.data.views[index], window, tr.params.mask_by_facade, tr.device)
+    vt = view_tensors(tr.views[index], window)
     r = render_view(
         tr.model,
         tr.reflection,
@@ -304,10 +328,14 @@ def render_window(
     return r, vt
 
 
-def step(tr: Trainer) -> dict[str, float]:
+def step(tr: Trainer) -> dict[str, Tensor]:
     """One optimisation step on a random training view (or patch). Returns the loss terms and the PSNR of
-    the window over its loss mask. Raises ``TrainingDivergedError`` on NaN/Inf or runaway splats."""
+    the window over its loss mask, on the device (``train`` reads them every ``log_every`` iterations).
+    Raises ``TrainingDivergedError`` on NaN/Inf or runaway splats: on the CPU, where reading a value costs
+    nothing, checked in every step; on a GPU, where it would make the host wait for the device, by
+    ``check_state`` when ``train`` reads the figures."""
     p = tr.params
+    every_step = tr.device.type == "cpu"
     set_learning_rates(tr)
     index = tr.data.train_idx[random_int(tr.generator, len(tr.data.train_idx))]
     cam = tr.cameras[index]  # the imported pose: the view-space gradients for densification
@@ -316,12 +344,14 @@ def step(tr: Trainer) -> dict[str, float]:
         tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.generator)
     )
     terms = compute_losses(p, r, vt, tr.iteration)
-    _check_finite(tr, "loss terms", terms)
+    if every_step:
+        _check_finite(tr, "loss terms", terms)
     terms["loss"].backward()
-    grads = {n: t.grad for n, t in tr.model.params().items()}
-    if tr.corrections is not None:
-        grads |= {f"view_{n}": t.grad for n, t in tr.corrections.named_parameters()}
-    _check_finite(tr, "gradients", grads)
+    if every_step:
+        grads = {n: t.grad for n, t in tr.model.params().items()}
+        if tr.corrections is not None:
+            grads |= {f"view_{n}": t.grad for n, t in tr.corrections.named_parameters()}
+        _check_finite(tr, "gradients", grads)
     densify_end = at_fraction(DENSIFY_END_FRACTION, p.iterations)
     if tr.iteration < densify_end and tr.model.means.grad is not None:
         g, vis = view_space_grad(
@@ -338,13 +368,20 @@ def step(tr: Trainer) -> dict[str, float]:
         if opt is not None:
             opt.step()
             opt.zero_grad(set_to_none=True)
-    _check_finite(tr, "parameters", {n: t for n, t in tr.model.params().items()})
-    _check_extent(tr)
+    if every_step:
+        check_state(tr)
     tr.iteration += 1
     _densify_if_due(tr)
-    out = {k: float(v.detach()) for k, v in terms.items()}
-    out["psnr"] = psnr(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
+    out = {k: v.detach() for k, v in terms.items()}
+    out["psnr"] = psnr_tensor(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
     return out
+
+
+def check_state(tr: Trainer) -> None:
+    """Raise ``TrainingDivergedError`` where a parameter is NaN or Inf (where a loss or a gradient was,
+    the optimiser's step has carried it into them) or a splat has flown off."""
+    _check_finite(tr, "parameters", {n: t for n, t in tr.model.params().items()})
+    _check_extent(tr)
 
 
 def _densify_if_due(tr: Trainer) -> None:
@@ -376,25 +413,33 @@ def train(
 ) -> Trainer:
     """Step until ``params.iterations`` (or ``stop_at``), logging every ``log_every`` iterations (0: never)
     and saving a checkpoint every ``checkpoint_every`` (0: only at the end) when ``checkpoint`` is given.
-    Both are run settings (``[run]``): they change how a run goes, never what it trains."""
+    Both are run settings (``[run]``): they change how a run goes, never what it trains. The step's figures
+    stay on the device between log lines: ``progress`` gets the iteration every step and the figures of
+    the last log line (none before the first)."""
     p = tr.params
     end = p.iterations if stop_at is None else min(stop_at, p.iterations)
     start = tr.iteration
+    figures: dict[str, float] = {}
     while tr.iteration < end:
         out = step(tr)
         if log_every > 0 and (tr.iteration % log_every == 0 or tr.iteration == p.iterations):
+            check_state(tr)
+            figures = {k: float(v) for k, v in out.items()}
             tr.log.append(
                 {
                     "iteration": tr.iteration,
                     "n_gaussians": tr.model.n,
-                    **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in out.items()},
+                    **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in figures.items()},
                 }
             )
         if checkpoint is not None and checkpoint_every > 0 and tr.iteration % checkpoint_every == 0:
+            check_state(tr)
             save_checkpoint(tr, checkpoint, fingerprint)
         if progress is not None:
-            progress(tr.iteration, p.iterations, {**out, "n": tr.model.n})
+            progress(tr.iteration, p.iterations, {**figures, "n": tr.model.n})
     saved = checkpoint_every > 0 and tr.iteration % checkpoint_every == 0
+    if tr.iteration > start:
+        check_state(tr)
     if checkpoint is not None and tr.iteration > start and not saved:
         save_checkpoint(tr, checkpoint, fingerprint)
     return tr

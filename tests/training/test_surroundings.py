@@ -13,8 +13,6 @@ import torch
 from facade_pipeline.shading.reflection import EnvironmentProxy, ReflectionMLP, build_reflection_module
 from facade_pipeline.shading.surroundings import Surroundings, surface_heights, surface_mesh
 
-pytest.importorskip("open3d")
-
 LO = torch.tensor([-5.0, -1.0, 0.0])
 HI = torch.tensor([5.0, 1.0, 10.0])
 #: a block of a building in front of the facade: x in [-10, 10], y in [20, 30], 8 m high
@@ -207,3 +205,69 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
     a = render_trained(loaded, v.camera, v.facade_mask)
     b = render_trained(from_trainer(tr, "live"), v.camera, v.facade_mask)
     np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-5)
+
+
+def _random_blocks(seed: int, n: int = 40) -> Surroundings:
+    """Surroundings of 40 x 40 cells of 1 m with random blocks: a third of the cells, 1-15 m high, half of
+    them standing on the ground, the others lifted (crowns); loaded as a saved state is."""
+    rng = np.random.default_rng(seed)
+    top = np.where(rng.random((n, n)) < 0.33, rng.uniform(1.0, 15.0, (n, n)), 0.0)
+    lifted = rng.random((n, n)) < 0.5
+    bottom = np.where(lifted & (top > 0), rng.uniform(0.2, 0.9, (n, n)) * top, 0.0)
+    s = Surroundings(LO, HI, reach_m=n / 2, cell_m=1.0)
+    s.load_state_dict({"heights": torch.as_tensor(np.stack([bottom, top]), dtype=torch.float32)})
+    return s
+
+
+def _rays(kind: str, s: Surroundings, rng: np.random.Generator, n: int = 4000):
+    o = np.column_stack([rng.uniform(-22, 22, (n, 2)), rng.uniform(0.05, 18, n)])
+    d = rng.normal(size=(n, 3))
+    if kind == "grazing":
+        # nearly level (skimming the blocks' tops and bottoms) or nearly along x or y (their walls)
+        third = n // 3
+        d[:third, 2] = rng.normal(0, 1e-3, third)
+        d[third : 2 * third, 1] = rng.normal(0, 1e-3, third)
+        d[2 * third :, 0] = rng.normal(0, 1e-3, n - 2 * third)
+    if kind == "inside":
+        bottom, top = s.heights.double().numpy()
+        i, j = np.nonzero(top > 0)
+        pick = rng.integers(0, len(i), n)
+        f = rng.uniform(0.05, 0.95, (n, 3))
+        corner = np.array(s.eye_xy) - 0.5 * top.shape[0]
+        o[:, :2] = corner + np.column_stack([i[pick], j[pick]]) + f[:, :2]
+        o[:, 2] = s.ground_z + bottom[i[pick], j[pick]] + f[:, 2] * (top - bottom)[i[pick], j[pick]]
+    return o, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _kind(o: np.ndarray, d: np.ndarray, t: np.ndarray, ground_z: float) -> np.ndarray:
+    """0: the ray meets the floor first, 1: a block, 2: neither (the sky), as ``Surroundings.hit`` decides."""
+    down = d[:, 2] < -1e-6
+    t_floor = np.where(down, np.maximum(o[:, 2] - ground_z, 0) / np.where(down, -d[:, 2], 1), np.inf)
+    floor = down & (t_floor < t)
+    return np.where(floor, 0, np.where(np.isfinite(t), 1, 2))
+
+
+@pytest.mark.parametrize("kind", ["random", "grazing", "inside"])
+def test_torch_cast_matches_open3d_on_the_blocks_mesh(kind):
+    """The cast in torch (a GPU's) against open3d's cast against the blocks as triangles (``surface_mesh``,
+    the CPU's): the same rays hit, within 1e-4 m, and the rays meet the floor, a block or the sky alike."""
+    pytest.importorskip("open3d")
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+
+    s = _random_blocks(7)
+    rng = np.random.default_rng({"random": 0, "grazing": 1, "inside": 2}[kind])
+    o, d = _rays(kind, s, rng)
+    hits = MeshRaycaster(*s.mesh()).cast(o, d)
+    ref = hits.t.astype(np.float64)
+    o32, d32 = (torch.as_tensor(a, dtype=torch.float32) for a in (o, d))
+    got = s.cast_torch(o32, d32).numpy()
+    if kind == "inside":
+        assert np.isfinite(ref).mean() > 0.5  # most leave through a face (the rest through the ground)
+    assert (np.isfinite(ref) == np.isfinite(got)).all()
+    hit = np.isfinite(ref)
+    # both casts are float32: the ray's position is rounded to a few micrometres at these coordinates, which
+    # moves a hit along the ray by that over the cosine at which the ray meets the face (a ray nearly along
+    # a wall); 1e-4 m beyond that
+    cos = np.abs((d * hits.normal).sum(1))[hit]
+    assert hit.any() and (np.abs(got[hit] - ref[hit]) <= 1e-4 + 4e-6 / np.maximum(cos, 1e-9)).all()
+    assert (_kind(o, d, got, s.ground_z) == _kind(o, d, ref, s.ground_z)).all()

@@ -13,7 +13,7 @@ import torch
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.splatting.types import NEAR_M
-from facade_pipeline.training import batches, losses
+from facade_pipeline.training import exposure, losses
 from facade_pipeline.training import trainer as trainer_module
 from facade_pipeline.training.batches import camera
 from facade_pipeline.training.checkpoints import save_checkpoint
@@ -283,8 +283,12 @@ def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkey
     views[dark] = dataclasses.replace(views[dark], image=views[dark].image * 0.6)
     data = dataclasses.replace(data64, views=tuple(views))
     est = ExposureParams(samples=40000, min_samples=10)  # small photos
-    monkeypatch.setattr(batches, "EXPOSURE_ESTIMATE", est)
-    tr = build_trainer(small_params(exposure_estimate=True), data, RASTER)
+    monkeypatch.setattr(exposure, "EXPOSURE_ESTIMATE", est)
+    p = small_params(exposure_estimate=True)
+    with pytest.raises(PipelineError, match="exposure estimate"):
+        build_trainer(p, data, RASTER)  # the estimate travels with the data
+    data = exposure.with_exposure_estimate(data, p.seed)
+    tr = build_trainer(p, data, RASTER)
     assert tr.corrections is None
     g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
     others = [i for i in data.train_idx if i != dark]
@@ -369,6 +373,8 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
         pose_refinement=refine == "pose",
         exposure_estimate=refine == "estimate",
     )
+    if p.exposure_estimate:
+        data64 = exposure.with_exposure_estimate(data64, p.seed)
     every = {"log_every": 5, "checkpoint_every": 3}
     ref = train(build_trainer(p, data64, RASTER), **every)
     ckpt = tmp_path / "ckpt.pt"
@@ -433,3 +439,27 @@ def test_save_checkpoint_is_atomic(data64, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(tr, ckpt, "fp")
     assert ckpt.read_bytes() == good and [q.name for q in tmp_path.iterdir()] == ["c.pt"]
+
+
+def test_reflection_evaluated_everywhere_and_masked_equals_gathered(data64, monkeypatch):
+    """R at every pixel kept where chosen (the GPU's way, ``render.gathers_chosen``) renders and
+    differentiates as R at the chosen pixels only (the CPU's), the environment proxy included."""
+    from facade_pipeline.training import render
+
+    tr = build_trainer(small_params(proxy_channels=2, mlp_max_pixels=0), data64, RASTER)
+    index = data64.train_idx[0]
+    out = []
+    for gathered in (True, False):
+        monkeypatch.setattr(render, "gathers_chosen", lambda device, g=gathered: g)
+        r, _ = render_window(tr, index, (0, 0, 48, 40))
+        (r.rgb * torch.linspace(0.5, 1.5, r.rgb.numel()).view_as(r.rgb)).sum().backward()
+        params = [*tr.model.params().values(), *tr.reflection.parameters()]
+        out.append((r.rgb.detach(), r.spec_pixels, [q.grad.clone() for q in params if q.grad is not None]))
+        for q in params:
+            q.grad = None
+    (a, chosen_a, grads_a), (b, chosen_b, grads_b) = out
+    assert bool(chosen_a.any()) and torch.equal(chosen_a, chosen_b)
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    assert len(grads_a) == len(grads_b)
+    for ga, gb in zip(grads_a, grads_b, strict=True):
+        torch.testing.assert_close(ga, gb, rtol=1e-4, atol=1e-6)

@@ -1,17 +1,22 @@
 """The trainer on a CUDA device (the ``device = "cuda"`` / ``raster_backend = "gsplat"`` path of train_gs):
-hard scenes stay finite, a short run lowers the loss, and a checkpoint made on the GPU resumes on the CPU.
+hard scenes stay finite, a short run lowers the loss, a checkpoint made on the GPU resumes on the CPU, and a
+step never waits for the device.
 These tests skip without CUDA (and, for gsplat, without the ``gpu`` extra)."""
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import pytest
 import torch
 
 from facade_pipeline.splatting import gsplat_backend
 from facade_pipeline.training.checkpoints import save_checkpoint
+from facade_pipeline.training.data import ExposureEstimate
 from facade_pipeline.training.losses import compute_losses
 from facade_pipeline.training.render import splatting_rasterizer
-from facade_pipeline.training.trainer import build_trainer, load_checkpoint, render_window, train
+from facade_pipeline.training.trainer import build_trainer, load_checkpoint, render_window, step, train
 from tests.training.conftest import small_params
 from tests.training.scenes import hard_scene
 
@@ -76,3 +81,50 @@ def test_short_cuda_run_lowers_the_loss_and_resumes_on_cpu(cuda_device, raster_b
     assert back is not None and back.iteration == tr.iteration
     for name, value in tr.model.params().items():
         assert torch.equal(value.detach().cpu(), back.model.params()[name].detach()), name
+
+
+def _with_surroundings(data):
+    """``data`` with coarse points of a block 2.5-4.5 m in front of the facade, 4 m high (within the
+    proxy's reach of this small facade): the environment proxy's surroundings then have a block that
+    reflected rays are cast against."""
+    rng = np.random.default_rng(0)
+    block = np.column_stack([rng.uniform(-2, 2, 3000), rng.uniform(2.5, 4.5, 3000), rng.uniform(0, 4, 3000)])
+    init = data.init
+    points = np.concatenate([init.points, block])
+    colors = np.concatenate([init.colors, np.full_like(block, 0.5)])
+    return dataclasses.replace(data, init=dataclasses.replace(init, points=points, colors=colors))
+
+
+def test_steps_on_cuda_never_wait_for_the_device(cuda_device):
+    """Whole-image steps with the reflection MLP, its environment proxy (the surroundings' ray cast) and
+    the estimated exposures, between log lines and densifications, under
+    ``torch.cuda.set_sync_debug_mode("error")``: any read of a value on the device, and any copy of host
+    values to it, raises. The rasterizer is exempt: gsplat reads how many tile intersections it has to
+    sort once per render, which is gsplat's (its own one wait, not the step's)."""
+    if not gsplat_backend.available():
+        pytest.skip("gsplat is not installed")
+    data = _with_surroundings(hard_scene())
+    data = dataclasses.replace(data, exposure=ExposureEstimate(np.zeros((len(data.views), 3), np.float32),
+                                                               np.full(len(data.views), 100)))  # fmt: skip
+    p = small_params(reflection_model="mlp", proxy_channels=2, iterations=12, patch_px=0, mlp_max_pixels=0,
+                     densify_interval=0, exposure_estimate=True, mask_by_facade=False)  # fmt: skip
+    gsplat = splatting_rasterizer("gsplat")
+
+    def rasterize(*args, **kwargs):
+        torch.cuda.set_sync_debug_mode(0)
+        try:
+            return gsplat(*args, **kwargs)
+        finally:
+            torch.cuda.set_sync_debug_mode("error")
+
+    tr = build_trainer(p, data, rasterize, cuda_device)
+    assert tr.reflection.proxy.surroundings.blocks() is not None
+    train(tr, stop_at=2)  # first calls: kernels load, memory pools fill
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for _ in range(8):
+            out = step(tr)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert tr.iteration == 10 and all(bool(torch.isfinite(v)) for v in out.values())
