@@ -21,10 +21,10 @@ from facade_pipeline.shading.reflection import (
     build_reflection_module,
     strategy_from_record,
 )
-from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, NEAR_M
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.corrections import Alignment, align_view
 from facade_pipeline.training.model import GaussianModel
-from facade_pipeline.training.params import REFL_THRESHOLD, AlignParams
+from facade_pipeline.training.params import REFL_THRESHOLD, AlignParams, near_plane
 from facade_pipeline.training.ply import model_from_ply, read_ply
 from facade_pipeline.training.render import (
     Camera,
@@ -105,7 +105,7 @@ def load_trained(
         strategy,
         shading,
         active_sh_degree(int(p["sh_degree"]), int(p["sh_degree_interval"]), int(p["iterations"])),
-        float(p.get("near_m", NEAR_M)),  # models saved while it was a key kept 2DGS's value
+        float(p.get("near_m", near_plane(bounds))),  # a key when older models were saved
         backend,
         lowpass,
         device,
@@ -120,10 +120,10 @@ def from_trainer(tr: Trainer, name: str, backend: str = "auto") -> TrainedModel:
         name,
         tr.model,
         tr.reflection,
-        p.reflection_strategy(),
+        p.reflection_strategy(tr.data.bounds),
         tr.shading,
         active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration),
-        NEAR_M,
+        tr.near,
         backend,
         p.lowpass_sigma_px,
         tr.device,

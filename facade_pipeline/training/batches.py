@@ -64,6 +64,7 @@ class ViewTensors:
     glass: Tensor  # [H, W] bool
     prior: Tensor  # [H, W, 3]
     prior_valid: Tensor  # [H, W] bool
+    clipped: Tensor | None = None  # [H, W, 3] bool: channels the photo clipped; None: none
 
 
 def view_tensors(view: TrainView, window: Window, mask_by_facade: bool, device: torch.device) -> ViewTensors:
@@ -85,6 +86,7 @@ def view_tensors(view: TrainView, window: Window, mask_by_facade: bool, device: 
         t(view.glass_mask, torch.bool),
         t(view.normal_prior),
         t(view.normal_valid, torch.bool),
+        None if view.clipped is None else t(view.clipped, torch.bool),
     )
 
 

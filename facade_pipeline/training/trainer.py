@@ -24,7 +24,6 @@ from torch import Tensor, nn
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.shading.reflection import build_reflection_module
-from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training.batches import (
     ViewTensors,
     camera,
@@ -49,14 +48,17 @@ from facade_pipeline.training.densify import (
 )
 from facade_pipeline.training.exposure import ExposureEstimate
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
-from facade_pipeline.training.losses import compute_losses, psnr
+from facade_pipeline.training.losses import compute_losses, psnr, recorded
 from facade_pipeline.training.model import GaussianModel
+from facade_pipeline.training.monitor import monitored
 from facade_pipeline.training.optimizers import gaussian_optimizer, reflection_optimizer, set_learning_rates
 from facade_pipeline.training.params import (
-    INIT_BOUNDS_MARGIN_M,
+    INIT_BOUNDS_MARGIN,
     INIT_F0,
     REFL_THRESHOLD,
     TrainParams,
+    facade_size,
+    near_plane,
 )
 from facade_pipeline.training.render import (
     Camera,
@@ -111,6 +113,10 @@ class Trainer:
     def extent(self) -> float:
         return self.data.extent
 
+    @property
+    def near(self) -> float:
+        return near_plane(self.data.bounds)
+
 
 def resolve_device(choice: str) -> torch.device:
     """``cpu``, ``cuda`` (an error without CUDA) or ``auto`` (CUDA when available)."""
@@ -136,7 +142,10 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
         reflection = build_reflection_module(
-            p.reflection_strategy(), device, (shading.bounds_lo, shading.bounds_hi), data.init.points
+            p.reflection_strategy(data.bounds),
+            device,
+            (shading.bounds_lo, shading.bounds_hi),
+            data.init.points,
         )
     opt = gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else reflection_optimizer(p, reflection)
@@ -173,7 +182,7 @@ def build_trainer(
         data.bounds,
         p.init_max_points,
         p.init_mesh_samples,
-        INIT_BOUNDS_MARGIN_M,
+        INIT_BOUNDS_MARGIN * facade_size(data.bounds),
         INIT_KNN,
         INIT_OPACITY,
         p.init_reflectivity,
@@ -291,7 +300,7 @@ def render_window(
         cam,
         window,
         tr.rasterize,
-        NEAR_M,
+        tr.near,
         active_sh_degree(tr.params.sh_degree, tr.params.sh_degree_interval, tr.iteration),
         tr.shading,
         spec_mask=vt.mask,
@@ -331,7 +340,7 @@ def step(tr: Trainer) -> dict[str, float]:
             cam.K,
             (cam.width, cam.height),
             window,
-            NEAR_M,
+            tr.near,
         )
         accumulate(tr.stats, g, vis)
     for opt in (tr.opt, tr.opt_refl, tr.opt_corrections):
@@ -343,7 +352,8 @@ def step(tr: Trainer) -> dict[str, float]:
     tr.iteration += 1
     _densify_if_due(tr)
     out = {k: float(v.detach()) for k, v in terms.items()}
-    out["psnr"] = psnr(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
+    seen = recorded(r.rgb.detach(), vt.image, vt.clipped).clamp(0, 1)
+    out["psnr"] = psnr(seen, vt.image, vt.mask & ~r.skipped)
     return out
 
 
@@ -383,13 +393,12 @@ def train(
     while tr.iteration < end:
         out = step(tr)
         if log_every > 0 and (tr.iteration % log_every == 0 or tr.iteration == p.iterations):
-            tr.log.append(
-                {
-                    "iteration": tr.iteration,
-                    "n_gaussians": tr.model.n,
-                    **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in out.items()},
-                }
-            )
+            record = {
+                "iteration": tr.iteration,
+                "n_gaussians": tr.model.n,
+                **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in out.items()},
+            }
+            tr.log.append(monitored(tr, record))  # the whole-view PSNR; stops a diverging run
         if checkpoint is not None and checkpoint_every > 0 and tr.iteration % checkpoint_every == 0:
             save_checkpoint(tr, checkpoint, fingerprint)
         if progress is not None:
