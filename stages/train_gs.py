@@ -226,7 +226,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             bar.update(it - bar.n)
             view = tr.log[-1].get("view_psnr") if tr.log else None  # the whole views' at the last check
             bar.set_postfix(
-                loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", view_psnr=view, n=out["n"], refresh=False
+                loss=f"{out['loss']:.4f}", psnr=f"{out['psnr']:.2f}", view=view, n=out["n"], refresh=False
             )
 
         try:
