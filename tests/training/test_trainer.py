@@ -497,3 +497,20 @@ def test_a_whole_view_psnr_far_below_its_best_stops_training(data64, monkeypatch
     monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: math.nan)
     with pytest.raises(TrainingDivergedError, match="NaN"):
         monitor.monitored(tr, {"iteration": 15})
+
+
+def test_training_is_the_same_on_the_same_scene_at_1_to_25(data64):
+    """Every length of training follows from the scene: synthetic64 shrunk to 1:25 (cameras, points, mesh)
+    trains step for step as at full size (the same losses and PSNR), the splats 25 times closer."""
+    from tests.training.test_data import scaled_scene
+
+    p = small_params(iterations=8, reflection_model="sh")
+    small = scaled_scene(data64, 1.0 / 25.0)
+    a, b = build_trainer(p, data64, RASTER), build_trainer(p, small, RASTER)
+    assert a.model.n == b.model.n
+    train(a, log_every=4)
+    train(b, log_every=4)
+    for ra, rb in zip(a.log, b.log, strict=True):
+        for key in ("loss", "psnr", "view_psnr"):
+            assert math.isclose(ra[key], rb[key], rel_tol=2e-3, abs_tol=2e-4), (key, ra, rb)
+    assert torch.allclose(b.model.means * 25.0, a.model.means, atol=1e-3 * data64.extent)
