@@ -142,6 +142,12 @@ def main() -> None:
     ap.add_argument("--supersample", type=int, default=0, help="samples per pixel side; 0: the building's")
     ap.add_argument("--only", default="", help="comma-separated variant names to run (default: all)")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument(
+        "--save-variants",
+        action="store_true",
+        help="keep each trained variant under <building>/variants/<name>/: `evaluate` then measures it "
+        "beside 07_train (LPIPS, frames, renders)",
+    )
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
     ap.add_argument("--bundle", default="", help="train on this .npz (from --save-bundle) instead")
@@ -180,6 +186,8 @@ def main() -> None:
         tr = build_trainer(p, data, raster, device)
         train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
         wall = time.perf_counter() - t0
+        if a.save_variants:
+            save_variant(a, name, tr)
         ev, ev_aligned = measure(tr, name, data, align)
         rows.append((name, ev, ev_aligned, wall, tr.model.n))
         print(
@@ -189,6 +197,24 @@ def main() -> None:
             flush=True,
         )
     report(a, base, align, prior, data, rows, device)
+
+
+def save_variant(a, name: str, tr) -> None:
+    """``tr``'s model saved as the variant ``name`` of the building, as train_gs saves 07_train."""
+    from facade_pipeline.config import to_dict
+    from facade_pipeline.training.batches import exposure_gains
+    from facade_pipeline.training.trained import TrainedModelFiles
+
+    data = tr.data
+    split: dict = {k: [data.views[i].stem for i in idx] for k, idx in (("train", data.train_idx),
+                                                                      ("test", data.test_idx))}  # fmt: skip
+    gains = exposure_gains(tr)
+    if gains:
+        split["exposure_gain"] = gains
+    folder = "".join(c if c.isalnum() else "_" for c in name)
+    layout = BuildingLayout(Path(a.data_root), a.building)
+    files = TrainedModelFiles.variant(layout.path("variant_dir", variant=folder), to_dict(tr.params), name)
+    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(data.bounds), data.bounds, split)
 
 
 def measure(tr, name: str, data: TrainData, align: AlignParams) -> tuple[dict, dict | None]:
