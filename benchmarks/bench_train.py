@@ -57,6 +57,8 @@ def ensure_building(layout: BuildingLayout) -> None:
     from stages import load_stage
     from stages._runner import execute, load_params
 
+    if layout.manifest("import_photogrammetry").is_file():  # imported already (a real building's way)
+        return
     for name in ("synthesize", "import_photogrammetry"):
         stage = load_stage(name)
         if not layout.manifest(name).is_file():

@@ -176,3 +176,7 @@ class AlignParams:
     """of the log gain per colour channel (-)"""
     exposure: bool
     """fit the exposure gain as well as the pose"""
+    max_pixels: Count = 0
+    """the fit's image: the measured view with f x f pixels averaged into one, f the smallest integer that
+    brings it within this many (``data.pixel_budget_factor``; 0: the measured view itself); the fitted pose
+    is then measured at the view's size"""
