@@ -24,11 +24,12 @@ T = TypeVar("T")
 REFL_THRESHOLD = 0.01
 #: Lengths of training are measured from the scene: the facade's size is the diagonal of the corrected
 #: mesh's bounds (``facade_size``). Coarse points farther than this fraction of it outside those bounds do
-#: not become splats, and the reflection proxy's surroundings begin this far beyond them (1 m on demo's
-#: 60 m facade, as 2DGS's fixed metre was chosen for).
+#: not become splats, and the reflection proxy's surroundings begin this far beyond them (about the fixed
+#: 1 m it replaces on demo, whose facade is 62 m across its bounds).
 INIT_BOUNDS_MARGIN = 1.0 / 60.0
-#: Splat intersections nearer to the camera than this fraction of the facade's size are skipped (0.2 m,
-#: the reference 2DGS near plane, on demo's 60 m facade; a fixed 0.2 m clips a 1:25 model's wall).
+#: Splat intersections nearer to the camera than this fraction of the facade's size are skipped (about the
+#: reference 2DGS near plane, 0.2 m, on demo; a fixed 0.2 m clips a 1:25 model's wall, 0.21-0.35 m from
+#: its cameras).
 NEAR_FRACTION = 0.2 / 60.0
 #: initial Fresnel F0 of every splat, all channels: coated facade glass reflects strongly (0-1)
 INIT_F0 = 0.5
