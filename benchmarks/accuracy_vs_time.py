@@ -170,7 +170,7 @@ def child(
             for k, idx in (("train", full.train_idx), ("test", full.test_idx))
         }
         files = TrainedModelFiles.variant(layout.path("variant_dir", variant=slug(label)), to_dict(p))
-        files.save(tr.model, tr.reflection, p.reflection_strategy(), data.bounds, split)
+        files.save(tr.model, tr.reflection, p.reflection_strategy(data.bounds), data.bounds, split)
     return {
         "label": label,
         "changes": changes,

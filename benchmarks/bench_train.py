@@ -62,6 +62,8 @@ def ensure_building(layout: BuildingLayout) -> None:
     from stages import load_stage
     from stages._runner import execute, load_params
 
+    if layout.manifest("import_photogrammetry").is_file():  # imported already (a real building's way)
+        return
     for name in ("synthesize", "import_photogrammetry"):
         stage = load_stage(name)
         if not layout.manifest(name).is_file():
@@ -150,6 +152,12 @@ def main() -> None:
     ap.add_argument("--speed", type=int, default=0, help="time this many iterations per variant (0: train)")
     ap.add_argument("--warmup", type=int, default=20, help="iterations before --speed's timing")
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument(
+        "--save-variants",
+        action="store_true",
+        help="keep each trained variant under <building>/variants/<name>/: `evaluate` then measures it "
+        "beside 07_train (LPIPS, frames, renders)",
+    )
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
     ap.add_argument("--bundle", default="", help="train on this .npz (from --save-bundle) instead")
@@ -192,6 +200,8 @@ def main() -> None:
         tr = build_trainer(p, data, raster, device)
         train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
         wall = time.perf_counter() - t0
+        if a.save_variants:
+            save_variant(a, name, tr)
         ev, ev_aligned = measure(tr, name, data, align)
         rows.append((name, ev, ev_aligned, wall, tr.model.n))
         print(
@@ -247,6 +257,24 @@ def speed(a, base: TrainParams, data: TrainData, raster, device) -> None:
     print(text)
     if not a.no_write:
         record_results(text)
+
+
+def save_variant(a, name: str, tr) -> None:
+    """``tr``'s model saved as the variant ``name`` of the building, as train_gs saves 07_train."""
+    from facade_pipeline.config import to_dict
+    from facade_pipeline.training.batches import exposure_gains
+    from facade_pipeline.training.trained import TrainedModelFiles
+
+    data = tr.data
+    split: dict = {k: [data.views[i].stem for i in idx] for k, idx in (("train", data.train_idx),
+                                                                      ("test", data.test_idx))}  # fmt: skip
+    gains = exposure_gains(tr)
+    if gains:
+        split["exposure_gain"] = gains
+    folder = "".join(c if c.isalnum() else "_" for c in name)
+    layout = BuildingLayout(Path(a.data_root), a.building)
+    files = TrainedModelFiles.variant(layout.path("variant_dir", variant=folder), to_dict(tr.params), name)
+    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(data.bounds), data.bounds, split)
 
 
 def measure(tr, name: str, data: TrainData, align: AlignParams) -> tuple[dict, dict | None]:

@@ -11,7 +11,8 @@ photogrammetry would give it:
   PINHOLE COLMAP model from the poses;
 - the world frame z up: the wall frame's y points down (gravity), so world = (x, z, -y) of the wall frame;
 - ``coarse_mesh.ply``: the wall-plane rectangle covering every photo's footprint (with a margin), a grid of
-  cells with Gaussian noise along the wall normal (``--noise-mm``), and ``coarse_points.ply`` sampled on it.
+  cells with Gaussian noise along the wall normal (``--noise-mm``), and ``coarse_points.ply`` sampled on it,
+  each point coloured by the median of the photos that see it.
 
 Refuses to write into an existing raw/ unless ``--force``; nothing is written outside the data root.
 """
@@ -22,6 +23,7 @@ import argparse
 import json
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +101,28 @@ def coarse_wall(xy: np.ndarray, noise_m: float, cell_m: float, margin: float,
     return world, tris
 
 
+def point_colours(points: np.ndarray, cams: dict[str, PinholeCamera], images: list[Path]) -> np.ndarray:
+    """[N, 3] colour in [0, 1] of each world point: the median over the photos it projects into (grey where
+    none), as a photogrammetric point cloud colours its points."""
+    from facade_pipeline.io.images import read_image
+
+    seen = []
+    for path in images:
+        cam = cams[path.stem]
+        uv, z = cam.project(points)
+        with np.errstate(invalid="ignore"):
+            x, y = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+            ok = (z > 0) & (x >= 0) & (y >= 0) & (x < cam.width) & (y < cam.height)
+        col = np.full((len(points), 3), np.nan)
+        img = read_image(path)
+        col[ok] = img[y[ok].astype(int), x[ok].astype(int)] / 255.0
+        seen.append(col)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # points no photo sees: an all-NaN median
+        med = np.nanmedian(np.stack(seen), axis=0)
+    return np.where(np.isfinite(med), med, 0.5)
+
+
 def make_building(src: Path, layout: BuildingLayout, noise_m: float, n_points: int, seed: int,
                   force: bool) -> dict:
     """Write raw/ (module docstring); returns counts for the summary line."""
@@ -135,7 +159,7 @@ def make_building(src: Path, layout: BuildingLayout, noise_m: float, n_points: i
     a, b, c = verts[t[:, 0]], verts[t[:, 1]], verts[t[:, 2]]
     pts = a + ab[:, :1] * (b - a) + ab[:, 1:] * (c - a)
     pts = pts + rng.normal(0.0, noise_m, (n_points, 1)) * WORLD_FROM_WALL[:3, 2]
-    write_points(layout.raw_coarse_points, make_points(pts))
+    write_points(layout.raw_coarse_points, make_points(pts, point_colours(pts, cams, images)))
     return {"photos": len(images), "mesh_triangles": len(tris), "points": len(pts)}
 
 

@@ -102,6 +102,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     )
     from facade_pipeline.evaluation.geometry_eval import load_truth
     from facade_pipeline.evaluation.render_views import load_trained
+    from facade_pipeline.training.data import pixel_budget_factor, scaled_camera
     from facade_pipeline.training.trainer import resolve_device
 
     scene = ImportedScene.load(layout)
@@ -115,10 +116,15 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     metrics = metrics_header(layout, params, found[0].params["test_every"])
     outputs: list[Path] = []
     jobs = {v.name: [(s, split_views(layout, v, scene, s)) for s in params.splits] for v in found}
-    path = video_path(params.video, [(v.stem, v.camera) for v in scene.uav_views])
+    # the fly-through at the size the pipeline's model was trained at (a pixel budget, not the photos')
+    budget = int(found[0].params.get("max_view_pixels", 0))
+    cams = [(v.stem, v.camera) for v in scene.uav_views]
+    cams = [(s, scaled_camera(c, pixel_budget_factor(c.width, c.height, budget))) for s, c in cams]
+    path = video_path(params.video, cams)
     facade_mask = facade_masker(layout) if path else None
     films: list[list[np.ndarray]] = []
-    n_views = sum(len(views) for j in jobs.values() for _, views in j) + len(path) * len(found)
+    measures = 2 if params.align.steps > 0 else 1  # as imported, and aligned
+    n_views = measures * sum(len(views) for j in jobs.values() for _, views in j) + len(path) * len(found)
     with tqdm(total=n_views, desc="evaluate", unit="view", file=sys.stderr) as bar:
         for v in found:
             tm = load_trained(v, device, settings.raster_backend)
@@ -126,7 +132,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
                 films.append(render_path(path, renderer(tm), facade_mask, bar.update))
             entry = variant_entry(v, tm)
             for split, views in jobs[v.name]:
-                measured, written = evaluate_split(layout, params, tm, views, split, bar.update)
+                max_pixels = int(v.params.get("max_view_pixels", 0))  # measured as it was trained
+                measured, written = evaluate_split(layout, params, tm, views, split, bar.update, max_pixels)
                 entry |= measured
                 outputs += written
             if truth is not None:

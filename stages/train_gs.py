@@ -26,7 +26,15 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.training.data import InitGeometry, TrainData, TrainView, split_views
+from facade_pipeline.training.data import (
+    InitGeometry,
+    TrainData,
+    TrainView,
+    clipped_channels,
+    downscale_view,
+    pixel_budget_factor,
+    split_views,
+)
 from facade_pipeline.training.params import TrainParams
 from stages._runner import PACKAGE_DIR, StageReport, main
 
@@ -82,8 +90,9 @@ def _checked(path: Path, arr: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return arr
 
 
-def load_view(layout: BuildingLayout, view: View) -> TrainView:
-    """One view's image, masks and normal prior, checked against its camera's size."""
+def load_view(layout: BuildingLayout, view: View, max_pixels: int = 0) -> TrainView:
+    """One view's image, masks and normal prior, checked against its camera's size, with its clipped
+    channels; reduced to at most ``max_pixels`` pixels (``data.pixel_budget_factor``; 0: as it is)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.bake.maps import BakedPrior
     from facade_pipeline.io.images import read_image
@@ -93,7 +102,10 @@ def load_view(layout: BuildingLayout, view: View) -> TrainView:
     img_path = layout.root / view.image
     image = _checked(img_path, read_image(img_path), (*hw, 3)).astype(np.float32) / 255.0
     prior = BakedPrior.load(layout, view.stem, hw, BAKED)
-    return TrainView(view.stem, cam, image, prior.facade, prior.glass, prior.normal, prior.valid)
+    full = TrainView(
+        view.stem, cam, image, prior.facade, prior.glass, prior.normal, prior.valid, clipped_channels(image)
+    )
+    return downscale_view(full, pixel_budget_factor(cam.width, cam.height, max_pixels))
 
 
 def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
@@ -101,7 +113,7 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
     from facade_pipeline.io.meshes import read_mesh, read_points
 
     scene = ImportedScene.load(layout)
-    views = tuple(load_view(layout, v) for v in scene.uav_views)
+    views = tuple(load_view(layout, v, params.max_view_pixels) for v in scene.uav_views)
     mesh = read_mesh(layout.path("correct_mesh"))
     pcd = read_points(layout.import_coarse_points)
     pts = np.asarray(pcd.points)
@@ -162,7 +174,7 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list
     if gains:
         split["exposure_gain"] = gains
     files = TrainedModelFiles.pipeline(layout, to_dict(tr.params))
-    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(), tr.data.bounds, split)
+    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(tr.data.bounds), tr.data.bounds, split)
     lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": evaluation})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")
     return targets(layout, tr.params)
@@ -181,10 +193,27 @@ def held_out_evaluation(tr: Trainer, backend: str) -> dict:
     return {**headline(result), "views": result["views"]}
 
 
+def clipped_fraction(data: TrainData) -> float | None:
+    """The fraction of the training views' facade pixels with a clipped channel (left to the camera's
+    clipping in the loss); None when no view records its clipping."""
+    views = [data.views[i] for i in data.train_idx if data.views[i].clipped is not None]
+    n = sum(int(v.facade_mask.sum()) for v in views)
+    if not n:
+        return None
+    return round(sum(int((v.clipped.any(-1) & v.facade_mask).sum()) for v in views) / n, 4)
+
+
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.training.batches import exposure_gains
     from facade_pipeline.training.render import splatting_rasterizer
-    from facade_pipeline.training.trainer import build_trainer, load_checkpoint, resolve_device, train
+    from facade_pipeline.training.trainer import (
+        TrainingDivergedError,
+        build_trainer,
+        load_checkpoint,
+        resolve_device,
+        train,
+    )
 
     data = load_train_data(layout, params)
     device = resolve_device(settings.device)
@@ -201,17 +230,22 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         def progress(it: int, total: int, out: dict) -> None:
             bar.update(it - bar.n)
             if "loss" in out:  # the figures of the last log line ([run] log_every)
-                figures = {"loss": f"{out['loss']:.4f}", "psnr": f"{out['psnr']:.2f}"}
+                view = tr.log[-1].get("view_psnr") if tr.log else None  # the whole views' at that check
+                figures = {"loss": f"{out['loss']:.4f}", "psnr": f"{out['psnr']:.2f}", "view": view}
                 bar.set_postfix(**figures, n=out["n"], refresh=False)
 
-        train(
-            tr,
-            ckpt,
-            fp,
-            progress,
-            log_every=settings.log_every,
-            checkpoint_every=settings.checkpoint_every,
-        )
+        try:
+            train(
+                tr,
+                ckpt,
+                fp,
+                progress,
+                log_every=settings.log_every,
+                checkpoint_every=settings.checkpoint_every,
+            )
+        except TrainingDivergedError as e:  # one line: the iteration, the cause, the checkpoint kept
+            kept = f"; {ckpt} (the last good state) is kept" if ckpt.is_file() else ""
+            raise TrainingDivergedError(None, e.expected, e.found + kept) from None
     metrics = held_out_evaluation(tr, settings.raster_backend)
     outputs = _save_outputs(layout, tr, metrics)
     last = tr.log[-1] if tr.log else {}
@@ -231,6 +265,10 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "n_views_without_facade": len(data.views) - len(data.train_idx) - len(data.test_idx),
             "final_train_loss": last.get("loss"),
             "final_train_psnr": last.get("psnr"),
+            "view_psnr": [r.get("view_psnr") for r in tr.log],
+            "view_size_px": [data.views[0].camera.width, data.views[0].camera.height],
+            "clipped_fraction": clipped_fraction(data),
+            "exposure_gain": exposure_gains(tr),
             "test_psnr": metrics["psnr"],
             "test_ssim": metrics["ssim"],
             "test_psnr_glass": metrics["psnr_glass"],

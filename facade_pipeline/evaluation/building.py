@@ -46,6 +46,7 @@ from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, read_labels
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.training.data import block_reduce, pixel_budget_factor, scaled_camera
 from facade_pipeline.training.params import flat_params
 from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
 
@@ -105,8 +106,9 @@ def view_files(layout: BuildingLayout, view: View) -> list[Path]:
     ]
 
 
-def load_eval_view(layout: BuildingLayout, view: View) -> EvalView:
-    """A view's photo (in [0, 1]) and baked masks, checked to be of one size."""
+def load_eval_view(layout: BuildingLayout, view: View, max_pixels: int = 0) -> EvalView:
+    """A view's photo (in [0, 1]) and baked masks, checked to be of one size, at most ``max_pixels`` pixels
+    as its model was trained (``[train_gs] max_view_pixels``, ``training.data.downscale_view``)."""
     truth = read_image(layout.root / view.image).astype(np.float64) / 255.0
     prior = BakedPrior.load(layout, view.stem, None, ("facade_mask", "glass_mask"))
     facade, glass = prior.facade, prior.glass
@@ -114,7 +116,13 @@ def load_eval_view(layout: BuildingLayout, view: View) -> EvalView:
         raise InputError(
             layout.root / view.image, f"an image of {facade.shape} px (its masks)", f"{truth.shape[:2]}"
         )
-    return EvalView(view.stem, view.camera, truth, np.asarray(facade, bool), np.asarray(glass, bool))
+    cam = view.camera
+    f = pixel_budget_factor(cam.width, cam.height, max_pixels)
+    if f > 1:
+        truth = block_reduce(truth, f)
+        facade, glass = (block_reduce(np.asarray(m, np.float32), f) >= 0.5 for m in (facade, glass))
+    facade, glass = np.asarray(facade, bool), np.asarray(glass, bool)
+    return EvalView(view.stem, scaled_camera(cam, f), truth, facade, glass)
 
 
 def lpips_status(params: EvaluateParams) -> dict[str, str]:
@@ -133,12 +141,14 @@ def evaluate_split(
     views: list[View],
     split: str,
     advance: Callable[[int], Any] = lambda n: None,
+    max_pixels: int = 0,
 ) -> tuple[dict[str, dict[str, Any]], list[Path]]:
     """Render and measure ``views`` (``core.evaluate_views``); writes each render and its comparison image.
     Returns ``{split: {"views", "mean"}}`` and, when ``params.align`` has steps, ``{split}_aligned`` with the
     views measured after alignment (each with what the alignment changed); and the files written.
-    ``advance(1)`` is called after each view as imported."""
-    eval_views = [load_eval_view(layout, v) for v in views]
+    ``advance(1)`` is called after each view as imported and after each as aligned. The views are measured
+    at the size ``max_pixels`` allows (``load_eval_view``)."""
+    eval_views = [load_eval_view(layout, v, max_pixels) for v in views]
     written: list[Path] = []
 
     def write(view: EvalView, m: MeasuredView) -> None:
@@ -152,7 +162,9 @@ def evaluate_split(
 
     out = {split: evaluate_views(tm, eval_views, params.lpips, on_view=write)}
     if params.align.steps > 0:
-        out[f"{split}_aligned"] = evaluate_views(tm, eval_views, params.lpips, params.align)
+        out[f"{split}_aligned"] = evaluate_views(
+            tm, eval_views, params.lpips, params.align, on_view=lambda view, m: advance(1)
+        )
     return out, written
 
 

@@ -21,10 +21,11 @@ from facade_pipeline.shading.reflection import (
     build_reflection_module,
     strategy_from_record,
 )
-from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, NEAR_M
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
 from facade_pipeline.training.corrections import Alignment, align_view
+from facade_pipeline.training.data import block_reduce, pixel_budget_factor, scaled_camera
 from facade_pipeline.training.model import GaussianModel
-from facade_pipeline.training.params import REFL_THRESHOLD, AlignParams
+from facade_pipeline.training.params import REFL_THRESHOLD, AlignParams, near_plane
 from facade_pipeline.training.ply import model_from_ply, read_ply
 from facade_pipeline.training.render import (
     Camera,
@@ -105,7 +106,7 @@ def load_trained(
         strategy,
         shading,
         active_sh_degree(int(p["sh_degree"]), int(p["sh_degree_interval"]), int(p["iterations"])),
-        float(p.get("near_m", NEAR_M)),  # models saved while it was a key kept 2DGS's value
+        float(p.get("near_m", near_plane(bounds))),  # a key when older models were saved
         backend,
         lowpass,
         device,
@@ -120,10 +121,10 @@ def from_trainer(tr: Trainer, name: str, backend: str = "auto") -> TrainedModel:
         name,
         tr.model,
         tr.reflection,
-        p.reflection_strategy(),
+        p.reflection_strategy(tr.data.bounds),
         tr.shading,
         active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration),
-        NEAR_M,
+        tr.near,
         backend,
         p.lowpass_sigma_px,
         tr.device,
@@ -191,19 +192,23 @@ def align_trained(
     tm: TrainedModel, camera: PinholeCamera, image: np.ndarray, facade_mask: np.ndarray, params: AlignParams
 ) -> AlignedView:
     """Fit the view's pose (and exposure gain) to ``image`` [H, W, 3] in [0, 1] over ``facade_mask`` with
-    the model frozen (``training.corrections.align_view``), then render it so."""
-    cam = _torch_camera(tm, camera)
-    spec = _spec_mask(tm, facade_mask)
+    the model frozen (``training.corrections.align_view``; on the image reduced to ``params.max_pixels``),
+    then render it so at its size."""
+    f = pixel_budget_factor(camera.width, camera.height, params.max_pixels)
+    fit_mask = block_reduce(np.asarray(facade_mask, np.float32), f) >= 0.5 if f > 1 else facade_mask
+    cam = _torch_camera(tm, scaled_camera(camera, f))
+    spec = _spec_mask(tm, fit_mask)
     frozen = [*tm.model.params().values(), *([] if tm.reflection is None else tm.reflection.parameters())]
     fit = align_view(
         lambda M: _render(tm, Camera(cam.K, M, cam.width, cam.height), spec).rgb,
         cam.cam_from_world,
-        torch.as_tensor(image, dtype=torch.float32, device=tm.device),
-        torch.as_tensor(np.asarray(facade_mask, bool), device=tm.device),
+        torch.as_tensor(block_reduce(image, f), dtype=torch.float32, device=tm.device),
+        torch.as_tensor(np.asarray(fit_mask, bool), device=tm.device),
         params,
         frozen=frozen,
     )
     aligned = PinholeCamera(camera.K, fit.cam_from_world.double().cpu().numpy(), camera.width, camera.height)
+    spec = _spec_mask(tm, facade_mask)
     with torch.no_grad():
         r = _render(tm, _torch_camera(tm, aligned), spec)
     # the gain scales the render before it is clipped to [0, 1], as an exposure scales light on a sensor

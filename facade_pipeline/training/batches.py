@@ -59,6 +59,7 @@ class ViewTensors:
     glass: Tensor  # [H, W] bool
     prior: Tensor  # [H, W, 3]
     prior_valid: Tensor  # [H, W] bool
+    clipped: Tensor | None = None  # [H, W, 3] bool: channels the photo clipped; None: none
 
 
 def views_on_device(
@@ -78,6 +79,7 @@ def views_on_device(
             t(v.glass_mask, torch.bool),
             t(v.normal_prior),
             t(v.normal_valid, torch.bool),
+            None if v.clipped is None else t(v.clipped, torch.bool),
         )
         for v in views
     )
@@ -87,7 +89,9 @@ def view_tensors(view: ViewTensors, window: Window) -> ViewTensors:
     """``view``'s data (``views_on_device``) inside ``window`` (x0, y0, w, h)."""
     x0, y0, w, h = window
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
-    return ViewTensors(*(getattr(view, f.name)[sl] for f in dataclasses.fields(ViewTensors)))
+    return ViewTensors(
+        *(None if (x := getattr(view, f.name)) is None else x[sl] for f in dataclasses.fields(ViewTensors))
+    )
 
 
 def camera(tr: Trainer, index: int) -> Camera:

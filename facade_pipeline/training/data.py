@@ -24,6 +24,9 @@ class TrainView:
     glass_mask: np.ndarray  # [H, W] bool
     normal_prior: np.ndarray  # [H, W, 3] float32 world-space unit normals (baked from the corrected mesh)
     normal_valid: np.ndarray  # [H, W] bool
+    clipped: np.ndarray | None = None
+    """[H, W, 3] bool: channels the photo clipped (``clipped_channels``), or of a block holding one after
+    ``downscale_view``; None: none clipped"""
 
     def __post_init__(self) -> None:
         h, w = self.camera.height, self.camera.width
@@ -33,8 +36,11 @@ class TrainView:
             ("glass_mask", (h, w)),
             ("normal_prior", (h, w, 3)),
             ("normal_valid", (h, w)),
+            ("clipped", (h, w, 3)),
         ):
             arr = getattr(self, name)
+            if arr is None:
+                continue
             assert arr.shape == shape, f"{self.stem}.{name}: {arr.shape} != {shape}"
 
 
@@ -58,6 +64,11 @@ class ExposureEstimate:
     samples: np.ndarray
 
 
+#: The scene extent is at least this fraction of the facade's size: a tenth, so that a single view (no
+#: spread) still has a scale of the facade's
+EXTENT_MIN_FRACTION = 0.1
+
+
 @dataclass(frozen=True, eq=False)
 class TrainData:
     views: tuple[TrainView, ...]
@@ -77,9 +88,77 @@ class TrainData:
     @property
     def extent(self) -> float:
         """The scene extent 2DGS scales its rates and sizes by: 1.1 x the largest distance of a camera
-        centre from their mean (m), at least 1 m."""
+        centre from their mean (m), at least ``EXTENT_MIN_FRACTION`` of the facade's size (the diagonal of
+        its bounds), which binds only when the cameras hardly spread (a single view)."""
         c = np.array([v.camera.center for v in self.views])
-        return float(max(1.1 * np.linalg.norm(c - c.mean(axis=0), axis=1).max(), 1.0))
+        lo, hi = self.bounds
+        floor = EXTENT_MIN_FRACTION * float(np.linalg.norm(hi - lo))
+        return float(max(1.1 * np.linalg.norm(c - c.mean(axis=0), axis=1).max(), floor))
+
+
+#: A channel at or above this (0-1) is clipped: it carries a lower bound of the light, not its colour. JPEG
+#: photos scatter a sensor's clipped white a few levels below 255, hence not exactly 1.
+CLIP_LEVEL = 250.0 / 255.0
+
+
+def clipped_channels(image: np.ndarray) -> np.ndarray:
+    """[H, W, 3] bool: the channels of ``image`` ([H, W, 3] in [0, 1]) at or above ``CLIP_LEVEL``."""
+    return np.asarray(image) >= CLIP_LEVEL
+
+
+def pixel_budget_factor(width: int, height: int, max_pixels: int) -> int:
+    """The smallest integer factor f >= 1 with (width // f) (height // f) <= ``max_pixels`` (0: 1, no
+    budget): how many photo pixels a side of a trained (and measured) pixel spans."""
+    f = 1
+    while max_pixels > 0 and (width // f) * (height // f) > max_pixels and f < min(width, height):
+        f += 1
+    return f
+
+
+def block_reduce(a: np.ndarray, f: int, how: str = "mean") -> np.ndarray:
+    """``a`` [H, W, ...] reduced over f x f pixel blocks ("mean", "any" or "all"); the last H % f rows and
+    W % f columns are dropped (``scaled_camera`` drops them too)."""
+    if f == 1:
+        return a
+    h, w = a.shape[0] // f, a.shape[1] // f
+    blocks = a[: h * f, : w * f].reshape(h, f, w, f, *a.shape[2:])
+    if how == "any":
+        return blocks.any(axis=(1, 3))
+    if how == "all":
+        return blocks.all(axis=(1, 3))
+    return blocks.mean(axis=(1, 3), dtype=np.float64).astype(a.dtype if a.dtype.kind == "f" else np.float64)
+
+
+def scaled_camera(camera: PinholeCamera, f: int) -> PinholeCamera:
+    """``camera`` with pixels f times larger (``block_reduce``'s image of its photo): the same pose, K's
+    first two rows divided by f (pixel centres at +0.5 stay so)."""
+    if f == 1:
+        return camera
+    K = np.array(camera.K, float)
+    K[:2] /= f
+    return PinholeCamera(K, camera.cam_from_world, camera.width // f, camera.height // f)
+
+
+def downscale_view(view: TrainView, f: int) -> TrainView:
+    """``view`` at f x f photo pixels per pixel: the photo averaged over each block (a camera's pixel
+    integrates its area), masks where at least half the block has them, the normal prior averaged where
+    the whole block has it, a channel clipped where any of the block's is."""
+    if f == 1:
+        return view
+    n = block_reduce(np.where(view.normal_valid[..., None], view.normal_prior, 0.0), f)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    valid = block_reduce(view.normal_valid, f, "all") & (norm[..., 0] > 0)
+    clipped = None if view.clipped is None else block_reduce(view.clipped, f, "any")
+    return TrainView(
+        view.stem,
+        scaled_camera(view.camera, f),
+        block_reduce(view.image, f).astype(np.float32),
+        block_reduce(view.facade_mask.astype(np.float32), f) >= 0.5,
+        block_reduce(view.glass_mask.astype(np.float32), f) >= 0.5,
+        np.where(valid[..., None], n / np.maximum(norm, 1e-12), 0.0).astype(np.float32),
+        valid,
+        clipped,
+    )
 
 
 def split_views(n_views: int, test_every: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -115,6 +194,8 @@ def save_bundle(data: TrainData, path) -> None:
         arrays[f"v{i}_camera"] = np.concatenate([c.K.ravel(), c.cam_from_world.ravel(), [c.width, c.height]])
         for name in ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid"):
             arrays[f"v{i}_{name}"] = getattr(v, name)
+        if v.clipped is not None:
+            arrays[f"v{i}_clipped"] = v.clipped
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
 
@@ -128,7 +209,8 @@ def load_bundle(path) -> TrainData:
             camera = PinholeCamera(cam[:9].reshape(3, 3), cam[9:25].reshape(4, 4), int(cam[25]), int(cam[26]))
             views.append(
                 TrainView(str(stem), camera, *(z[f"v{i}_{n}"] for n in
-                          ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid")))
+                          ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid")),
+                          z[f"v{i}_clipped"] if f"v{i}_clipped" in z else None)
             )  # fmt: skip
         glass = z["init_mesh_glass"] if "init_mesh_glass" in z else None
         init = InitGeometry(*(z[f"init_{k}"] for k in INIT_FIELDS), mesh_glass=glass)

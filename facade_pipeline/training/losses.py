@@ -129,11 +129,24 @@ def psnr_tensor(pred: Tensor, gt: Tensor, mask: Tensor, data_range: float = 1.0)
     return 10.0 * torch.log10(data_range * data_range / mse)
 
 
+def recorded(pred: Tensor, gt: Tensor, clipped: Tensor | None) -> Tensor:
+    """What the camera would record of the render ``pred`` [H, W, 3]: the render itself, except in the
+    channels the photo ``gt`` clipped (``clipped`` [H, W, 3] bool; None: none), where the sensor saturated
+    and records min(render, photo): there a render at least as bright as the photo matches it and only a
+    darker one is pulled up (a clipped pixel tells that the light was at least that bright, not its
+    colour)."""
+    if clipped is None:
+        return pred
+    return torch.where(clipped, torch.minimum(pred, gt), pred)
+
+
 def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -> dict[str, Tensor]:
-    """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``)."""
+    """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``); the photometric
+    terms compare the photo with what the camera would record of the render (``recorded``)."""
     zero = r.rgb.new_zeros(())
     loss_mask = vt.mask & ~r.skipped
-    terms = {"color": color_loss(r.rgb, vt.image, loss_mask, LAMBDA_DSSIM)}
+    rgb = recorded(r.rgb, vt.image, vt.clipped)
+    terms = {"color": color_loss(rgb, vt.image, loss_mask, LAMBDA_DSSIM)}
     total = terms["color"]
     if p.lambda_normal > 0 and iteration >= at_fraction(NORMAL_START_FRACTION, p.iterations):
         terms["normal"] = normal_consistency_loss(r.normal, depth_normals(r.points), loss_mask)
@@ -144,7 +157,7 @@ def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -
     tau = step_schedule(p.hf_tau_start, p.hf_tau_end, p.hf_steps, iteration, p.iterations)
     lam = step_schedule(p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, iteration, p.iterations)
     if lam > 0:
-        terms["hf"] = high_frequency_loss(r.rgb, vt.image, loss_mask, tau)
+        terms["hf"] = high_frequency_loss(rgb, vt.image, loss_mask, tau)
         total = total + lam * terms["hf"]
     terms["loss"] = total + zero
     return terms

@@ -10,6 +10,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Annotated, Any, TypeVar
 
+import numpy as np
+
 from facade_pipeline.config import AnyInt, Count, Fraction, NonNeg, PosInt, Positive, Range
 from facade_pipeline.shading.params import ReflectionModel, ReflectionParams
 
@@ -20,9 +22,15 @@ T = TypeVar("T")
 #: R is evaluated only on facade pixels whose rendered reflectivity exceeds this (0-1): below it the
 #: specular term cannot show, and the MLP's cost goes to the pixels where it does.
 REFL_THRESHOLD = 0.01
-#: coarse points farther than this (m) outside the corrected mesh's bounds do not become splats, and the
-#: reflection proxy's surroundings reach this far beyond the facade's bounds
-INIT_BOUNDS_MARGIN_M = 1.0
+#: Lengths of training are measured from the scene: the facade's size is the diagonal of the corrected
+#: mesh's bounds (``facade_size``). Coarse points farther than this fraction of it outside those bounds do
+#: not become splats, and the reflection proxy's surroundings begin this far beyond them (about the fixed
+#: 1 m it replaces on demo, whose facade is 62 m across its bounds).
+INIT_BOUNDS_MARGIN = 1.0 / 60.0
+#: Splat intersections nearer to the camera than this fraction of the facade's size are skipped (about the
+#: reference 2DGS near plane, 0.2 m, on demo; a fixed 0.2 m clips a 1:25 model's wall, 0.21-0.35 m from
+#: its cameras).
+NEAR_FRACTION = 0.2 / 60.0
 #: initial Fresnel F0 of every splat, all channels: coated facade glass reflects strongly (0-1)
 INIT_F0 = 0.5
 
@@ -75,6 +83,9 @@ class TrainParams:
     """estimate an exposure gain per training view and colour channel from the facade's opaque parts
     before training (``training.exposure``), and train with it"""
     mlp_max_pixels: Count
+    max_view_pixels: Count
+    """views of more pixels are trained, and measured, with f x f of their pixels averaged into one, f the
+    smallest integer that brings them within this many (``data.pixel_budget_factor``; 0: as they are)"""
     patch_px: Count
     test_every: Count
     mask_by_facade: bool
@@ -92,9 +103,21 @@ class TrainParams:
     lr: LearningRates
     densify: DensifyParams
 
-    def reflection_strategy(self) -> ReflectionModel:
-        """The reflection model strategy these parameters select."""
-        return self.reflection.strategy(INIT_BOUNDS_MARGIN_M)
+    def reflection_strategy(self, bounds: tuple[Any, Any]) -> ReflectionModel:
+        """The reflection model strategy these parameters select for a facade of ``bounds`` (lo, hi)."""
+        return self.reflection.strategy(INIT_BOUNDS_MARGIN * facade_size(bounds))
+
+
+def facade_size(bounds: tuple[Any, Any]) -> float:
+    """The diagonal (m) of the facade's bounds (lo, hi: the corrected mesh's, arrays or tensors of 3): the
+    length every length of training is relative to."""
+    lo, hi = (np.asarray(b.detach().cpu() if hasattr(b, "detach") else b, np.float64) for b in bounds)
+    return float(np.linalg.norm(hi - lo))
+
+
+def near_plane(bounds: tuple[Any, Any]) -> float:
+    """The near plane (m) of every render of a model of a facade of ``bounds`` (``NEAR_FRACTION``)."""
+    return NEAR_FRACTION * facade_size(bounds)
 
 
 def flat_params(params: dict[str, Any]) -> dict[str, Any]:
@@ -154,3 +177,7 @@ class AlignParams:
     """of the log gain per colour channel (-)"""
     exposure: bool
     """fit the exposure gain as well as the pose"""
+    max_pixels: Count = 0
+    """the fit's image: the measured view with f x f pixels averaged into one, f the smallest integer that
+    brings it within this many (``data.pixel_budget_factor``; 0: the measured view itself); the fitted pose
+    is then measured at the view's size"""

@@ -24,7 +24,6 @@ from torch import Tensor, nn
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.shading.reflection import build_reflection_module
-from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training.batches import (
     ViewTensors,
     camera,
@@ -48,14 +47,17 @@ from facade_pipeline.training.densify import (
     view_space_grad,
 )
 from facade_pipeline.training.init import INIT_KNN, INIT_OPACITY, initial_model
-from facade_pipeline.training.losses import compute_losses, psnr_tensor
+from facade_pipeline.training.losses import compute_losses, psnr_tensor, recorded
 from facade_pipeline.training.model import GaussianModel
+from facade_pipeline.training.monitor import monitored
 from facade_pipeline.training.optimizers import gaussian_optimizer, reflection_optimizer, set_learning_rates
 from facade_pipeline.training.params import (
-    INIT_BOUNDS_MARGIN_M,
+    INIT_BOUNDS_MARGIN,
     INIT_F0,
     REFL_THRESHOLD,
     TrainParams,
+    facade_size,
+    near_plane,
 )
 from facade_pipeline.training.render import (
     Camera,
@@ -122,6 +124,10 @@ class Trainer:
     def extent(self) -> float:
         return self.data.extent
 
+    @property
+    def near(self) -> float:
+        return near_plane(self.data.bounds)
+
 
 def resolve_device(choice: str) -> torch.device:
     """``cpu``, ``cuda`` (an error without CUDA) or ``auto`` (CUDA when available)."""
@@ -147,7 +153,10 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
         reflection = build_reflection_module(
-            p.reflection_strategy(), device, (shading.bounds_lo, shading.bounds_hi), data.init.points
+            p.reflection_strategy(data.bounds),
+            device,
+            (shading.bounds_lo, shading.bounds_hi),
+            data.init.points,
         )
     opt = gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else reflection_optimizer(p, reflection)
@@ -197,7 +206,7 @@ def build_trainer(
         data.bounds,
         p.init_max_points,
         p.init_mesh_samples,
-        INIT_BOUNDS_MARGIN_M,
+        INIT_BOUNDS_MARGIN * facade_size(data.bounds),
         INIT_KNN,
         INIT_OPACITY,
         p.init_reflectivity,
@@ -315,7 +324,7 @@ def render_window(
         cam,
         window,
         tr.rasterize,
-        NEAR_M,
+        tr.near,
         active_sh_degree(tr.params.sh_degree, tr.params.sh_degree_interval, tr.iteration),
         tr.shading,
         spec_mask=vt.mask,
@@ -361,7 +370,7 @@ def step(tr: Trainer) -> dict[str, Tensor]:
             cam.K,
             (cam.width, cam.height),
             window,
-            NEAR_M,
+            tr.near,
         )
         accumulate(tr.stats, g, vis)
     for opt in (tr.opt, tr.opt_refl, tr.opt_corrections):
@@ -373,7 +382,8 @@ def step(tr: Trainer) -> dict[str, Tensor]:
     tr.iteration += 1
     _densify_if_due(tr)
     out = {k: v.detach() for k, v in terms.items()}
-    out["psnr"] = psnr_tensor(r.rgb.detach().clamp(0, 1), vt.image, vt.mask & ~r.skipped)
+    seen = recorded(r.rgb.detach(), vt.image, vt.clipped).clamp(0, 1)
+    out["psnr"] = psnr_tensor(seen, vt.image, vt.mask & ~r.skipped)
     return out
 
 
@@ -425,13 +435,12 @@ def train(
         if log_every > 0 and (tr.iteration % log_every == 0 or tr.iteration == p.iterations):
             check_state(tr)
             figures = {k: float(v) for k, v in out.items()}
-            tr.log.append(
-                {
-                    "iteration": tr.iteration,
-                    "n_gaussians": tr.model.n,
-                    **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in figures.items()},
-                }
-            )
+            record = {
+                "iteration": tr.iteration,
+                "n_gaussians": tr.model.n,
+                **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in figures.items()},
+            }
+            tr.log.append(monitored(tr, record))  # the whole-view PSNR; stops a diverging run
         if checkpoint is not None and checkpoint_every > 0 and tr.iteration % checkpoint_every == 0:
             check_state(tr)
             save_checkpoint(tr, checkpoint, fingerprint)

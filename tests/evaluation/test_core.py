@@ -178,6 +178,11 @@ def test_core_aligns_a_held_out_view_whose_pose_is_off(data64):  # noqa: F811
     assert headline(aligned)["psnr"] > raw["psnr"] + 1.0
     assert fit["align_rotation_deg"] == pytest.approx(np.degrees(0.05), rel=0.3)
     assert fit["align_l1_after"] < fit["align_l1_before"]
+    # fitted on the view at half its side (a pixel budget), measured at its size: the same turn found
+    half = dataclasses.replace(align, max_pixels=(cam.width // 2) * (cam.height // 2))
+    coarse = evaluate_views(tm, [off_view], NO_LPIPS, half)
+    assert coarse["views"][0]["alignment"]["align_rotation_deg"] == pytest.approx(np.degrees(0.05), rel=0.3)
+    assert headline(coarse)["psnr"] > raw["psnr"] + 1.0
     for n, t in tr.model.params().items():
         assert torch.equal(t, before[n]) and t.requires_grad and t.grad is None, n
 

@@ -42,7 +42,7 @@ def test_saved_variant_renders_like_the_trainer(tiny):
 
     def save(params):
         TrainedModelFiles.variant(folder, params).save(
-            tr.model, tr.reflection, tr.params.reflection_strategy(), data.bounds, split
+            tr.model, tr.reflection, tr.params.reflection_strategy(data.bounds), data.bounds, split
         )
 
     save(to_dict(tr.params))

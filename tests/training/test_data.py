@@ -1,5 +1,6 @@
 """The training data bundle (one .npz with everything training needs) round-trips exactly, and trains
-where the I/O stack cannot be imported."""
+where the I/O stack cannot be imported; views reduced to a pixel budget; the lengths training derives from
+the scene scale with it."""
 
 from __future__ import annotations
 
@@ -12,7 +13,18 @@ from pathlib import Path
 
 import numpy as np
 
-from facade_pipeline.training.data import ExposureEstimate, load_bundle, save_bundle
+from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.training.data import (
+    ExposureEstimate,
+    InitGeometry,
+    TrainData,
+    TrainView,
+    downscale_view,
+    load_bundle,
+    pixel_budget_factor,
+    save_bundle,
+)
+from facade_pipeline.training.params import facade_size, near_plane
 from tests.training.scenes import hard_scene
 
 REPO = Path(__file__).resolve().parents[2]
@@ -31,8 +43,11 @@ def test_bundle_round_trip_is_exact(tmp_path):
         assert (a.camera.width, a.camera.height) == (b.camera.width, b.camera.height)
         assert np.array_equal(a.camera.K, b.camera.K)
         assert np.array_equal(a.camera.cam_from_world, b.camera.cam_from_world)
-        for name in ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid"):
+        for name in ("image", "facade_mask", "glass_mask", "normal_prior", "normal_valid", "clipped"):
             x, y = getattr(a, name), getattr(b, name)
+            if x is None:
+                assert y is None
+                continue
             assert x.dtype == y.dtype and np.array_equal(x, y), name
     for name in ("points", "colors", "mesh_vertices", "mesh_triangles"):
         assert np.array_equal(getattr(data.init, name), getattr(back.init, name)), name
@@ -84,3 +99,66 @@ def test_training_from_a_bundle_needs_torch_alone(data64, tmp_path):
     for i in data64.train_idx:
         # the estimate as it was made: training applies it as it is
         np.testing.assert_allclose(out["gains"][data64.views[i].stem], np.exp(gains[i]), rtol=1e-5)
+
+
+def test_pixel_budget_factor_is_the_smallest_that_fits():
+    assert pixel_budget_factor(768, 1024, 0) == 1
+    assert pixel_budget_factor(256, 192, 49152) == 1
+    assert pixel_budget_factor(768, 1024, 49152) == 4  # 192 x 256
+    assert pixel_budget_factor(768, 1024, 49151) == 5
+    for w, h, budget in ((768, 1024, 10000), (101, 37, 500), (640, 480, 1)):
+        f = pixel_budget_factor(w, h, budget)
+        assert (w // f) * (h // f) <= budget or f == min(w, h)
+        assert f == 1 or (w // (f - 1)) * (h // (f - 1)) > budget
+
+
+def test_a_downscaled_view_sees_the_world_as_its_blocks_do():
+    """A point's pixel in the scaled camera is its pixel in the photo divided by f, and each pixel of the
+    downscaled view is the mean of its f x f photo pixels (masks: of the majority; clipping: of any)."""
+    view = hard_scene().views[0]
+    rng = np.random.default_rng(0)
+    h, w = view.image.shape[:2]
+    clipped = rng.random((h, w, 3)) > 0.97
+    view = TrainView(view.stem, view.camera, view.image, view.facade_mask, view.glass_mask,
+                     view.normal_prior, view.normal_valid, clipped)  # fmt: skip
+    f = 3
+    small = downscale_view(view, f)
+    cam, sc = view.camera, small.camera
+    assert (sc.width, sc.height) == (cam.width // f, cam.height // f)
+    pts = cam.pixel_rays(np.array([3.2, 17.0]), np.array([5.5, 9.9]))
+    world = pts[0] + 4.0 * pts[1]
+    uv, _ = cam.project(world)
+    uv_small, _ = sc.project(world)
+    assert np.allclose(uv_small, uv / f)
+    for y, x in ((0, 0), (2, 5), (sc.height - 1, sc.width - 1)):
+        block = (slice(y * f, y * f + f), slice(x * f, x * f + f))
+        assert np.allclose(small.image[y, x], view.image[block].reshape(-1, 3).mean(0), atol=1e-6)
+        assert small.facade_mask[y, x] == (view.facade_mask[block].mean() >= 0.5)
+        assert np.array_equal(small.clipped[y, x], view.clipped[block].reshape(-1, 3).any(0))
+    n = np.linalg.norm(small.normal_prior[small.normal_valid], axis=-1)
+    assert np.allclose(n, 1.0, atol=1e-5)
+
+
+def test_the_extent_scales_with_the_scene():
+    """Every length training derives from the scene (extent, near plane, the splats' bounds margin)
+    scales with it: the same scene at 1:25 has lengths 25 times smaller."""
+    data = hard_scene()
+    s = 1.0 / 25.0
+    small = scaled_scene(data, s)
+    assert np.isclose(small.extent, s * data.extent)
+    assert np.isclose(near_plane(small.bounds), s * near_plane(data.bounds))
+    assert np.isclose(facade_size(small.bounds), s * facade_size(data.bounds))
+
+
+def scaled_scene(data: TrainData, s: float) -> TrainData:
+    """``data`` with every length multiplied by ``s`` (the world frame's origin fixed)."""
+    views = []
+    for v in data.views:
+        T = np.array(v.camera.cam_from_world, float)
+        T[:3, 3] *= s
+        cam = PinholeCamera(v.camera.K, T, v.camera.width, v.camera.height)
+        views.append(TrainView(v.stem, cam, v.image, v.facade_mask, v.glass_mask, v.normal_prior,
+                               v.normal_valid, v.clipped))  # fmt: skip
+    i = data.init
+    init = InitGeometry(i.points * s, i.colors, i.mesh_vertices * s, i.mesh_triangles, i.mesh_glass)
+    return TrainData(tuple(views), data.train_idx, data.test_idx, init)

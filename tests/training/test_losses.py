@@ -117,3 +117,18 @@ def test_step_schedules_of_the_paper():
     assert exp_decay(1e-2, 1e-4, 0, 100) == pytest.approx(1e-2)
     assert exp_decay(1e-2, 1e-4, 100, 100) == pytest.approx(1e-4)
     assert exp_decay(1e-2, 1e-4, 50, 100) == pytest.approx(1e-3)
+
+
+def test_a_clipped_channel_pulls_a_darker_render_up_and_lets_a_brighter_one_be():
+    """The camera's clipping (``recorded``): in a clipped channel a render at least as bright as the photo
+    costs nothing and a darker one is pulled up; unclipped channels compare the render itself."""
+    gt = torch.tensor([[[1.0, 0.5, 0.99]]], dtype=torch.float64)
+    clipped = torch.tensor([[[True, False, True]]])
+    pred = torch.tensor([[[1.4, 0.7, 0.6]]], dtype=torch.float64, requires_grad=True)
+    seen = losses.recorded(pred, gt, clipped)
+    assert torch.allclose(seen, torch.tensor([[[1.0, 0.7, 0.6]]], dtype=torch.float64))
+    losses.l1_loss(seen, gt, torch.ones(1, 1, dtype=torch.bool)).backward()
+    assert pred.grad[0, 0, 0] == 0.0  # brighter than the clipped photo: no pull
+    assert pred.grad[0, 0, 1] > 0.0  # unclipped, too bright: pulled down
+    assert pred.grad[0, 0, 2] < 0.0  # clipped, darker: pulled up
+    assert losses.recorded(pred, gt, None) is pred

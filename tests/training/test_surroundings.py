@@ -198,7 +198,7 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
     assert all(torch.isfinite(q).all() for q in tr.reflection.parameters())
     split = {"train": [], "test": []}
     files = TrainedModelFiles.variant(tmp_path, to_dict(p))
-    files.save(tr.model, tr.reflection, p.reflection_strategy(), data64.bounds, split)
+    files.save(tr.model, tr.reflection, p.reflection_strategy(data64.bounds), data64.bounds, split)
     loaded = load_trained(TrainedModelFiles.from_dir(tmp_path))
     assert torch.equal(loaded.reflection.proxy.surroundings.heights, sur.heights)
     v = data64.views[data64.test_idx[0]]
