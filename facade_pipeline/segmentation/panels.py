@@ -64,6 +64,7 @@ from facade_pipeline.segmentation.grid import (
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
 from facade_pipeline.segmentation.params import SegmentParams
+from facade_pipeline.segmentation.photometry import normalise_exposure
 from facade_pipeline.threads import usable_cores
 
 # Image-precision constants of the segmentation. The view is resampled so that the narrowest frame bar spans
@@ -352,7 +353,7 @@ def correct_parallax(bars: _Bars, par: Parallax, field: ParallaxField) -> _Bars:
 def find_bars(
     image: np.ndarray,
     params: SegmentParams,
-    sizes: PixelSizes,
+    sizes: tuple[PixelSizes, PixelSizes],
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
     planar: bool = True,
@@ -361,7 +362,8 @@ def find_bars(
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
     mullions' colour, ``frame_colour_scale``), then sub-pixel edges, with their frames' parallax fitted in the
     image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
-    and the two families' gradients."""
+    and the two families' gradients. ``sizes``: the grid model's sizes of the mullions and the transoms."""
+    sizes_v, sizes_h = sizes
     H, W = image.shape[:2]
     # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
     # first transom pass's gradient evidence (which does not need its segments) and the making of what the
@@ -377,23 +379,23 @@ def find_bars(
         )
         gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
         ahead = [pool.submit(gv.prepare)]
-        ahead += [pool.submit(pitch_hypotheses, g.size, sizes) for g in (gh, gv)]
+        ahead += [pool.submit(pitch_hypotheses, g.size, z) for g, z in ((gh, sizes_h), (gv, sizes_v))]
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
         # width
-        h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W), params, sizes,
-                    pool=pool)
+        h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W), params,
+                    sizes_h, pool=pool)
         fam = lsd.result()
         vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
         for done in ahead:
             done.result()
-        v = _family(gv, vseg, 0, _span(h, H), params, sizes, pool=pool)
+        v = _family(gv, vseg, 0, _span(h, H), params, sizes_v, pool=pool)
         # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
         # they run the facade's full height, while the long straight lines that reflections bring (horizon,
         # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
         colour_h = None
         if v is not None and params.grid.frame_colour_scale > 0 and planar:
             colour_h = bar_colour(gv, v, _span(h, H))
-        h = _family(gh, hseg, 1, _span(v, W), params, sizes, colour_h, pool)
+        h = _family(gh, hseg, 1, _span(v, W), params, sizes_h, colour_h, pool)
         metrics = {
             "n_segments": len(fam.segments),
             "n_vertical_segments": len(vseg),
@@ -616,6 +618,12 @@ class FrameBars:
         return {name: [(hi.a - lo.a) * self.metres_per_px for lo, hi in bars.edges]
                 for name, bars in (("x", self.bars_v), ("y", self.bars_h)) if bars is not None}
 
+    def pitches_m(self) -> dict[str, float]:
+        """The pitch (m) of the grid found, per family ("x": across the mullions, "y": the transoms); none
+        where no grid was found."""
+        return {name: self.metrics[f"pitch_{name}_px"] * self.metres_per_px for name in ("x", "y")
+                if f"pitch_{name}_px" in self.metrics}
+
     def frame_depths_m(self, unjudged: bool = False) -> dict[str, float]:
         """The frame depth d = k D / (1 + k) (m) each family's own parallax fit gives ("x": the mullions,
         "y": the transoms), where it has one and the camera's distance D to the surface is known; with
@@ -649,12 +657,15 @@ def find_frames(
     parallax: ParallaxField | None = None,
     support: np.ndarray | None = None,
     planar: bool = True,
+    pitch_m: dict[str, tuple[float, float]] | None = None,
 ) -> FrameBars:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
     found at the working scale (``work_bar_px``); ``support`` [H, W] marks where the facade surface is
     (``rectification.facade_support``; None: all); ``valid`` [H, W] marks the pixels that show the view (a
     rectified image has none outside the original); ``parallax`` is the image's parallax coordinate, in
-    which the frames' parallax is fitted (None: not); ``planar``: the surface is a plane (``find_bars``)."""
+    which the frames' parallax is fitted (None: not); ``planar``: the surface is a plane (``find_bars``);
+    ``pitch_m`` narrows the pitches (m) sought across the mullions ("x") or the transoms ("y") to a range
+    (the building's grid, ``building.pitch_range_m``; the grid model's range where None)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -669,7 +680,14 @@ def find_frames(
             parallax = parallax.scaled(qx, qy)
     m = metres_per_px / np.sqrt(qx * qy)
     sizes = PixelSizes.of(params.grid, m)
-    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, sizes, valid, parallax, planar)
+    family_sizes = tuple(
+        sizes if name not in (pitch_m or {}) else dataclasses.replace(
+            sizes, min_pitch=max(sizes.min_pitch, pitch_m[name][0] / m),
+            max_pitch=min(sizes.max_pitch, pitch_m[name][1] / m))
+        for name in ("x", "y")
+    )
+    image = normalise_exposure(image, valid)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
 

@@ -12,16 +12,17 @@ from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
 from facade_pipeline.rectification.surface_map import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
+from facade_pipeline.segmentation.building import building_bar_width_m, building_frame_depth_m
 from facade_pipeline.segmentation.panels import inside_quads, segment_image
+from facade_pipeline.segmentation.params import SegmentParams
 from facade_pipeline.segmentation.result import panel_labels
-from stages import segment_panels
 from tests.segmentation.drawn import Drawing
 
 
 def CAMERA(W: int, H: int) -> PinholeCamera:  # noqa: N802
     return PinholeCamera(intrinsics(100.0, 100.0, W / 2, H / 2), np.eye(4), W, H)
 
-PARAMS = default_params("segment_panels", segment_panels.Params)
+PARAMS = default_params("segment_panels", SegmentParams)
 # the drawings' scale: bars of 3.2 px are 0.32 m, pitches of 23-27 px 2.3-2.7 m, as on a building
 M_PER_PX = 0.1
 
@@ -273,11 +274,11 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
 
     k = lambda d: d / (10.0 - d)  # noqa: E731
     agree = [view(k(0.12), True), view(k(0.125), True), view(k(0.118), True)]
-    assert segment_panels.building_frame_depth_m(agree)["x"] == pytest.approx(0.12)
+    assert building_frame_depth_m(agree)["x"] == pytest.approx(0.12)
     scatter = [view(k(0.06), True), view(k(0.005), True), view(k(0.2), True)]
-    assert segment_panels.building_frame_depth_m(scatter) == {}
+    assert building_frame_depth_m(scatter) == {}
     judged = scatter + [view(k(0.1), False)]
-    assert segment_panels.building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
+    assert building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
 
 
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
@@ -433,10 +434,10 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
     k = lambda d, D: d / (D - d)  # noqa: E731
     views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
              view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
-    depth = segment_panels.building_frame_depth_m(views)
+    depth = building_frame_depth_m(views)
     assert depth.keys() == {"x", "y"}
     assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
-    width = segment_panels.building_bar_width_m(views)
+    width = building_bar_width_m(views)
     assert width == pytest.approx({"x": 0.3, "y": 0.3})
 
 
@@ -467,3 +468,32 @@ def test_a_bar_showing_its_side_face_does_not_mark_the_pane_beside_it_occluded()
     img[rows, int(np.ceil(x0)) : int(x0 + d.bar)] = (215, 215, 215)  # a lit side face, not the frames' grey
     seg = segment_image(img, PARAMS, M_PER_PX)
     assert len(seg.panels) == 9 and all(p.complete for p in seg.panels)
+
+
+def test_a_view_off_the_building_grid_is_named_with_its_reason():
+    """The building's pitch is the median of its views'; a view whose pitch is beyond the prior's reach of
+    it (3 sigma of one bar's place over one pitch), whose bars are more than twice as wide or narrow as the
+    building's, or which found no grid, is told apart by the reason; the others are not."""
+    from facade_pipeline.segmentation.building import building_pitch_m, disagreement, pitch_range_m
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.panels import FrameBars, _Bars
+
+    def view(px: float, py: float, width_px: float = 4.0) -> FrameBars:
+        line = lambda a: EdgeLine(a, 0.0, 0.0, np.ones(4))  # noqa: E731
+        bars = _Bars([(line(10.0), line(10.0 + width_px))], None)
+        metrics = {"pitch_x_px": px, "pitch_y_px": py}
+        return FrameBars(bars, bars, {}, None, (100, 100), (1.0, 1.0), 0.05, None, metrics, (None, None))
+
+    views = [view(40.0, 60.0), view(41.0, 61.0), view(40.0, 48.0), view(39.5, 59.0, 12.0), None,
+             FrameBars(None, None, {}, None, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))]
+    pitch = building_pitch_m(views)
+    assert pitch == pytest.approx({"x": 2.0, "y": 2.975})
+    width = building_bar_width_m(views)
+    grid = PARAMS.grid
+    lo, hi = pitch_range_m(pitch, grid)["y"]
+    assert (lo, hi) == pytest.approx((2.975 * (1 - 3 * grid.sigma_frac), 2.975 * (1 + 3 * grid.sigma_frac)))
+    why = [disagreement(v, pitch, width, grid) for v in views]
+    assert why[0] == why[1] == {} and why[4] == {}
+    assert why[2].keys() == {"pitch"} and why[2]["pitch"].startswith("pitch y 2.4 m")
+    assert why[3].keys() == {"width"} and "bar width x 0.6 m" in why[3]["width"]
+    assert why[5] == {"grid": "no grid found"}
