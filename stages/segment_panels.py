@@ -32,7 +32,9 @@ from stages._runner import StageReport, main
 if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.rectification.surface_map import ViewRectification
-    from facade_pipeline.segmentation.panels import FrameBars, Panel, ParallaxField
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.openings import Panel
+    from facade_pipeline.segmentation.parallax import ParallaxField
     from facade_pipeline.segmentation.result import SegmentedPanel
 
 NAME = "segment_panels"
@@ -123,12 +125,12 @@ PARALLAX_STEP_PX = 8.0
 
 
 def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
-    """The parallax coordinate of the segmented image (``segmentation.panels``): from the fitted surface
+    """The parallax coordinate of the segmented image (``segmentation.parallax``): from the fitted surface
     for a rectified view (``surface_map.parallax_grid``), the distance from the principal point for a view
     that is not rectified; None where it is not finite."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.rectification.surface_map import parallax_grid
-    from facade_pipeline.segmentation.panels import ParallaxField
+    from facade_pipeline.segmentation.parallax import ParallaxField
 
     if rect.chart is None:
         cx, cy = view.camera.K[:2, 2]
@@ -144,11 +146,11 @@ def find_one(
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """The rectification of one view and the frame bars in it (None for a view rectify skipped), and the
     seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is; ``pitch_m``: the
-    pitches sought, per family, ``panels.find_frames``)."""
+    pitches sought, per family, ``frames.find_frames``)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
-    from facade_pipeline.segmentation.panels import find_frames
+    from facade_pipeline.segmentation.frames import find_frames
 
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
@@ -184,7 +186,7 @@ def with_building_grid(
         if not reason:
             continue
         outcome = ""
-        # a bar width of its own alone is the bars' business (``panels.widen_narrow_bars``), not the grid's
+        # a bar width of its own alone is the bars' business (``frames.widen_narrow_bars``), not the grid's
         if ("grid" in reason or "pitch" in reason) and len(wanted) == 2:
             _, again, more = find_one(layout, view, params, mesh, wanted)
             taken = again is not None and within(again.pitches_m(), wanted, STEP_PX * again.metres_per_px)

@@ -7,14 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from facade_pipeline.segmentation.frames import FrameBars
 from facade_pipeline.segmentation.grid import GridParams
-from facade_pipeline.segmentation.panels import FrameBars, agreeing
+from facade_pipeline.segmentation.parallax import agreeing
 
 #: a view's pitch is another grid than the building's where it is further from it than the grid prior's
 #: reach over one pitch: three standard deviations of a bar's place (``GridParams.sigma_frac``)
 PITCH_REACH_SIGMAS = 3.0
 #: a view's bars are another family than the building's where their median width is beyond this factor of
-#: the building's either way: ``panels.widen_narrow_bars`` finds a bar under half of it again
+#: the building's either way: ``frames.widen_narrow_bars`` finds a bar under half of it again
 WIDTH_RATIO = 2.0
 
 
@@ -24,7 +25,7 @@ def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
     is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
     widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
     tight cylinder) or show it loosely. The views' exact fits (as many bars as unknowns: a few bars in a
-    small view) join the median where they agree with one another (``panels.agreeing``)."""
+    small view) join the median where they agree with one another (``parallax.agreeing``)."""
     depths: dict[str, list[float]] = {}
     exact: dict[str, list[float]] = {}
     for f in found:
