@@ -2,7 +2,10 @@
 3.1.2), on the metric rectified image (sizes in metres, turned into pixels with its scale), with the
 corners mapped back to the original view through the rectification. The frame bars of every view are
 found first; the building's frame depth and bar width per family (medians over the views: one facade's
-frames share them) then correct each view's frame parallax and widen the bars a view found too thin.
+frames share them) then correct each view's frame parallax and widen the bars a view found too thin. A
+view whose grid is not the building's (none found, or a pitch or bar width beyond the building's median:
+``segmentation.building``) is sought again at the building's pitch, and listed in the manifest
+(``views_off_the_building_grid``) with the reason and the outcome.
 
 Reads ``02_rectify`` (rectified image and warps per view) and ``01_import`` (the views' sizes, the original
 images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md ("Hand-off formats"):
