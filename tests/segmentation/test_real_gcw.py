@@ -194,3 +194,20 @@ def test_the_same_photos_at_another_exposure_and_white_balance_give_the_same_pan
     assert abs(s["found_fraction"] - full["found_fraction"]) <= 0.05
     assert abs(s["mask_iou_median"] - full["mask_iou_median"]) <= 0.05
     assert s["mask_iou_min"] >= 0.5
+
+
+def test_views_off_the_wall_grid_are_listed_with_the_reason(gcw):
+    """Nothing silent: every photo whose grid's pitch is not the wall's (0.1032 x 0.1532 m, the truth's;
+    a shelf behind an empty unit taken for a transom) is listed in the manifest with its pitch, after the
+    building's grid was tried on it; a photo listed has a pitch off the building's."""
+    layout, _ = gcw
+    m = read_manifest(layout, "segment_panels").metrics
+    off = m["views_off_the_building_grid"]
+    for stem, v in m["views"].items():
+        wrong = [name for name, true in (("x", 0.1032), ("y", 0.1532))
+                 if abs(v.get(f"pitch_{name}_m", 0.0) / true - 1.0) > 0.12]
+        if wrong and stem not in off:
+            pytest.fail(f"{stem}: pitch {wrong} off the wall's, not listed")
+        for name in wrong:
+            assert f"pitch {name}" in off[stem] and off[stem].endswith("own kept")
+    assert set(off) <= set(m["views"])
