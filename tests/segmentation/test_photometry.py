@@ -1,5 +1,5 @@
-"""Exposure and white balance taken out of a view (``photometry.normalise_exposure``) against the view as
-taken: a gain per channel is undone, a view already at full scale is left as it is."""
+"""Exposure taken out of a view (``photometry.normalise_exposure``) against the view as taken: a gain is
+undone, a view already at full scale is left as it is, and its colours keep their ratios."""
 
 from __future__ import annotations
 
@@ -21,14 +21,25 @@ def test_a_view_at_full_scale_is_left_as_it_is():
     assert normalise_exposure(img) is img
 
 
-def test_a_gain_per_channel_is_undone():
+def test_a_gain_is_undone():
     img = _view()
-    for gains in ((0.5, 0.5, 0.5), (0.9, 0.75, 0.6)):
-        dark = np.rint(img * np.array(gains)).astype(np.uint8)
+    for gain in (0.5, 0.8):
+        dark = np.rint(img * gain).astype(np.uint8)
         back = normalise_exposure(dark).astype(int)
         # rounding to 8 bits, twice: half a level each way, times the gain back
-        assert np.abs(back - img).max() <= np.ceil(0.5 / min(gains) + 0.5)
+        assert np.abs(back - img).max() <= np.ceil(0.5 / gain + 0.5)
         assert np.abs(back - img).mean() < 1.0
+
+
+def test_one_gain_for_the_three_channels():
+    """A view whose brightest part is blue (a sky reflected) keeps its colours: red and green are scaled
+    by the blue channel's gain, not stretched to full scale on their own."""
+    img = _view()
+    img[:3, :] = (150, 200, 255)
+    dark = np.rint(img * 0.6).astype(np.uint8)
+    back = normalise_exposure(dark).astype(int)
+    assert np.abs(back - img).max() <= 2
+    assert back[..., 0].max() <= 230
 
 
 def test_pixels_outside_the_view_do_not_set_the_scale():
