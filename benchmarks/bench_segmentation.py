@@ -4,13 +4,14 @@ building ``--real-building`` by scripts/make_gcw_building.py and run through reg
 section to benchmarks/RESULTS.md.
 
     .venv/bin/python benchmarks/bench_segmentation.py [--data-root /tmp/bench] \
-        [--real ../shared/real/gcw_dev] [buildings...]
+        [--real ../shared/real/gcw_dev [--exposures]] [buildings...]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -28,7 +29,9 @@ from facade_pipeline.panels3d.model import PanelSet  # noqa: E402
 from facade_pipeline.scene import ImportedScene  # noqa: E402
 from facade_pipeline.segmentation.accuracy import evaluate_view  # noqa: E402
 from facade_pipeline.segmentation.real_truth import (  # noqa: E402
+    EXPOSURES,
     evaluate_building,
+    exposed_copy,
     grid_corner_errors_m,
     summary,
 )
@@ -59,8 +62,9 @@ def row(building: str, layout: BuildingLayout) -> str:
     )
 
 
-def real_row(src: Path, building: str, data_root: Path, env: dict) -> str:
-    """The targets' figures on real photos with truth (facade_pipeline/segmentation/real_truth.py)."""
+def real_row(src: Path, building: str, data_root: Path, env: dict, label: str | None = None) -> str:
+    """The targets' figures on real photos with truth (facade_pipeline/segmentation/real_truth.py), in a
+    row named ``label`` (the building's name where None)."""
     subprocess.run([sys.executable, str(REPO / "scripts" / "make_gcw_building.py"), str(src), "--building",
                     building, "--data-root", str(data_root), "--force"], cwd=REPO, env=env, check=True,
                    capture_output=True)
@@ -76,7 +80,7 @@ def real_row(src: Path, building: str, data_root: Path, env: dict) -> str:
     t_rect = read_manifest(layout, "rectify").metrics["seconds_per_view"] / mp
     t_seg = read_manifest(layout, "segment_panels").metrics["seconds_per_view"] / mp
     found = f"{s['found']}/{s['whole_panes']} ({100 * s['found_fraction']:.0f} %)"
-    return (f"| {building} | {s['photos']} | {found} | "
+    return (f"| {label or building} | {s['photos']} | {found} | "
             f"{s['mask_iou_median']:.3f} / {s['mask_iou_min']:.3f} | {s['corner_error_median_px']:.2f} | "
             f"{s['complete_less_than_half_glass']} of {s['complete_panels']} | {len(panels)} | "
             f"{np.median(e3):.1f} / {e3.max():.1f} | {t_rect:.2f} + {t_seg:.2f} |")
@@ -92,11 +96,20 @@ def main() -> None:
     ap.add_argument("--data-root", default="/tmp/bench_segmentation")
     ap.add_argument("--real", type=Path, default=None, help="real photos with truth (gcw_dev's layout)")
     ap.add_argument("--real-building", default="gcw_dev", help="the building (config) they are run as")
+    ap.add_argument("--exposures", action="store_true",
+                    help="also the real photos at each exposure and white balance of real_truth.EXPOSURES")
     ap.add_argument("buildings", nargs="*", default=["synthetic64", "synthetic64_curved", "demo"])
     args = ap.parse_args()
     env = {**os.environ, "TQDM_DISABLE": "1"}
     real = [] if args.real is None else [real_row(args.real.resolve(), args.real_building,
                                                   Path(args.data_root), env)]
+    if args.real is not None and args.exposures:
+        for i, (name, gains) in enumerate(EXPOSURES.items()):
+            root = Path(args.data_root) / "exposed" / str(i)
+            shutil.rmtree(root, ignore_errors=True)
+            exposed_copy(args.real.resolve(), root / "photos", gains)
+            real.append(real_row(root / "photos", args.real_building, root, env,
+                                 f"{args.real_building} at {name}"))
     rows = []
     for b in args.buildings:
         subprocess.run(
@@ -117,7 +130,8 @@ def main() -> None:
         )
         rows.append(row(b, BuildingLayout(Path(args.data_root), b)))
     command = " ".join(["python benchmarks/bench_segmentation.py", "--data-root", args.data_root]
-                       + ([] if args.real is None else ["--real", str(args.real)]) + args.buildings)
+                       + ([] if args.real is None else ["--real", str(args.real)])
+                       + (["--exposures"] if args.exposures else []) + args.buildings)
     text = "\n".join([
         "## rectify and segment_panels\n",
         "### Synthetic scenes\n",
@@ -149,7 +163,9 @@ def main() -> None:
         "*3D*: `regularize_corners`' corners against the nominal glass grid in the wall frame (the poses' "
         "own scatter is about 5 mm). Targets: found >= 90 %, IoU median >= 0.90 and min >= 0.75, corner "
         "median <= 3 px, no complete panel under half glass, 3D within 1.5 x 5 mm; rectify <= 2 and "
-        "segment_panels <= 5 s per megapixel. Same run as the table above.\n",
+        "segment_panels <= 5 s per megapixel. Same run as the table above. *at -1 EV* ...: the same photos "
+        "taken at another exposure or white balance (each channel's linear light times a gain, clipped and "
+        "encoded: `real_truth.exposed_copy`), same config.\n",
         "| building | photos | whole panes found | mask IoU median / min | corner median px | complete "
         "panels under half glass | 3D panels | 3D corner median / max mm | s per MP (rectify + segment) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",

@@ -352,19 +352,19 @@ FIXED = {
         "rectify.fit.min_sagitta_rms",
     ),
     "facade_pipeline/rectification/surface_map.py": ("rectify.warp.samples_per_side",),
-    "facade_pipeline/segmentation/panels.py": (
+    "facade_pipeline/segmentation/frames.py": (
         "segment_panels.min_segment_px",
         "segment_panels.orientation_search_deg",
         "segment_panels.orientation_tolerance_deg",
         "segment_panels.lsd_sigma_px",
-        "segment_panels.parallax_min_bars",
-        "segment_panels.min_edge_support",
     ),
+    "facade_pipeline/segmentation/parallax.py": ("segment_panels.parallax_min_bars",),
+    "facade_pipeline/segmentation/openings.py": ("segment_panels.min_edge_support",),
     "facade_pipeline/segmentation/grid.py": (
         "segment_panels.grid.sigma_min_px",
-        "segment_panels.grid.lsd_scale",
         "segment_panels.grid.edge_search_px",
     ),
+    "facade_pipeline/segmentation/evidence.py": ("segment_panels.grid.lsd_scale",),
     "facade_pipeline/panels3d/grid.py": (
         "regularize_corners.part_link_factor",
         "regularize_corners.cluster_gap_factor",

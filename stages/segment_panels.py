@@ -2,7 +2,10 @@
 3.1.2), on the metric rectified image (sizes in metres, turned into pixels with its scale), with the
 corners mapped back to the original view through the rectification. The frame bars of every view are
 found first; the building's frame depth and bar width per family (medians over the views: one facade's
-frames share them) then correct each view's frame parallax and widen the bars a view found too thin.
+frames share them) then correct each view's frame parallax and widen the bars a view found too thin. A
+view whose grid is not the building's (none found, or a pitch or bar width beyond the building's median:
+``segmentation.building``) is sought again at the building's pitch, and listed in the manifest
+(``views_off_the_building_grid``) with the reason and the outcome.
 
 Reads ``02_rectify`` (rectified image and warps per view) and ``01_import`` (the views' sizes, the original
 images for the overlays). Writes the ``03_segment`` hand-off of data_layout.md ("Hand-off formats"):
@@ -34,7 +37,9 @@ from stages._runner import StageReport, main
 if TYPE_CHECKING:  # names for annotations only: the functions that use them import them
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.rectification.surface_map import ViewRectification
-    from facade_pipeline.segmentation.panels import FrameBars, Panel, ParallaxField
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.openings import Panel
+    from facade_pipeline.segmentation.parallax import ParallaxField
     from facade_pipeline.segmentation.result import SegmentedPanel
 
 NAME = "segment_panels"
@@ -125,12 +130,12 @@ PARALLAX_STEP_PX = 8.0
 
 
 def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
-    """The parallax coordinate of the segmented image (``segmentation.panels``): from the fitted surface
+    """The parallax coordinate of the segmented image (``segmentation.parallax``): from the fitted surface
     for a rectified view (``surface_map.parallax_grid``), the distance from the principal point for a view
     that is not rectified; None where it is not finite."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.rectification.surface_map import parallax_grid
-    from facade_pipeline.segmentation.panels import ParallaxField
+    from facade_pipeline.segmentation.parallax import ParallaxField
 
     if rect.chart is None:
         cx, cy = view.camera.K[:2, 2]
@@ -141,14 +146,16 @@ def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
 
 
 def find_one(
-    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster
+    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster,
+    pitch_m: dict[str, tuple[float, float]] | None = None,
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """The rectification of one view and the frame bars in it (None for a view rectify skipped), and the
-    seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is)."""
+    seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is; ``pitch_m``: the
+    pitches sought, per family, ``frames.find_frames``)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
-    from facade_pipeline.segmentation.panels import find_frames
+    from facade_pipeline.segmentation.frames import find_frames
 
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
@@ -159,40 +166,40 @@ def find_one(
     image = read_image(layout.path("rectify_image", stem=view.stem))
     support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
     planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
-    found = find_frames(image, params, rect.metres_per_px, valid, parallax, support, planar)
+    found = find_frames(image, params, rect.metres_per_px, valid, parallax, support, planar, pitch_m)
     return rect, found, time.perf_counter() - t0
 
 
-def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
-    """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass: per family, the
-    median of what the views' own parallax fits give (``FrameBars.frame_depths_m``); a family without any
-    is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
-    widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
-    tight cylinder) or show it loosely. The views' exact fits (as many bars as unknowns: a few bars in a
-    small view) join the median where they agree with one another (``panels.agreeing``)."""
-    from facade_pipeline.segmentation.panels import agreeing
+def with_building_grid(
+    layout: BuildingLayout, views: list[View], found: list[tuple[ViewRectification, FrameBars | None, float]],
+    params: Params, mesh: MeshRaycaster, width_m: dict[str, float],
+) -> tuple[list[tuple[ViewRectification, FrameBars | None, float]], dict[str, str]]:
+    """``found`` with the building's grid tried on every view whose own grid is not it (none, or a pitch
+    or bar width beyond the building's: ``building.disagreement``): sought again at the building's pitches
+    (``building.pitch_range_m``), the view takes that grid where both families are found there, inside the
+    range (``building.within``), and keeps its own otherwise. Returns them and, per such view, why it
+    disagreed and what the building's grid gave."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.segmentation.building import building_pitch_m, disagreement, pitch_range_m, within
+    from facade_pipeline.segmentation.grid import STEP_PX
 
-    depths: dict[str, list[float]] = {}
-    exact: dict[str, list[float]] = {}
-    for f in found:
-        for name, d in ({} if f is None else f.frame_depths_m()).items():
-            depths.setdefault(name, []).append(d)
-        for name, d in ({} if f is None else f.frame_depths_m(unjudged=True)).items():
-            exact.setdefault(name, []).append(d)
-    for name, d in exact.items():
-        if agreeing(d):
-            depths.setdefault(name, []).extend(d)
-    return {name: float(np.median(d)) for name, d in sorted(depths.items())}
-
-
-def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:
-    """The width (m) of the mullions ("x") and of the transoms ("y"): per family, the median over every
-    bar of every view (``FrameBars.bar_widths_m``); a family without bars is left out."""
-    widths: dict[str, list[float]] = {}
-    for f in found:
-        for name, w in ({} if f is None else f.bar_widths_m()).items():
-            widths.setdefault(name, []).extend(w)
-    return {name: float(np.median(w)) for name, w in sorted(widths.items()) if w}
+    pitch = building_pitch_m([f for _, f, _ in found])
+    wanted = pitch_range_m(pitch, params.grid)
+    out, why = list(found), {}
+    for i, (view, (rect, frames, seconds)) in enumerate(zip(views, found, strict=True)):
+        reason = disagreement(frames, pitch, width_m, params.grid)
+        if not reason:
+            continue
+        outcome = ""
+        # a bar width of its own alone is the bars' business (``frames.widen_narrow_bars``), not the grid's
+        if ("grid" in reason or "pitch" in reason) and len(wanted) == 2:
+            _, again, more = find_one(layout, view, params, mesh, wanted)
+            taken = again is not None and within(again.pitches_m(), wanted, STEP_PX * again.metres_per_px)
+            if taken:
+                out[i] = (rect, again, seconds + more)
+            outcome = ": the building's grid taken" if taken else ": none at the building's pitch, own kept"
+        why[view.stem] = "; ".join(reason.values()) + outcome
+    return out, why
 
 
 def segment_one(
@@ -265,6 +272,8 @@ def _find_view(
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
+    from facade_pipeline.segmentation.building import building_bar_width_m, building_frame_depth_m
+
     views = ImportedScene.load(layout).frontal_views
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
@@ -273,6 +282,10 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
                           lambda _: bar.update())
     depth = building_frame_depth_m([f for _, f, _ in found])
     width = building_bar_width_m([f for _, f, _ in found])
+    # the views off the building's grid are sought again here, one after another (few, and they need the
+    # building's figures, known only now)
+    mesh = shared(_coarse_raycaster, layout.import_coarse_mesh)
+    found, disagreeing = with_building_grid(layout, views, found, params, mesh, width)
     for view, (rect, frames, seconds) in zip(views, found, strict=True):
         outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
                                                 settings.overlay_scale)
@@ -288,6 +301,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
             "frame_depth_m": {name: round(d, 4) for name, d in depth.items()},
             "bar_width_m": {name: round(w, 4) for name, w in width.items()},
+            "views_off_the_building_grid": disagreeing,
             "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
             "views": per_view,
         },

@@ -284,7 +284,7 @@ def _similarity_residual_px(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def parallax_grid(rect: ViewRectification, step_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The parallax coordinate of a rectified canvas (``segmentation.panels.ParallaxField``) on a grid of
+    """The parallax coordinate of a rectified canvas (``segmentation.parallax.ParallaxField``) on a grid of
     about ``step_px`` (px), borders included: x positions [Gx], y positions [Gy] and P [Gy, Gx, 2] (px).
     A point standing proud of the surface by e (m) is seen shifted along the surface by e tan(a) away
     from the camera, a the angle of the line of sight from the local normal in the plane of the normal and

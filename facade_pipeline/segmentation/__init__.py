@@ -1,1 +1,1 @@
-"""Glass-panel segmentation of frontal views: line segments, MAP panel grid, panels and masks."""
+"""Glass-panel segmentation of frontal views: line segments, MAP panel grid, frame bars, panels and masks."""

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facade_pipeline.segmentation.grid import Gradients
+from facade_pipeline.segmentation.evidence import Gradients
+from facade_pipeline.segmentation.grid import FamilyFit
 
 
 @dataclass(frozen=True)
@@ -120,3 +121,11 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, 
         return np.where(ok, 1.0, np.nan)
     ref = np.median(colour[ref_rows], axis=0)
     return np.where(ok, (np.linalg.norm(colour - ref, axis=1) <= tol).astype(float), np.nan)
+
+
+@dataclass(frozen=True)
+class Bars:
+    """One family's bars: edge lines (low, high) per bar, along-bar length, and the fit."""
+
+    edges: list[tuple[EdgeLine, EdgeLine]]
+    fit: FamilyFit

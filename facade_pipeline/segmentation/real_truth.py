@@ -15,13 +15,14 @@ Per photo:
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.segmentation.panels import inside_quads
+from facade_pipeline.segmentation.quads import inside_quads
 from facade_pipeline.segmentation.result import ViewSegmentation
 
 
@@ -111,3 +112,31 @@ def grid_corner_errors_m(wall_points: np.ndarray, pitch_m: tuple[float, float],
         cands = np.stack([(i + k) * p + o for k in (-1, 0, 1) for o in (0.0, -g)], axis=1)
         out.append(np.min(np.abs(cands - v[:, None]), axis=1))
     return np.sqrt(out[0] ** 2 + out[1] ** 2 + wall_points[:, 2] ** 2)
+
+
+#: exposure (EV) and white balance (gain per channel of linear light, R G B) a camera may have chosen for the
+#: same photos
+EXPOSURES = {"-1 EV": (0.5,) * 3, "-0.5 EV": (2 ** -0.5,) * 3, "+0.5 EV": (2 ** 0.5,) * 3,
+             "+1 EV": (2.0,) * 3, "white balance off by 20 %": (1.2, 1.0, 0.8)}
+
+
+def _srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def _linear_to_srgb(v: np.ndarray) -> np.ndarray:
+    v = np.clip(v, 0.0, 1.0)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+
+
+def exposed_copy(src: Path, dst: Path, gains_rgb: tuple[float, float, float]) -> None:
+    """The truth folder ``src`` copied to ``dst`` with every photo taken at another exposure and white
+    balance: each channel's linear light (sRGB decoded) times its gain, then clipped and encoded, as a
+    camera would have recorded it (JPEG, quality 95); the truth as it is."""
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("images"))
+    (dst / "images").mkdir()
+    for p in sorted((src / "images").glob("*.jpg")):
+        bgr = cv2.imread(str(p)).astype(np.float64) / 255.0
+        linear = _srgb_to_linear(bgr) * np.array(gains_rgb[::-1])
+        out = np.rint(_linear_to_srgb(linear) * 255.0).astype(np.uint8)
+        cv2.imwrite(str(dst / "images" / p.name), out, [cv2.IMWRITE_JPEG_QUALITY, 95])

@@ -22,7 +22,7 @@ from facade_pipeline.io.atomic import write_json
 from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.rectification.surface_map import ViewRectification
-from facade_pipeline.segmentation.panels import inside_quads
+from facade_pipeline.segmentation.quads import inside_quads
 
 CORNER_DECIMALS = 3  # corners are stored to a thousandth of a pixel
 

@@ -11,17 +11,14 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from facade_pipeline.segmentation.evidence import Gradients, bar_evidence, nanmedian0, norm_last
 from facade_pipeline.segmentation.grid import (
     SIGMA_MIN_PX,
     STEP_PX,
-    Gradients,
     GridParams,
     PixelSizes,
-    bar_evidence,
     best_run,
     map_family,
-    nanmedian0,
-    norm_last,
     reach,
     relaxed_at,
     relaxed_bound,

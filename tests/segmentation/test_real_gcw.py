@@ -17,9 +17,16 @@ import pytest
 
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.segmentation.real_truth import evaluate_building, grid_corner_errors_m, summary
+from facade_pipeline.segmentation.real_truth import (
+    EXPOSURES,
+    evaluate_building,
+    exposed_copy,
+    grid_corner_errors_m,
+    summary,
+)
+from facade_pipeline.threads import usable_cores
 from scripts.make_gcw_building import WORLD_FROM_WALL
-from tests.segmentation.conftest import REPO, doit
+from tests.segmentation.conftest import REPO, _cmd, doit
 
 SRC = REPO.parent / "shared" / "real" / "gcw_dev"
 pytestmark = [pytest.mark.slow,
@@ -140,3 +147,71 @@ def test_the_same_photos_at_a_smaller_size_give_the_same_panels(gcw, tmp_path):
     s, full = summary(evaluate_building(small, src)), summary(per_photo)
     assert s["found_fraction"] >= 0.9 and s["mask_iou_median"] >= full["mask_iou_median"] - 0.03
     assert s["corner_error_median_px"] / 0.6 <= 1.2 * full["corner_error_median_px"]
+
+
+#: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do): frames and the
+#: bright glass beside them meet at full scale, where no edge is left to find
+OVEREXPOSED = pytest.mark.xfail(strict=True, reason="frames clipped against bright glass lose their edges")
+#: what does not hold yet, by exposure: brighter, the frames beside clipped glass; at -0.5 EV one of img042's
+#: three whole panes (one of fifteen) is not found, a decision that the re-encoded photo's rounding moves
+NOT_YET = {"+0.5 EV": OVEREXPOSED, "+1 EV": OVEREXPOSED,
+           "-0.5 EV": pytest.mark.xfail(strict=True, reason="one whole pane of 15 lost (img042)")}
+
+
+@pytest.fixture(scope="module")
+def exposed(gcw, tmp_path_factory):
+    """{name: (truth folder, data root)} of the photos at each of ``EXPOSURES``, run through
+    segment_panels with the same config."""
+    tmp = tmp_path_factory.mktemp("exposed")
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    roots = {}
+    for i, (name, gains) in enumerate(EXPOSURES.items()):
+        src = tmp / f"src{i}"
+        exposed_copy(SRC, src, gains)
+        out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_gcw_building.py"), str(src),
+                              "--building", "gcw_dev", "--data-root", str(tmp / f"data{i}")], cwd=REPO,
+                             env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        roots[name] = (src, tmp / f"data{i}")
+    # the variants' DAGs share nothing: run them side by side, as many as there are cores
+    names = list(roots)
+    for start in range(0, len(names), usable_cores()):
+        procs = {n: subprocess.Popen(_cmd(["segment_panels", "building=gcw_dev"], roots[n][1]), cwd=REPO,
+                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                 for n in names[start : start + usable_cores()]}
+        for n, proc in procs.items():
+            log = proc.communicate(timeout=900)[0]
+            assert proc.returncode == 0, f"{n}: {log}"
+    return roots
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=NOT_YET[n]) if n in NOT_YET else n
+                                  for n in EXPOSURES])
+def test_the_same_photos_at_another_exposure_and_white_balance_give_the_same_panels(gcw, exposed, name):
+    """No decision rests on an absolute brightness or colour: the photos at another exposure or with a
+    white balance off by 20 % (one config) find as many whole panes and as much of the glass, within 0.05
+    of the photos as taken, with no photo under a mask IoU of 0.5."""
+    _, per_photo = gcw
+    full = summary(per_photo)
+    src, data = exposed[name]
+    s = summary(evaluate_building(BuildingLayout(data, "gcw_dev"), src))
+    assert abs(s["found_fraction"] - full["found_fraction"]) <= 0.05
+    assert abs(s["mask_iou_median"] - full["mask_iou_median"]) <= 0.05
+    assert s["mask_iou_min"] >= 0.5
+
+
+def test_views_off_the_wall_grid_are_listed_with_the_reason(gcw):
+    """Nothing silent: every photo whose grid's pitch is not the wall's (0.1032 x 0.1532 m, the truth's;
+    a shelf behind an empty unit taken for a transom) is listed in the manifest with its pitch, after the
+    building's grid was tried on it; a photo listed has a pitch off the building's."""
+    layout, _ = gcw
+    m = read_manifest(layout, "segment_panels").metrics
+    off = m["views_off_the_building_grid"]
+    for stem, v in m["views"].items():
+        wrong = [name for name, true in (("x", 0.1032), ("y", 0.1532))
+                 if abs(v.get(f"pitch_{name}_m", 0.0) / true - 1.0) > 0.12]
+        if wrong and stem not in off:
+            pytest.fail(f"{stem}: pitch {wrong} off the wall's, not listed")
+        for name in wrong:
+            assert f"pitch {name}" in off[stem] and off[stem].endswith("own kept")
+    assert set(off) <= set(m["views"])

@@ -12,16 +12,18 @@ from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
 from facade_pipeline.rectification.surface_map import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
-from facade_pipeline.segmentation.panels import inside_quads, segment_image
+from facade_pipeline.segmentation.building import building_bar_width_m, building_frame_depth_m
+from facade_pipeline.segmentation.panels import segment_image
+from facade_pipeline.segmentation.params import SegmentParams
+from facade_pipeline.segmentation.quads import inside_quads
 from facade_pipeline.segmentation.result import panel_labels
-from stages import segment_panels
 from tests.segmentation.drawn import Drawing
 
 
 def CAMERA(W: int, H: int) -> PinholeCamera:  # noqa: N802
     return PinholeCamera(intrinsics(100.0, 100.0, W / 2, H / 2), np.eye(4), W, H)
 
-PARAMS = default_params("segment_panels", segment_panels.Params)
+PARAMS = default_params("segment_panels", SegmentParams)
 # the drawings' scale: bars of 3.2 px are 0.32 m, pitches of 23-27 px 2.3-2.7 m, as on a building
 M_PER_PX = 0.1
 
@@ -205,8 +207,8 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     bars keep their width there), left of c the near edges are found where they are. k comes from the
     left side, the right side is recognised as displaced, and every edge is put back; a bar cut by the
     border (narrower than half the median) is left as found."""
-    from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import ParallaxField, _Bars, correct_parallax, fit_parallax
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, fit_parallax
 
     c, k = 192.0, 0.01
     field = ParallaxField.about((c, 50.0), 400, 200)
@@ -218,7 +220,7 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     apparent = [(seen(lo) if lo < c or lo > c else lo, seen(hi) if hi > c else hi) for lo, hi in true]
     line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
     cut = (line(380.0), line(382.5))
-    bars = _Bars([(line(lo), line(hi)) for lo, hi in apparent] + [cut], None)
+    bars = Bars([(line(lo), line(hi)) for lo, hi in apparent] + [cut], None)
     par = fit_parallax(bars, field, 0, 3, 0.05)
     assert abs(par.k - k) < 3e-4 and par.near_displaced == (False, True)  # 2 % bias: second order in k
     fixed = correct_parallax(bars, par, field)
@@ -235,16 +237,16 @@ def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scat
     the slope is kept; measured to 1 px (a real photo's edges), the same growth is within the scatter and no
     slope is taken (a frame flush with the glass would otherwise be corrected by noise). Three bars on both
     sides of the foot fit exactly (as many bars as unknowns): no residual to judge it by, no slope."""
-    from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import ParallaxField, _Bars, fit_parallax
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.parallax import ParallaxField, fit_parallax
 
     field = ParallaxField.about((0.0, 50.0), 600, 200)
     line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
     centres = np.array([60.0, 160.0, 260.0, 360.0, 460.0])
     scatter = np.array([1.0, -1.0, 0.0, 1.0, -1.0])
 
-    def bars(widths: np.ndarray, at: np.ndarray = centres) -> _Bars:
-        return _Bars([(line(c - w / 2), line(c + w / 2)) for c, w in zip(at, widths, strict=True)], None)
+    def bars(widths: np.ndarray, at: np.ndarray = centres) -> Bars:
+        return Bars([(line(c - w / 2), line(c + w / 2)) for c, w in zip(at, widths, strict=True)], None)
 
     growth = 8.0 + 0.01 * centres
     assert abs(fit_parallax(bars(growth + 0.05 * scatter), field, 0, 3, 0.05).k - 0.01) < 1e-3
@@ -261,7 +263,8 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
     """Views whose fits are exact (three bars for three unknowns) give the building's depth where their
     depths agree (Student's t on their mean), and none where they scatter as a few bars in real photos do;
     a view's judged fit counts on its own."""
-    from facade_pipeline.segmentation.panels import FrameBars, Parallax, ParallaxField, agreeing
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.parallax import Parallax, ParallaxField, agreeing
 
     assert agreeing([0.148, 0.139, 0.155, 0.151]) and agreeing([0.12, 0.12])
     assert not agreeing([0.0059, 0.0015, 0.0038]) and not agreeing([0.12]) and not agreeing([])
@@ -273,11 +276,11 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
 
     k = lambda d: d / (10.0 - d)  # noqa: E731
     agree = [view(k(0.12), True), view(k(0.125), True), view(k(0.118), True)]
-    assert segment_panels.building_frame_depth_m(agree)["x"] == pytest.approx(0.12)
+    assert building_frame_depth_m(agree)["x"] == pytest.approx(0.12)
     scatter = [view(k(0.06), True), view(k(0.005), True), view(k(0.2), True)]
-    assert segment_panels.building_frame_depth_m(scatter) == {}
+    assert building_frame_depth_m(scatter) == {}
     judged = scatter + [view(k(0.1), False)]
-    assert segment_panels.building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
+    assert building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
 
 
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
@@ -288,14 +291,8 @@ def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
     depth (``slope_of``) puts every edge back on the glass, where the planar model (P = the distance from
     the foot) leaves about a pixel of error at the grazing bars."""
     from facade_pipeline.rectification.surface_map import parallax_grid, rectify_view
-    from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import (
-        ParallaxField,
-        _Bars,
-        correct_parallax,
-        fit_parallax,
-        slope_of,
-    )
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, fit_parallax, slope_of
     from tests.rectification.test_surface_map import PARAMS as RECTIFY
     from tests.rectification.test_surface_map import camera, cylinder
 
@@ -314,7 +311,7 @@ def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
 
     true = [(x - 2.0, x + 2.0) for x in np.linspace(12.0, rect.width - 12.0, 6)]
     line = lambda a: EdgeLine(a, 0.0, mid, np.ones(rect.height))  # noqa: E731
-    bars = _Bars([(line(seen(lo)), line(seen(hi))) for lo, hi in true], None)
+    bars = Bars([(line(seen(lo)), line(seen(hi))) for lo, hi in true], None)
     own = fit_parallax(bars, field, 0, 3, 0.05)
     assert own.k < 0.5 * k  # the widths do not show it
 
@@ -392,9 +389,10 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     the bar is found again at that width, at the face: of the four bars sharing an edge with the line, the
     one whose weaker edge is strongest. A bar of full width and one a width from the border stay; without
     a bar of full width in the view the thin one stays too (frames of another style)."""
-    from facade_pipeline.segmentation.edges import bar_edges
-    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, Gradients
-    from facade_pipeline.segmentation.panels import _Bars, widen_narrow_bars
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
 
     H, W = 90, 60
     img = np.full((H, W, 3), 0.45)
@@ -409,23 +407,24 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
     border = bar_edges(grad, 85.0, 2.0, span, EDGE_SEARCH_PX)
     assert abs(thin[0].a - 28.0) < 0.3 and abs(thin[1].a - 30.0) < 0.3  # what the grid found
-    out, n = widen_narrow_bars(_Bars([thin, whole, border], None), grad, span, 8.0, PARAMS)
+    out, n = widen_narrow_bars(Bars([thin, whole, border], None), grad, span, 8.0, PARAMS)
     assert n == 1
     assert abs(out.edges[0][0].a - 20.0) < 0.3 and abs(out.edges[0][1].a - 28.0) < 0.3
     assert out.edges[1] == whole and out.edges[2] == border
-    alone = _Bars([thin, border], None)
+    alone = Bars([thin, border], None)
     assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
 
 
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
     """Each view's own parallax fit gives d = k D / (1 + k) where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
-    from facade_pipeline.segmentation.edges import EdgeLine
-    from facade_pipeline.segmentation.panels import FrameBars, Parallax, ParallaxField, _Bars
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.parallax import Parallax, ParallaxField
 
     def view(kx: float, ky: float, distance: float, widths: list[float]) -> FrameBars:
         line = lambda a: EdgeLine(a, 0.0, 0.0, np.ones(4))  # noqa: E731
-        bars = _Bars([(line(10.0 * i), line(10.0 * i + w)) for i, w in enumerate(widths)], None)
+        bars = Bars([(line(10.0 * i), line(10.0 * i + w)) for i, w in enumerate(widths)], None)
         field = dataclasses.replace(ParallaxField.about((50.0, 50.0), 100, 100), distance_m=distance)
         fits = {"x": Parallax(0, kx), "y": Parallax(1, ky)}
         return FrameBars(bars, bars, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
@@ -433,10 +432,10 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
     k = lambda d, D: d / (D - d)  # noqa: E731
     views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
              view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
-    depth = segment_panels.building_frame_depth_m(views)
+    depth = building_frame_depth_m(views)
     assert depth.keys() == {"x", "y"}
     assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
-    width = segment_panels.building_bar_width_m(views)
+    width = building_bar_width_m(views)
     assert width == pytest.approx({"x": 0.3, "y": 0.3})
 
 
@@ -444,7 +443,7 @@ def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
     """Transoms far brighter than the mullions, as a cylinder's transoms turned towards the sky are: on a
     curved surface every transom is found where it is, at full evidence; on a plane, where frames of one
     material are shaded alike, each costs more than a nat for its colour."""
-    from facade_pipeline.segmentation.panels import find_frames
+    from facade_pipeline.segmentation.frames import find_frames
 
     d = Drawing(transom_colour=(0.95, 0.95, 0.95))
     img = d.render()
@@ -467,3 +466,32 @@ def test_a_bar_showing_its_side_face_does_not_mark_the_pane_beside_it_occluded()
     img[rows, int(np.ceil(x0)) : int(x0 + d.bar)] = (215, 215, 215)  # a lit side face, not the frames' grey
     seg = segment_image(img, PARAMS, M_PER_PX)
     assert len(seg.panels) == 9 and all(p.complete for p in seg.panels)
+
+
+def test_a_view_off_the_building_grid_is_named_with_its_reason():
+    """The building's pitch is the median of its views'; a view whose pitch is beyond the prior's reach of
+    it (3 sigma of one bar's place over one pitch), whose bars are more than twice as wide or narrow as the
+    building's, or which found no grid, is told apart by the reason; the others are not."""
+    from facade_pipeline.segmentation.building import building_pitch_m, disagreement, pitch_range_m
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.frames import FrameBars
+
+    def view(px: float, py: float, width_px: float = 4.0) -> FrameBars:
+        line = lambda a: EdgeLine(a, 0.0, 0.0, np.ones(4))  # noqa: E731
+        bars = Bars([(line(10.0), line(10.0 + width_px))], None)
+        metrics = {"pitch_x_px": px, "pitch_y_px": py}
+        return FrameBars(bars, bars, {}, None, (100, 100), (1.0, 1.0), 0.05, None, metrics, (None, None))
+
+    views = [view(40.0, 60.0), view(41.0, 61.0), view(40.0, 48.0), view(39.5, 59.0, 12.0), None,
+             FrameBars(None, None, {}, None, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))]
+    pitch = building_pitch_m(views)
+    assert pitch == pytest.approx({"x": 2.0, "y": 2.975})
+    width = building_bar_width_m(views)
+    grid = PARAMS.grid
+    lo, hi = pitch_range_m(pitch, grid)["y"]
+    assert (lo, hi) == pytest.approx((2.975 * (1 - 3 * grid.sigma_frac), 2.975 * (1 + 3 * grid.sigma_frac)))
+    why = [disagreement(v, pitch, width, grid) for v in views]
+    assert why[0] == why[1] == {} and why[4] == {}
+    assert why[2].keys() == {"pitch"} and why[2]["pitch"].startswith("pitch y 2.4 m")
+    assert why[3].keys() == {"width"} and "bar width x 0.6 m" in why[3]["width"]
+    assert why[5] == {"grid": "no grid found"}

@@ -1,0 +1,97 @@
+"""What one building's frontal views share, pooled over them: the frames' depth proud of the glass, the
+bars' widths and the panel pitch per family ("x": the mullions, "y": the transoms), and which views
+disagree with the building's grid. A view's own frames may not show these (a few bars, shaded side faces,
+a shelf behind an empty unit taken for a transom); the building's views together do."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from facade_pipeline.segmentation.frames import FrameBars
+from facade_pipeline.segmentation.grid import GridParams
+from facade_pipeline.segmentation.parallax import agreeing
+
+#: a view's pitch is another grid than the building's where it is further from it than the grid prior's
+#: reach over one pitch: three standard deviations of a bar's place (``GridParams.sigma_frac``)
+PITCH_REACH_SIGMAS = 3.0
+#: a view's bars are another family than the building's where their median width is beyond this factor of
+#: the building's either way: ``frames.widen_narrow_bars`` finds a bar under half of it again
+WIDTH_RATIO = 2.0
+
+
+def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass: per family, the
+    median of what the views' own parallax fits give (``FrameBars.frame_depths_m``); a family without any
+    is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
+    widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
+    tight cylinder) or show it loosely. The views' exact fits (as many bars as unknowns: a few bars in a
+    small view) join the median where they agree with one another (``parallax.agreeing``)."""
+    depths: dict[str, list[float]] = {}
+    exact: dict[str, list[float]] = {}
+    for f in found:
+        for name, d in ({} if f is None else f.frame_depths_m()).items():
+            depths.setdefault(name, []).append(d)
+        for name, d in ({} if f is None else f.frame_depths_m(unjudged=True)).items():
+            exact.setdefault(name, []).append(d)
+    for name, d in exact.items():
+        if agreeing(d):
+            depths.setdefault(name, []).extend(d)
+    return {name: float(np.median(d)) for name, d in sorted(depths.items())}
+
+
+def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The width (m) of the mullions ("x") and of the transoms ("y"): per family, the median over every
+    bar of every view (``FrameBars.bar_widths_m``); a family without bars is left out."""
+    widths: dict[str, list[float]] = {}
+    for f in found:
+        for name, w in ({} if f is None else f.bar_widths_m()).items():
+            widths.setdefault(name, []).extend(w)
+    return {name: float(np.median(w)) for name, w in sorted(widths.items()) if w}
+
+
+def building_pitch_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The panel pitch (m) across the mullions ("x") and the transoms ("y"): per family, the median of the
+    views' grids (``FrameBars.pitches_m``); a family no view found is left out."""
+    pitches: dict[str, list[float]] = {}
+    for f in found:
+        for name, p in ({} if f is None else f.pitches_m()).items():
+            pitches.setdefault(name, []).append(p)
+    return {name: float(np.median(p)) for name, p in sorted(pitches.items())}
+
+
+def pitch_range_m(pitch_m: dict[str, float], grid: GridParams) -> dict[str, tuple[float, float]]:
+    """The pitches (m, per family) that are the building's grid (``PITCH_REACH_SIGMAS``)."""
+    reach = PITCH_REACH_SIGMAS * grid.sigma_frac
+    return {name: (p * (1.0 - reach), p * (1.0 + reach)) for name, p in pitch_m.items()}
+
+
+def within(pitch_m: dict[str, float], wanted: dict[str, tuple[float, float]], step_m: float) -> bool:
+    """Is each family's pitch of ``wanted`` found (``pitch_m``) inside its range by more than a step of
+    the pitch lattice (``step_m``)? A grid sought within a range whose best pitch is at one of its ends
+    is the view's own grid held in by the range, not the building's found in the view."""
+    return all(name in pitch_m and lo + step_m < pitch_m[name] < hi - step_m
+               for name, (lo, hi) in wanted.items())
+
+
+def disagreement(found: FrameBars | None, pitch_m: dict[str, float], width_m: dict[str, float],
+                 grid: GridParams) -> dict[str, str]:
+    """Why a view's grid is not the building's, by kind ("grid": none found, "pitch" or "width": a family's
+    pitch or median bar width beyond the building's, ``pitch_range_m``, ``WIDTH_RATIO``); empty where it is
+    the building's or the view was not segmented (None)."""
+    if found is None:
+        return {}
+    own = found.pitches_m()
+    if not own:
+        return {"grid": "no grid found"}
+    why = {}
+    off = [f"{name} {own[name]:.4g} m, the building's {pitch_m[name]:.4g} m"
+           for name, (lo, hi) in pitch_range_m(pitch_m, grid).items()
+           if name in own and not lo <= own[name] <= hi]
+    if off:
+        why["pitch"] = "pitch " + ", ".join(off)
+    widths = {name: float(np.median(w)) for name, w in found.bar_widths_m().items() if w}
+    off = [f"{name} {widths[name]:.4g} m, the building's {w:.4g} m" for name, w in width_m.items()
+           if name in widths and not 1.0 / WIDTH_RATIO <= widths[name] / w <= WIDTH_RATIO]
+    if off:
+        why["width"] = "bar width " + ", ".join(off)
+    return why

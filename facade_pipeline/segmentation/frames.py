@@ -1,0 +1,308 @@
+"""The frame bars of a (rectified) frontal view: LSD segments and the MAP grid of each family (``grid``),
+then the sub-pixel edges of each bar (``edges``), with the frames' parallax fitted (``parallax``), at a
+working scale where the narrowest bar spans ``work_bar_px`` pixels; and the building's bar width applied to
+the bars a view found too thin."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from concurrent.futures import Executor, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from facade_pipeline.segmentation.edges import Bars, bar_edges, frame_presence
+from facade_pipeline.segmentation.evidence import (
+    Gradients,
+    bar_evidence,
+    log_likelihood,
+    lsd_evidence,
+    nanmedian0,
+)
+from facade_pipeline.segmentation.grid import (
+    EDGE_SEARCH_PX,
+    STEP_PX,
+    FamilyFit,
+    PixelSizes,
+    map_family,
+    pitch_hypotheses,
+)
+from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
+from facade_pipeline.segmentation.parallax import PARALLAX_MIN_BARS, Parallax, ParallaxField, fit_parallax
+from facade_pipeline.segmentation.params import SegmentParams
+from facade_pipeline.segmentation.photometry import normalise_exposure
+from facade_pipeline.threads import usable_cores
+
+# Image-precision constants of the segmentation. The view is resampled so that the narrowest frame bar spans
+# ``work_bar_px`` pixels (SegmentParams), so these hold at any facade scale and photo size; no building ever
+# needed other values, and the segmentation benchmarks (benchmarks/RESULTS.md) were measured with them.
+#: shortest LSD segment kept (px of the view): shorter ones are texture and noise, not frame edges
+MIN_SEGMENT_PX = 3.0
+#: the dominant vertical and horizontal angles are searched this far (deg) from 90 and 0 deg: rectified
+#: views are fronto-parallel, so only a small residual tilt is left
+ORIENTATION_SEARCH_DEG = 10.0
+#: a segment belongs to a family within this angle (deg) of its dominant angle
+ORIENTATION_TOLERANCE_DEG = 3.0
+#: smoothing of the LSD line-support profile (px)
+LSD_SIGMA_PX = 0.75
+
+
+def _family(
+    grad: Gradients,
+    segments: np.ndarray | Callable[[], np.ndarray],
+    axis: int,
+    span: slice,
+    params: SegmentParams,
+    sizes: PixelSizes,
+    frame_colour: np.ndarray | None = None,
+    pool: Executor | None = None,
+) -> FamilyFit | None:
+    """MAP bars of one family (axis 0: mullions; ``grad`` its gradients) with evidence taken over ``span``
+    along the bars; with ``frame_colour`` [3] (the other family's bars), bars of another colour are
+    penalised. ``segments`` (the family's LSD segments) may be a function that waits for them: they are
+    needed only once the gradient evidence is made. With a ``pool``, the uniformity and part of the bar
+    evidence are computed on it."""
+    uniformity = pool.submit(grad.uniformity, span) if pool is not None else None
+    (e_grad, widths), (e_out, w_out) = bar_evidence(grad, span, params.grid, sizes,
+                                                    (0.0, params.grid.outer_edge_floor), pool)
+    uniformity = uniformity.result() if uniformity is not None else grad.uniformity(span)
+    if callable(segments):
+        segments = segments()
+    lo, hi, _ = span.indices(grad.d.shape[0])
+    t = 0.5 * (segments[:, 1 - axis] + segments[:, 3 - axis]) if len(segments) else np.zeros(0)
+    inside = segments[(t >= lo) & (t <= hi)]
+    support = support_profile(inside, axis, grad.size, STEP_PX, LSD_SIGMA_PX)[: len(e_grad)]
+    dist = None
+    if frame_colour is not None:
+        # a difference within the tolerance of frame_presence is the frames' own shading (a curved facade
+        # turns its transoms through many normals): only what lies beyond it costs
+        dist = np.linalg.norm(grad.line_colour(span) - frame_colour, axis=1)[: len(e_grad)]
+        dist = np.maximum(dist - params.frame_colour_tol, 0.0)
+    ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid, dist)
+    # outer frames are judged without the colour prior: one side meets the background, and the centre line
+    # of a one-sided bar found at its glass-side edge is not reliably on the frame
+    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
+    return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out))
+
+
+def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
+    """[3] median colour (0-1) of one family's bars (``grad`` of that family): along their centre lines
+    over ``span``."""
+    colour = grad.line_colour(span)
+    idx = np.clip(np.rint(fit.centres / STEP_PX).astype(int), 0, len(colour) - 1)
+    return nanmedian0(colour[idx])
+
+
+def extent(fit: FamilyFit | None, size: int) -> slice:
+    """Along-bar range of the other family: from the first to the last bar centre of ``fit``."""
+    if fit is None:
+        return slice(0, size)
+    return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
+
+
+def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> Bars | None:
+    found = [
+        bar_edges(grad, c, w, span, EDGE_SEARCH_PX)
+        for c, w in zip(fit.centres, fit.widths, strict=True)
+    ]
+    edges = []
+    for e in found:
+        if e is None:
+            continue
+        present = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
+        edges.append(tuple(dataclasses.replace(line, present=present) for line in e))
+    return Bars(edges, fit) if edges else None
+
+
+def find_bars(
+    image: np.ndarray,
+    params: SegmentParams,
+    sizes: tuple[PixelSizes, PixelSizes],
+    valid: np.ndarray | None = None,
+    parallax: ParallaxField | None = None,
+    planar: bool = True,
+) -> tuple[Bars | None, Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
+    """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
+    then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
+    mullions' colour, ``frame_colour_scale``), then sub-pixel edges, with their frames' parallax fitted in the
+    image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
+    and the two families' gradients. ``sizes``: the grid model's sizes of the mullions and the transoms."""
+    sizes_v, sizes_h = sizes
+    H, W = image.shape[:2]
+    # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
+    # first transom pass's gradient evidence (which does not need its segments) and the making of what the
+    # later passes take (the mullions' lattice, each family's pitch hypotheses); each pass's evidence is
+    # shared out (``_family``), and the two families' edges are fitted side by side
+    with ThreadPoolExecutor(max_workers=usable_cores()) as pool:
+        lsd = pool.submit(
+            lambda: group_segments(
+                detect_segments(image, params.upsample, MIN_SEGMENT_PX),
+                ORIENTATION_TOLERANCE_DEG,
+                ORIENTATION_SEARCH_DEG,
+            )
+        )
+        gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
+        ahead = [pool.submit(gv.prepare)]
+        ahead += [pool.submit(pitch_hypotheses, g.size, z) for g, z in ((gh, sizes_h), (gv, sizes_v))]
+        # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
+        # width
+        h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W), params,
+                    sizes_h, pool=pool)
+        fam = lsd.result()
+        vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
+        for done in ahead:
+            done.result()
+        v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool)
+        # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
+        # they run the facade's full height, while the long straight lines that reflections bring (horizon,
+        # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
+        colour_h = None
+        if v is not None and params.grid.frame_colour_scale > 0 and planar:
+            colour_h = bar_colour(gv, v, extent(h, H))
+        h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool)
+        metrics = {
+            "n_segments": len(fam.segments),
+            "n_vertical_segments": len(vseg),
+            "n_horizontal_segments": len(hseg),
+            "vertical_angle_deg": float(np.degrees(fam.angle_vertical)),
+            "horizontal_angle_deg": float(np.degrees(fam.angle_horizontal)),
+            "mullions_found": v is not None,
+            "transoms_found": h is not None,
+        }
+        if v is None or h is None:
+            return None, None, metrics, {}, (gv, gh)
+        edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
+        bars_v = _edges(v, gv, extent(h, H), params)
+        bars_h = edges_h.result()
+    metrics.update(
+        {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
+    )
+    fits = {}
+    if parallax is not None and params.parallax_max_slope > 0:
+        fits = {
+            name: fit_parallax(bars, parallax, axis, PARALLAX_MIN_BARS, params.parallax_max_slope)
+            for name, bars, axis in (("x", bars_v, 0), ("y", bars_h, 1))
+        }
+    return bars_v, bars_h, metrics, fits, (gv, gh)
+
+
+def working_scale(params: SegmentParams, metres_per_px: float) -> float:
+    """Ratio (<= 1) of the working image's size to the given image's (``work_bar_px``)."""
+    return min(1.0, metres_per_px * params.work_bar_px / params.grid.min_bar_m)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameBars:
+    """The frame bars of one image at the working scale (``find_frames``), their parallax fitted but not
+    yet corrected: what ``segment_frames`` makes the panels from."""
+
+    bars_v: Bars | None
+    bars_h: Bars | None
+    fits: dict[str, Parallax]
+    parallax: ParallaxField | None
+    size: tuple[int, int]
+    scale: tuple[float, float]
+    metres_per_px: float
+    support: np.ndarray | None
+    metrics: dict
+    grads: tuple[Gradients, Gradients]
+
+    def bar_widths_m(self) -> dict[str, list[float]]:
+        """The widths (m) of the bars found, per family ("x": mullions, "y": transoms)."""
+        return {name: [(hi.a - lo.a) * self.metres_per_px for lo, hi in bars.edges]
+                for name, bars in (("x", self.bars_v), ("y", self.bars_h)) if bars is not None}
+
+    def pitches_m(self) -> dict[str, float]:
+        """The pitch (m) of the grid found, per family ("x": across the mullions, "y": the transoms); none
+        where no grid was found."""
+        return {name: self.metrics[f"pitch_{name}_px"] * self.metres_per_px for name in ("x", "y")
+                if f"pitch_{name}_px" in self.metrics}
+
+    def frame_depths_m(self, unjudged: bool = False) -> dict[str, float]:
+        """The frame depth d = k D / (1 + k) (m) each family's own parallax fit gives ("x": the mullions,
+        "y": the transoms), where it has one and the camera's distance D to the surface is known; with
+        ``unjudged``, the depths of the exact fits instead (``Parallax.unjudged``, the larger side slope)."""
+        D = np.nan if self.parallax is None else self.parallax.distance_m
+        k = {n: float(np.nanmax(f.slopes)) if unjudged else f.k for n, f in self.fits.items()
+             if f.unjudged == unjudged and (unjudged or f.k > 0.0)}
+        return {n: v / (1.0 + v) * D for n, v in k.items() if np.isfinite(D)}
+
+
+def find_frames(
+    image: np.ndarray,
+    params: SegmentParams,
+    metres_per_px: float,
+    valid: np.ndarray | None = None,
+    parallax: ParallaxField | None = None,
+    support: np.ndarray | None = None,
+    planar: bool = True,
+    pitch_m: dict[str, tuple[float, float]] | None = None,
+) -> FrameBars:
+    """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
+    found at the working scale (``work_bar_px``); ``support`` [H, W] marks where the facade surface is
+    (``rectification.facade_support``; None: all); ``valid`` [H, W] marks the pixels that show the view (a
+    rectified image has none outside the original); ``parallax`` is the image's parallax coordinate, in
+    which the frames' parallax is fitted (None: not); ``planar``: the surface is a plane (``find_bars``);
+    ``pitch_m`` narrows the pitches (m) sought across the mullions ("x") or the transoms ("y") to a range
+    (the building's grid, ``building.pitch_range_m``; the grid model's range where None)."""
+    H, W = image.shape[:2]
+    q = working_scale(params, metres_per_px)
+    Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
+    qx, qy = Ww / W, Hw / H
+    if (Ww, Hw) != (W, H):
+        image = cv2.resize(image, (Ww, Hw), interpolation=cv2.INTER_AREA)
+        if valid is not None:  # a working pixel shows the view only where all of its source pixels do
+            valid = cv2.resize(valid.astype(np.float32), (Ww, Hw), interpolation=cv2.INTER_AREA) > 0.999
+        if support is not None:
+            support = cv2.resize(support.astype(np.uint8), (Ww, Hw), interpolation=cv2.INTER_NEAREST) > 0
+        if parallax is not None:
+            parallax = parallax.scaled(qx, qy)
+    m = metres_per_px / np.sqrt(qx * qy)
+    sizes = PixelSizes.of(params.grid, m)
+    family_sizes = tuple(
+        sizes if name not in (pitch_m or {}) else dataclasses.replace(
+            sizes, min_pitch=max(sizes.min_pitch, pitch_m[name][0] / m),
+            max_pitch=min(sizes.max_pitch, pitch_m[name][1] / m))
+        for name in ("x", "y")
+    )
+    image = normalise_exposure(image, valid)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar)
+    metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
+    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
+
+
+def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
+                      params: SegmentParams) -> tuple[Bars, int]:
+    """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
+    a whole width away from the image border found again at that width, and how many were: a thin line
+    that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
+    place of a frame whose face has little contrast against the glass beside it. Of the four bars of
+    ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
+    geometric mean of its edges' strengths, as the bar evidence of ``grid``). Only where the view shows a
+    bar of the family at least half that wide: a part whose frames are all thinner than the building's
+    (another style) keeps them."""
+    size = grad.d.shape[1] + 1
+    if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
+        return bars, 0
+    edges, n = [], 0
+    for low, high in bars.edges:
+        if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
+            edges.append((low, high))
+            continue
+        best, score = (low, high), 0.0
+        for c in (low.a - 0.5 * width_px, low.a + 0.5 * width_px, high.a - 0.5 * width_px,
+                  high.a + 0.5 * width_px):
+            e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
+            if e is None or e[1].a - e[0].a < 0.5 * width_px:
+                continue
+            sc = float(np.sqrt(e[0].strength.mean() * e[1].strength.mean()))
+            if sc > score:
+                best, score = e, sc
+        if best[0] is not low:
+            present = frame_presence(grad, best[0], best[1], span, params.frame_colour_tol)
+            best = tuple(dataclasses.replace(line, present=present) for line in best)
+            n += 1
+        edges.append(best)
+    return Bars(edges, bars.fit), n

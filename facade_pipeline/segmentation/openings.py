@@ -1,0 +1,210 @@
+"""The panels between a view's frame bars (``frames``): the openings across each family and the quads
+where they cross.
+
+A panel is the opening between two consecutive mullions and two consecutive transoms; its corners are the
+intersections of the four bar edges that face it, ordered bottom-left, bottom-right, top-right, top-left
+(as seen from outside, which is the image's left and right). Rows count from the lowest visible row.
+
+Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
+(``complete = False``) when it is at least ``min_partial_m`` wide and the bars of the other family continue
+into it (by their frame colour or their edges, where the facade surface is there: ``_continues``); otherwise
+the facade ends at that bar, except beside the bars that continue on their own (a stepped facade, an empty
+or offset unit): there the opening between two such bars, or one and the border, is a partial panel.
+Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
+of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
+front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
+side's length is kept, with ``complete = False``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facade_pipeline.segmentation.edges import Bars, EdgeLine
+from facade_pipeline.segmentation.params import SegmentParams
+
+#: a panel side whose frame is present over less than this fraction of its length marks the panel occluded
+MIN_EDGE_SUPPORT = 0.6
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One panel in the segmented image's pixels: corners [4, 2] (bottom-left, bottom-right, top-right,
+    top-left), indices, and whether it is whole (``reason``: "", "border" or "occluded")."""
+
+    row: int
+    col: int
+    corners: np.ndarray
+    complete: bool
+    reason: str
+
+
+def _border(pos: float, length: int) -> EdgeLine:
+    """The image border at ``pos`` as an edge line (no strength)."""
+    return EdgeLine(float(pos), 0.0, 0.0, np.zeros(length))
+
+
+def intersect(v: EdgeLine, h: EdgeLine) -> np.ndarray:
+    """Intersection [2] (x, y) of a vertical edge x = a + b (y - mid) and a horizontal y = a + b (x - mid)."""
+    x = (v.a + v.b * (h.a - h.b * h.mid - v.mid)) / (1.0 - v.b * h.b)
+    return np.array([x, h.a + h.b * (x - h.mid)])
+
+
+def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float:
+    """Mean of a [L] over the rows [lo, hi) that show the view (``seen``; all if None)."""
+    i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+    seg = a[i0:i1] if seen is None else a[i0:i1][seen[i0:i1]]
+    return float(seg.mean()) if len(seg) else 0.0
+
+
+def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
+                   inside: tuple[float, float]) -> tuple[float, float]:
+    """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
+    that shows the view where its frame colour is present on its centre line, NaN where unknown; the
+    larger ratio of its two edges' mean strength there to their mean strength over ``inside``)."""
+    presence = np.nan
+    if bar[0].present is not None:
+        seg = bar[0].present[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
+        seg = seg[~np.isnan(seg)]
+        if len(seg):
+            presence = float(seg.mean())
+    seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
+    ratio = 0.0
+    for line in bar:
+        ref = _mean(line.strength, *inside, seen)
+        ratio = max(ratio, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
+    return presence, ratio
+
+
+def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
+               params: SegmentParams) -> frozenset[int] | None:
+    """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
+    across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
+
+    Only where the facade surface is there (``support``: the fraction of the strip where the coarse mesh
+    lies on the fitted surface, 1 without a mesh) over at least half of the strip: that keeps out the ground
+    or paving beyond the facade's end, which may have the frames' colour. There the bars continue where their
+    frame colour is present on the centre line (``frame_presence``) over at least ``continuation_presence``
+    of the strip's part that shows the view, in the median over the bars, or where their edges keep
+    ``continuation_ratio`` of their strength over ``inside``, in the median over the bars (either edge: an
+    outer frame shows only its glass side wherever the background beside it changes colour). Colour
+    survives what takes the edges away: a specular highlight on the glass beside a bar, the blur of a far,
+    upsampled part of an oblique rectified photo. Where the median fails, a bar that passes either test on
+    its own still continues: a partly installed or stepped facade ends over part of a strip only (an empty
+    unit, a unit set off its neighbours' line), and the openings beside such a bar go on."""
+    if support < 0.5:
+        return frozenset()
+    found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
+    presence = [p for p, _ in found if not np.isnan(p)]
+    if presence and float(np.median(presence)) >= params.continuation_presence:
+        return None
+    if found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
+        return None
+    return frozenset(
+        i for i, (p, r) in enumerate(found)
+        if (not np.isnan(p) and p >= params.continuation_presence) or r >= params.continuation_ratio
+    )
+
+
+def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
+                   across: tuple[float, float]) -> float:
+    """Mean of ``support`` [H, W] over a border strip: [lo, hi) along ``axis`` (0: x), ``across`` on the
+    other axis (the other family's outer bars); 1 without a support mask."""
+    if support is None:
+        return 1.0
+    a0, a1 = int(max(0, np.floor(lo))), int(max(0, np.ceil(hi)))
+    b0, b1 = int(max(0, np.floor(across[0]))), int(max(0, np.ceil(across[1])))
+    block = support[b0:b1, a0:a1] if axis == 0 else support[a0:a1, b0:b1]
+    return float(block.mean()) if block.size else 0.0
+
+
+@dataclass(frozen=True)
+class Opening:
+    """One opening across a family's bars: its low and high edge lines, the indices of the bars bounding
+    it (None: the image border), and for a strip cut by the border the bars of the other family that
+    continue into it (None: all of them)."""
+
+    low: EdgeLine
+    high: EdgeLine
+    bounds: tuple[int | None, int | None]
+    cut: bool = False
+    continuing: frozenset[int] | None = None
+
+    def admits(self, bounds: tuple[int | None, int | None]) -> bool:
+        """Does the opening of the other family bounded by the bars ``bounds`` go on into this one?"""
+        return self.continuing is None or all(b is None or b in self.continuing for b in bounds)
+
+
+def openings(
+    bars: Bars, other: Bars, size: int, length: int, params: SegmentParams, min_partial_px: float,
+    axis: int, support: np.ndarray | None = None,
+) -> list[Opening]:
+    """Openings across one family's bars (``axis`` 0: mullions), low to high."""
+    e = bars.edges
+    inside = (bars.fit.centres[0], bars.fit.centres[-1])
+    across = (other.fit.centres[0], other.fit.centres[-1])
+    out = []
+    lo, top = e[0][0].a, e[-1][1].a
+    if lo >= min_partial_px:
+        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params)
+        if going is None or going:
+            out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
+    out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
+    if size - top >= min_partial_px:
+        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params)
+        if going is None or going:
+            out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
+    return out
+
+
+def _supported(line: EdgeLine, lo: float, hi: float) -> float:
+    """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where its frame bar is present
+    or the edge itself (the bar's side facing the panel) is found at half its median strength or more: an
+    object in front hides both, while a bar that shows its shaded side face beside an empty unit keeps the
+    sharp edge where it meets the glass; 1 for the image border."""
+    if line.present is None:
+        return 1.0
+    i0, i1 = int(max(0, np.ceil(lo + 1))), int(max(0, np.floor(hi - 1)))
+    present = line.present[i0:i1]
+    found = line.strength[i0:i1]
+    seen = ~np.isnan(present)
+    if not seen.any():
+        return 1.0
+    ref = np.median(line.strength[line.strength > 0]) if (line.strength > 0).any() else np.inf
+    return float(((present[seen] > 0) | (found[seen] >= 0.5 * ref)).mean())
+
+
+def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: SegmentParams,
+                 min_partial_px: float, support: np.ndarray | None = None) -> list[Panel]:
+    """Panels of every opening of the grid (module docstring), rows counted from the bottom; ``support``
+    [H, W] marks where the facade surface is (border strips without it hold no partial panel)."""
+    cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support)
+    rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support)  # top to bottom
+    panels = []
+    for i, row in enumerate(rows):
+        top, bottom, cut_r = row.low, row.high, row.cut
+        for j, col in enumerate(cols):
+            left, right, cut_c = col.low, col.high, col.cut
+            if not (row.admits(col.bounds) and col.admits(row.bounds)):
+                continue
+            c = np.array(
+                [
+                    intersect(left, bottom),
+                    intersect(right, bottom),
+                    intersect(right, top),
+                    intersect(left, top),
+                ]
+            )
+            x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
+            if x1 - x0 < 1 or y1 - y0 < 1:
+                continue
+            support = min(
+                _supported(left, y0, y1),
+                _supported(right, y0, y1),
+                _supported(top, x0, x1),
+                _supported(bottom, x0, x1),
+            )
+            reason = "border" if cut_r or cut_c else ("occluded" if support < MIN_EDGE_SUPPORT else "")
+            panels.append(Panel(len(rows) - 1 - i, j, c, reason == "", reason))
+    return panels

@@ -1,0 +1,211 @@
+"""Parallax of proud frames: frames stand d in front of the glass, so the front face of a bar is seen shifted
+away from the camera along the surface by d tan(a), a the angle of the line of sight from the surface normal
+(in the plane of the normal and the direction across the bar); its front face hides a strip of the glass
+beyond it of that width, while on its side towards the camera the bar's side face shows. In pixels the shift
+is k' P, with P the view's parallax coordinate (``ParallaxField``: D tan(a) / m, D the camera's distance to
+the surface, m the scale) and k' = d / D = k / (1 + k). Seen straight on to a plane, P = u - c, the distance
+from the camera's foot c; across an unrolled cylinder P grows faster than the distance (the surface turns
+away from the camera), and for the horizontal bars it changes along the bar. A bar's apparent width thus
+grows as w = B + k P, with P at its far (front-face) edge; on a side of c where the side faces are shaded
+like the glass, the near edge found is the front face's as well, and the width does not grow there. k and
+those sides are fitted per family and view (``fit_parallax``); where both sides' side faces are shaded the
+widths show no k at all, so a rectified view takes k from the building's frame depth per family (the median
+of the views' fits, ``segment_frames``). The front-face edges are moved back by k P / (1 + k) along their
+length, where the glass meets the frame: corners are the glass panel's corners, and masks are the panels'
+quads, hidden strips included (``parallax_max_slope = 0`` keeps the visible glass instead)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from facade_pipeline.segmentation.edges import Bars, EdgeLine
+
+#: a family with fewer whole frame bars than this is not corrected for parallax: three points are the
+#: fewest that tell a slope from one bar's error
+PARALLAX_MIN_BARS = 3
+#: a view's parallax slope counts where it stands this many standard errors above 0 (from the fit's own
+#: residual): a fit through few bars measured in a real photo scatters by more than the slope of frames
+#: nearly flush with the glass, and a slope from noise would shift every corrected edge
+PARALLAX_MIN_T = 3.0
+
+
+@dataclass(frozen=True, eq=False)
+class ParallaxField:
+    """The parallax coordinate P (px; module docstring) of a view's image, sampled on a grid: ``p``
+    [Gy, Gx, 2] (P across the mullions, i.e. along x, and across the transoms, along y) at image positions
+    ``xs`` [Gx], ``ys`` [Gy] (px, increasing); read between samples bilinearly, beyond them by the nearest."""
+
+    xs: np.ndarray
+    ys: np.ndarray
+    p: np.ndarray
+    distance_m: float = float("nan")
+    """D, the camera's distance to the surface (m); NaN where no surface is known (a view not rectified)."""
+
+    @classmethod
+    def about(cls, centre: tuple[float, float], width: int, height: int) -> ParallaxField:
+        """The field of a ``width`` x ``height`` image of a plane whose camera's foot is ``centre`` (x, y):
+        P = the position less the centre (bilinear over a linear field: exact, and sampled a whole image
+        beyond every border)."""
+        xs, ys = np.array([-1.0, 2.0]) * width, np.array([-1.0, 2.0]) * height
+        gx, gy = np.meshgrid(xs - centre[0], ys - centre[1])
+        return cls(xs, ys, np.stack([gx, gy], axis=-1))
+
+    def scaled(self, qx: float, qy: float) -> ParallaxField:
+        """The field of the image resized by (qx, qy)."""
+        return ParallaxField(self.xs * qx, self.ys * qy, self.p * [qx, qy], self.distance_m)
+
+    def along(self, axis: int, pos: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """P across the bars of family ``axis`` (0: mullions, positions x along rows y = t; 1: transoms,
+        positions y along columns x = t) at [N] points."""
+        x, y = (pos, t) if axis == 0 else (t, pos)
+        return self._bilinear(np.asarray(x, float), np.asarray(y, float), axis)
+
+    def _bilinear(self, x: np.ndarray, y: np.ndarray, c: int) -> np.ndarray:
+        fx = np.interp(x, self.xs, np.arange(len(self.xs)))
+        fy = np.interp(y, self.ys, np.arange(len(self.ys)))
+        i = np.minimum(fx.astype(int), len(self.xs) - 2) if len(self.xs) > 1 else np.zeros_like(fx, int)
+        j = np.minimum(fy.astype(int), len(self.ys) - 2) if len(self.ys) > 1 else np.zeros_like(fy, int)
+        u, v = fx - i, fy - j
+        g = self.p[..., c]
+        i1, j1 = np.minimum(i + 1, len(self.xs) - 1), np.minimum(j + 1, len(self.ys) - 1)
+        return (1 - v) * ((1 - u) * g[j, i] + u * g[j, i1]) + v * ((1 - u) * g[j1, i] + u * g[j1, i1])
+
+
+@dataclass(frozen=True)
+class Parallax:
+    """One family's frame parallax (module docstring): the family's ``axis`` (0: mullions), slope ``k``,
+    and per side of the camera's foot (P < 0, P > 0) whether the bars' near edges are displaced like their
+    far edges; bars narrower than ``min_width_px`` (cut by the border) are left as found."""
+
+    axis: int
+    k: float = 0.0
+    near_displaced: tuple[bool, bool] = (False, False)
+    min_width_px: float = 0.0
+    slopes: tuple[float, float] = (float("nan"), float("nan"))
+    """The width's growth with P on either side (NaN: not measured there)."""
+    unjudged: bool = False
+    """A fit through as many bars as unknowns, its slope within range: exact, so without a residual to
+    judge it by; such slopes count where those of the building's views agree (``agreeing``)."""
+
+    def with_slope(self, k: float) -> Parallax:
+        """This family's parallax with the slope ``k`` (the building's frame depth, ``slope_of``): a side
+        whose widths grow by less than half of it has its near edges displaced."""
+        near = tuple(bool(np.isfinite(g) and g < 0.5 * k) for g in self.slopes)
+        return dataclasses.replace(self, k=k, near_displaced=near)  # type: ignore[arg-type]
+
+
+def _coord(field: ParallaxField, axis: int, line: EdgeLine) -> float:
+    """P at the middle of an edge line of family ``axis``."""
+    return float(field.along(axis, np.array([line.a]), np.array([line.mid]))[0])
+
+
+def fit_parallax(bars: Bars, field: ParallaxField, axis: int, min_bars: int, max_slope: float) -> Parallax:
+    """The frame parallax of one family (module docstring), from the bars' apparent widths.
+
+    Fits w_i = B + k_low s_low,i + k_high s_high,i, s the extent (px of P) of a bar beyond the camera's
+    foot on either side (at glass level: a second fit divides by 1 + k), leaving out bars narrower than
+    half the median (cut by the border). k is the larger side slope. A side whose slope is under half of k
+    has its bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found
+    is the front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars, k outside
+    (0, ``max_slope``], or k less than ``PARALLAX_MIN_T`` standard errors above 0; a fit through as many
+    bars as unknowns has no residual to judge it by: it is ``unjudged``, and corrects nothing on its own."""
+    lows = np.array([e[0].a for e in bars.edges])
+    highs = np.array([e[1].a for e in bars.edges])
+    p_low = np.array([_coord(field, axis, e[0]) for e in bars.edges])
+    p_high = np.array([_coord(field, axis, e[1]) for e in bars.edges])
+    w = highs - lows
+    min_width = 0.5 * float(np.median(w))
+    ok = w >= min_width
+    s = np.stack([np.maximum(-p_low, 0.0), np.maximum(p_high, 0.0)], axis=1)[ok]  # [n, 2]
+    sides = [j for j in (0, 1) if np.ptp(s[:, j]) >= 1.0] if ok.sum() >= min_bars else []
+    if not sides:
+        return Parallax(axis, min_width_px=min_width)
+    k = 0.0
+    for _ in range(2):
+        A = np.concatenate([np.ones((len(s), 1)), s[:, sides] / (1.0 + k)], axis=1)
+        coef = np.linalg.lstsq(A, w[ok], rcond=None)[0]
+        slopes = dict(zip(sides, coef[1:], strict=True))
+        k = float(max(slopes.values()))
+    measured = tuple(float(slopes.get(j, np.nan)) for j in (0, 1))
+    if not 0.0 < k <= max_slope:
+        return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
+    error = _slope_error(A, w[ok] - A @ coef, sides, slopes)
+    if not np.isfinite(error):
+        return Parallax(axis, min_width_px=min_width, slopes=measured, unjudged=True)  # type: ignore[arg-type]
+    if k < PARALLAX_MIN_T * error:
+        return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
+    return Parallax(axis, min_width_px=min_width, slopes=measured).with_slope(k)  # type: ignore[arg-type]
+
+
+def _slope_error(A: np.ndarray, residual: np.ndarray, sides: list[int], slopes: dict[int, float]) -> float:
+    """The standard error of the larger side slope of the least-squares fit ``A`` with ``residual``
+    (inf where the fit has no residual to judge it by: as many bars as unknowns)."""
+    dof = len(residual) - A.shape[1]
+    if dof < 1:
+        return np.inf
+    j = 1 + sides.index(max(slopes, key=lambda side: slopes[side]))
+    variance = float(residual @ residual) / dof * np.linalg.pinv(A.T @ A)[j, j]
+    return float(np.sqrt(max(variance, 0.0)))
+
+
+def slope_of(frame_depth_m: float, distance_m: float) -> float:
+    """The parallax slope k = d / (D - d) of frames ``frame_depth_m`` proud of a surface ``distance_m``
+    from the camera (0 where that is not finite and positive)."""
+    k = frame_depth_m / (distance_m - frame_depth_m)
+    return float(k) if np.isfinite(k) and k > 0.0 else 0.0
+
+
+def _unparallax(line: EdgeLine, field: ParallaxField, axis: int, k: float) -> EdgeLine:
+    """A front-face edge moved to where the glass-level edge is seen: by k P / (1 + k) at every point
+    along it where it was found (P changes along a transom of a curved facade, fastest toward the
+    silhouette), refitted as a straight line weighted by the edge's strength."""
+    t = np.arange(len(line.strength)) + 0.5  # the rows (columns) the edge was fitted over, by strength
+    w = np.asarray(line.strength, float)
+    if not (w > 0).sum() >= 2:
+        t, w = np.array([line.mid - 0.5, line.mid + 0.5]), np.ones(2)
+    pos = line.at(t)
+    moved = pos - k / (1.0 + k) * field.along(axis, pos, t)
+    A = np.stack([np.ones_like(t), t - line.mid], axis=1) * w[:, None]
+    a, b = np.linalg.lstsq(A, moved * w, rcond=None)[0]
+    return dataclasses.replace(line, a=float(a), b=float(b))
+
+
+def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField) -> Bars:
+    """Bars whose front-face edges are moved by the parallax to where the glass meets the frame: each
+    bar's edge on the far side from the camera's foot, both edges of a bar over it, and the near edges
+    on a side where they are displaced too (``par.near_displaced``)."""
+    if par.k <= 0.0:
+        return bars
+    k, axis = par.k, par.axis
+    edges = []
+    for low, high in bars.edges:
+        if high.a - low.a < par.min_width_px:
+            edges.append((low, high))
+            continue
+        p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
+        below, above = p_high <= 0.0, p_low >= 0.0  # the bar lies wholly on the low / high side
+        new_low, new_high = low, high
+        if p_low < 0.0 or (above and par.near_displaced[1]):
+            new_low = _unparallax(low, field, axis, k)
+        if p_high > 0.0 or (below and par.near_displaced[0]):
+            new_high = _unparallax(high, field, axis, k)
+        edges.append((new_low, new_high))
+    return Bars(edges, bars.fit)
+
+
+def agreeing(depths: list[float]) -> bool:
+    """Do measurements without error bars of their own (``Parallax.unjudged``) agree on a depth above 0:
+    two or more, their mean above 0 by the two-sided 95 % quantile of Student's t times its standard error
+    (frames seen alike in every view give one depth; the scatter of a few bars in real photos does not)."""
+    # imported here: only a building with such fits needs it. scipy.special's quantile of Student's t is the
+    # one scipy.stats computes, at half of scipy.stats' import time (about a second)
+    from scipy.special import stdtrit
+
+    n = len(depths)
+    if n < 2:
+        return False
+    error = float(np.std(depths, ddof=1)) / np.sqrt(n)
+    return float(np.mean(depths)) > (stdtrit(n - 1, 0.975) * error if error > 0 else 0.0)
