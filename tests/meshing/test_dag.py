@@ -1,5 +1,5 @@
 """The real dodo.py on synthetic64: the 3D stages run inside the DAG after segment_panels, and a panel mask
-edited by hand reruns exactly regularize_corners and the stages after it."""
+edited by hand reruns regularize_corners and each stage after it whose inputs' content changed."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import pytest
 from facade_pipeline.config import config_dir
 from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
 from stages import PIPELINE
 from tests.test_dodo import doit, executed
 
@@ -38,8 +39,14 @@ def test_hand_edited_mask_reruns_exactly_the_3d_stages(tmp_path):
     mask = read_mask(mask_path)
     mask[:3, :3] = ~mask[:3, :3]  # a person touches up a corner of the mask
     write_mask(mask_path, mask)
+    stages = ["regularize_corners", "correct_mesh", "bake_normals"]
+    before = {s: read_manifest(layout, s).outputs for s in stages}
     rerun = executed(doit(args, env, root))
-    # exactly the stages that read the mask, and those after them (segment_panels, which wrote it, does not
-    # rerun: its code version is derived from its imports, so unrelated edits elsewhere do not touch it)
-    assert rerun == ["regularize_corners", "correct_mesh", "bake_normals"]
+    # the stage that reads the mask reruns (segment_panels, which wrote it, does not: its code version is
+    # derived from its imports, so unrelated edits elsewhere do not touch it); a stage after it reruns
+    # exactly when the outputs its upstream lists changed (a rerun that writes the same outputs stops there)
+    assert rerun[0] == "regularize_corners" and rerun == stages[: len(rerun)], rerun
+    after = {s: read_manifest(layout, s).outputs for s in stages}
+    for upstream, stage in zip(stages, stages[1:], strict=False):
+        assert (stage in rerun) == (upstream in rerun and after[upstream] != before[upstream]), stage
     assert executed(doit(args, env, root)) == []
