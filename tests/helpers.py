@@ -82,3 +82,12 @@ def as_real_building(toml_text: str) -> str:
     which a real building may not set."""
     text = re.sub(r'(?m)^kind = "synthetic"', 'kind = "real"', toml_text)
     return "".join(t for t in re.split(r"(?m)^(?=\[)", text) if not re.match(r"\[\[?synthesize", t))
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` still runs: a zombie that no parent has reaped yet (its parent killed) is
+    gone too."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[-1][0] not in "ZX"
+    except (OSError, IndexError):
+        return False

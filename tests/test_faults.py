@@ -26,7 +26,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import build_manifest, damaged_outputs, read_manifest
 from stages import import_photogrammetry as imp
 from stages._runner import StageReport, execute, main
-from tests.helpers import make_raw, synthetic_reconstruction
+from tests.helpers import make_raw, process_alive, synthetic_reconstruction
 
 REPO = Path(__file__).resolve().parents[1]
 PARAMS = default_params("import_photogrammetry", imp.Params)
@@ -267,13 +267,6 @@ def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
     assert layout.manifest("import_photogrammetry").exists()
 
 
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] not in "ZX"
-    except (OSError, IndexError):
-        return False
-
-
 def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
     """``kill -9`` of doit leaves its stage running: that stage holds the lock, so a second doit stops at
     once naming it; once it has finished the building is free."""
@@ -289,7 +282,7 @@ def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
             assert first.poll() is None and time.monotonic() < deadline, "the stage never took the lock"
             words = layout.lock.read_text().split() if layout.lock.is_file() else []
             pids = [int(w.split("@")[0]) for w in words]
-            stage = next((p for p in pids if p != first.pid and _alive(p)), None)
+            stage = next((p for p in pids if p != first.pid and process_alive(p)), None)
             time.sleep(0.01)
         os.kill(stage, signal.SIGSTOP)  # the orphan stays mid-run while the second doit tries
         first.kill()
@@ -303,7 +296,7 @@ def test_a_stage_left_by_a_killed_doit_still_holds_the_building(real):
         first.kill()
         first.wait()
     deadline = time.monotonic() + 300
-    while _alive(stage):
+    while process_alive(stage):
         assert time.monotonic() < deadline, "the orphaned stage did not finish"
         time.sleep(0.1)
     _doit(["import_photogrammetry", "building=faults"], env, layout.data_root)
@@ -321,7 +314,7 @@ def _stage_pid(layout, name: str, doit: subprocess.Popen, timeout: float = 300) 
                 cmdline = Path(f"/proc/{word}/cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if cmdline[1:4] == [b"-m", b"stages", name.encode()] and _alive(int(word)):
+            if cmdline[1:4] == [b"-m", b"stages", name.encode()] and process_alive(int(word)):
                 return int(word)
         time.sleep(0.01)
 

@@ -21,6 +21,7 @@ from facade_pipeline.config import config_dir, load_building_config
 from facade_pipeline.errors import ConfigError
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import damaged_outputs, read_manifest
+from tests.helpers import process_alive
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -58,19 +59,9 @@ def test_the_guard_ends_its_command_when_its_parent_dies(tmp_path):
     parent.kill()
     parent.wait()
     deadline = time.monotonic() + 30
-    while _alive(sleeper):
+    while process_alive(sleeper):
         assert time.monotonic() < deadline, "the guarded command outlived its worker"
         time.sleep(0.1)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    # a zombie that its (dead) parent's reaper has not collected yet is gone too
-    stat = Path(f"/proc/{pid}/stat")
-    return stat.is_file() and stat.read_text().split(")")[-1].split()[0] != "Z"
 
 
 def test_the_error_line_is_the_stages_own():
