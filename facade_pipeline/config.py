@@ -1,9 +1,10 @@
 """One config system: ``configs/default.toml`` holds every parameter of every stage; for a building with
 ``[building] kind = "synthetic"`` only, ``configs/synthetic.toml`` (the simulator's ``[synthesize]`` and the
 metrics against its truth) is merged over it; a building's ``configs/buildings/<name>.toml`` overrides
-either. Each stage reads its section into one frozen dataclass. An unknown key, a missing key or a wrong
-type is a ``ConfigError`` naming the key and the file; so is a simulator key in a real building's file, and
-an old key (``RENAMED``), which names what replaced it.
+either, and the building's tables for the chosen compute budget (``BUDGETS``: ``$FACADE_BUDGET``) override
+the rest of its file. Each stage reads its section into one frozen dataclass. An unknown key, a missing key
+or a wrong type is a ``ConfigError`` naming the key and the file; so is a simulator key in a real
+building's file, and an old key (``RENAMED``), which names what replaced it.
 
 The ``[run]`` table (``RunSettings``: device, rasterizer backend, logging, checkpoints, overlay size) says
 how the stages run, never what they compute. No stage's parameters hold it, so doit's ``config_changed`` and
@@ -36,6 +37,12 @@ from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
 from facade_pipeline.errors import ConfigError
 
 CONFIG_DIR_ENV = "FACADE_CONFIG_DIR"
+BUDGET_ENV = "FACADE_BUDGET"
+BUDGETS = ("cpu", "gpu")
+"""The compute budgets a building's file may tune for. Its ``[budget.<name>]`` tables hold keys for one
+budget alone (demo's CPU budget: patches, fewer steps, a smaller MLP), merged over the file's other tables
+when ``$FACADE_BUDGET`` names it ("cpu" when unset). A budget is a choice of what is computed, so unlike
+``[run]`` it reaches the stages' parameters: switching it reruns the stages whose parameters it moves."""
 T = TypeVar("T")
 
 
@@ -188,7 +195,8 @@ def available_buildings(directory: Path | None = None) -> list[str]:
 
 def load_building_config(building: str, directory: Path | None = None) -> BuildingConfig:
     """Read ``default.toml``, for a synthetic building ``synthetic.toml`` over it, and
-    ``buildings/<building>.toml`` over both (building wins)."""
+    ``buildings/<building>.toml`` over both (building wins), its ``[budget.<name>]`` tables of the chosen
+    budget over the rest of it (``BUDGETS``)."""
     directory = directory or config_dir()
     default_file = directory / "default.toml"
     building_file = directory / "buildings" / f"{building}.toml"
@@ -197,13 +205,17 @@ def load_building_config(building: str, directory: Path | None = None) -> Buildi
         raise ConfigError(building_file, f"a config for building {building!r} (one of: {names})", "no file")
     base = _read_toml(default_file)
     override = _read_toml(building_file)
+    budgets = _budget_tables(override, building_file)
     synthetic_file = directory / SYNTHETIC_FILE
     synthetic = _read_toml(synthetic_file)
     files: tuple[Path, ...] = (default_file, building_file)
     if _declared_kind(override) == "synthetic":
         base = _merge(base, synthetic)
         files = (default_file, synthetic_file, building_file)
-    else:
+    for name, table in budgets.items():  # every budget's keys, the unused ones' too: a typo shows at once
+        _check_known_keys(table, base, building_file, f"budget.{name}.")
+    override = _merge(override, budgets.get(chosen_budget(), {}))
+    if len(files) == 2:
         key = _first_key_only_in(override, synthetic, base, "")
         if key is not None:
             raise ConfigError(
@@ -214,6 +226,27 @@ def load_building_config(building: str, directory: Path | None = None) -> Buildi
             )
     _check_known_keys(override, base, building_file, "")
     return BuildingConfig(building, _merge(base, override), base, files)
+
+
+def chosen_budget() -> str:
+    """The budget ``$FACADE_BUDGET`` names (``BUDGETS``), "cpu" when it is unset or empty."""
+    name = os.environ.get(BUDGET_ENV) or "cpu"
+    if name not in BUDGETS:
+        expected = f"${BUDGET_ENV} one of {', '.join(BUDGETS)}"
+        raise ConfigError(None, expected, f"{name!r}: set one of them or unset it")
+    return name
+
+
+def _budget_tables(override: dict[str, Any], file: Path) -> dict[str, dict[str, Any]]:
+    """The ``[budget.<name>]`` tables of a building's file, taken out of ``override``."""
+    budgets = override.pop("budget", {})
+    if not isinstance(budgets, dict):
+        raise ConfigError(file, "[budget.<name>] tables", f"budget = {budgets!r}")
+    for name, table in budgets.items():
+        if name not in BUDGETS or not isinstance(table, dict):
+            found = f"[budget.{name}]" if isinstance(table, dict) else f"budget.{name} = {table!r}"
+            raise ConfigError(file, f"[budget.<name>] tables, name one of {', '.join(BUDGETS)}", found)
+    return budgets
 
 
 def _first_key_only_in(override: dict, synthetic: dict, default: dict, prefix: str) -> str | None:

@@ -268,3 +268,38 @@ def test_every_replaced_key_is_gone_from_the_defaults():
             for part in key.split("."):
                 node = node.get(part) if isinstance(node, dict) else None
             assert node is None, f"{name} still defines {key}"
+
+
+def test_the_gpu_budget_is_one_switch(monkeypatch):
+    """``FACADE_BUDGET=gpu`` trains demo at the defaults' budget (their steps, whole images, the paper's
+    MLP) with demo's own departures kept; unset, demo keeps the CPU budget that `make run` trains."""
+    default = tomllib.loads((config_dir() / "default.toml").read_text())["train_gs"]
+    monkeypatch.delenv("FACADE_BUDGET", raising=False)
+    cpu = load_building_config("demo").tables["train_gs"]
+    assert (cpu["iterations"], cpu["patch_px"], cpu["reflection"]["mlp"]["width"]) == (700, 128, 256)
+    monkeypatch.setenv("FACADE_BUDGET", "gpu")
+    gpu = load_building_config("demo").tables["train_gs"]
+    assert (gpu["iterations"], gpu["patch_px"]) == (default["iterations"], 0)
+    assert gpu["reflection"]["mlp"] == default["reflection"]["mlp"]
+    assert cpu["pose_refinement"] is gpu["pose_refinement"] is True
+    monkeypatch.setenv("FACADE_BUDGET", "cpu")
+    assert load_building_config("demo").tables["train_gs"] == cpu
+
+
+def test_a_bad_budget_names_the_variable_or_the_key(cfg_dir, monkeypatch):
+    monkeypatch.setenv("FACADE_BUDGET", "tpu")
+    with pytest.raises(ConfigError, match=r"\$FACADE_BUDGET one of cpu, gpu, found 'tpu'"):
+        load_building_config("demo", cfg_dir)
+    monkeypatch.delenv("FACADE_BUDGET")
+    real = '[building]\nkind = "real"\ndescription = "x"\n'
+    p = _write(cfg_dir, "typo", real + "[budget.gpu.train_gs]\niteratoins = 5\n")
+    with pytest.raises(ConfigError, match="unknown key 'budget.gpu.train_gs.iteratoins'") as e:
+        load_building_config("typo", cfg_dir)  # an unused budget's typo shows too
+    assert str(p) in str(e.value)
+    _write(cfg_dir, "typo", real + "[budget.fast.train_gs]\niterations = 5\n")
+    with pytest.raises(ConfigError, match=r"name one of cpu, gpu, found \[budget.fast\]"):
+        load_building_config("typo", cfg_dir)
+    _write(cfg_dir, "ok", real + "[train_gs]\niterations = 7\n[budget.gpu.train_gs]\niterations = 5\n")
+    assert load_building_config("ok", cfg_dir).tables["train_gs"]["iterations"] == 7
+    monkeypatch.setenv("FACADE_BUDGET", "gpu")
+    assert load_building_config("ok", cfg_dir).tables["train_gs"]["iterations"] == 5
