@@ -45,7 +45,7 @@ from facade_pipeline.geometry.camera import PinholeCamera  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.training.data import TrainView  # noqa: E402
 from facade_pipeline.training.params import TrainParams, replace_keys  # noqa: E402
-from facade_pipeline.training.render import splatting_rasterizer  # noqa: E402
+from facade_pipeline.training.render import training_rasterizer  # noqa: E402
 from facade_pipeline.training.trained import TrainedModelFiles  # noqa: E402
 from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
 from stages import PIPELINE, load_stage  # noqa: E402
@@ -157,7 +157,7 @@ def child(
     run = load_building_config(building).run
     device = resolve_device(run.device)
     t0 = time.perf_counter()
-    tr = build_trainer(p, data, splatting_rasterizer(run.raster_backend, p.lowpass_sigma_px), device)
+    tr = build_trainer(p, data, training_rasterizer(run.raster_backend, p.lowpass_sigma_px, device), device)
     train(tr)
     t_train = time.perf_counter() - t0
     tm = from_trainer(tr, label, run.raster_backend)

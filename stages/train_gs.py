@@ -206,7 +206,7 @@ def clipped_fraction(data: TrainData) -> float | None:
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.training.batches import exposure_gains
-    from facade_pipeline.training.render import splatting_rasterizer
+    from facade_pipeline.training.render import training_rasterizer
     from facade_pipeline.training.trainer import (
         TrainingDivergedError,
         build_trainer,
@@ -217,7 +217,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
 
     data = load_train_data(layout, params)
     device = resolve_device(settings.device)
-    rasterize = splatting_rasterizer(settings.raster_backend, params.lowpass_sigma_px)
+    rasterize = training_rasterizer(settings.raster_backend, params.lowpass_sigma_px, device)
     fp = fingerprint(layout, params)
     ckpt = layout.path("train_checkpoint")
     tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)

@@ -14,9 +14,10 @@ from typing import Protocol
 import torch
 from torch import Tensor, nn
 
+from facade_pipeline.errors import ConfigError
 from facade_pipeline.shading import deferred
 from facade_pipeline.shading.sh import eval_sh
-from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX
+from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, is_reference_lowpass
 from facade_pipeline.training.model import GaussianModel
 
 Window = tuple[int, int, int, int]  # (x0, y0, width, height) in pixels of the full image
@@ -135,6 +136,34 @@ def splatting_rasterizer(backend: str, lowpass_sigma_px: float = LOWPASS_SIGMA_P
         return RasterOutput(out.features, out.alpha, out.depth_expected, out.normal, out.distortion)
 
     return rasterize
+
+
+def training_backend(backend: str, device_type: str, lowpass_sigma_px: float, gsplat_installed: bool) -> str:
+    """The backend ``[run] raster_backend`` trains with on a ``device_type`` device. On CUDA "auto" is gsplat
+    where it is installed; gsplat has 2DGS's low-pass sigma built in, and rendering another one with the
+    exact torch backend instead is 30-170 times slower (benchmarks/RESULTS.md, GPU), so "auto" refuses it
+    rather than training at CPU speed on a GPU: the torch backend is there for it by name. Without gsplat
+    "auto" stays the torch backend, which ``render_2dgs`` warns about. Pure: the choice is tested without
+    CUDA."""
+    if device_type != "cuda" or backend != "auto" or not gsplat_installed:
+        return backend
+    if not is_reference_lowpass(lowpass_sigma_px):
+        raise ConfigError(
+            None,
+            f"train_gs.lowpass_sigma_px = {LOWPASS_SIGMA_PX:.4f} (the only sigma gsplat renders) on CUDA "
+            'with [run] raster_backend = "auto"',
+            f'{lowpass_sigma_px}: set 0.7071, or raster_backend = "torch" to train with the exact torch '
+            "backend (30-170 times slower)",
+        )
+    return "gsplat"
+
+
+def training_rasterizer(backend: str, lowpass_sigma_px: float, device: torch.device) -> Rasterizer:
+    """The rasterizer a training run on ``device`` renders with (``training_backend``'s choice)."""
+    from facade_pipeline.splatting import gsplat_backend
+
+    chosen = training_backend(backend, device.type, lowpass_sigma_px, gsplat_backend.available())
+    return splatting_rasterizer(chosen, lowpass_sigma_px)
 
 
 def splat_features(model: GaussianModel, centre: Tensor, sh_degree: int) -> Tensor:  # -> [N, 7]
