@@ -269,7 +269,7 @@ def save_variant(a, name: str, tr) -> None:
     data = tr.data
     split: dict = {k: [data.views[i].stem for i in idx] for k, idx in (("train", data.train_idx),
                                                                       ("test", data.test_idx))}  # fmt: skip
-    gains = exposure_gains(tr)
+    gains = exposure_gains(tr.gains, tr.data)
     if gains:
         split["exposure_gain"] = gains
     folder = "".join(c if c.isalnum() else "_" for c in name)

@@ -170,7 +170,7 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list
         "train": [views[i].stem for i in tr.data.train_idx],
         "test": [views[i].stem for i in tr.data.test_idx],
     }
-    gains = exposure_gains(tr)
+    gains = exposure_gains(tr.gains, tr.data)
     if gains:
         split["exposure_gain"] = gains
     files = TrainedModelFiles.pipeline(layout, to_dict(tr.params))
@@ -268,7 +268,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "view_psnr": [r.get("view_psnr") for r in tr.log],
             "view_size_px": [data.views[0].camera.width, data.views[0].camera.height],
             "clipped_fraction": clipped_fraction(data),
-            "exposure_gain": exposure_gains(tr),
+            "exposure_gain": exposure_gains(tr.gains, tr.data),
             "test_psnr": metrics["psnr"],
             "test_ssim": metrics["ssim"],
             "test_psnr_glass": metrics["psnr_glass"],

@@ -2,25 +2,22 @@
 facade, ``random_window``), its data on the device (``view_tensors`` -> ``ViewTensors``), the view's camera
 as training sees it (``camera``: with its pose correction) and its exposure gain (estimated from the photos
 before training and carried by the data, ``training.exposure``; applied through ``exposure_gain``). Here
-apart from the loop so that a step reads as draw, render, compare, update; every random draw comes from
-the trainer's one generator, in the order the step makes them."""
+apart from the loop so that a step reads as draw, render, compare, update; each function takes the parts of
+the trainer it reads, and every random draw comes from the trainer's one generator, in the order the step
+makes them."""
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from facade_pipeline.training.data import TrainView
+from facade_pipeline.training.corrections import ViewCorrections
+from facade_pipeline.training.data import TrainData, TrainView
 from facade_pipeline.training.render import Camera, Window
-
-if TYPE_CHECKING:
-    from facade_pipeline.training.trainer import Trainer
-
 
 
 def random_int(gen: torch.Generator, high: int) -> int:
@@ -28,23 +25,24 @@ def random_int(gen: torch.Generator, high: int) -> int:
     return int(torch.randint(high, (1,), generator=gen))
 
 
-def random_window(tr: Trainer, index: int) -> Window:
-    """The whole image, or a random patch of ``patch_px`` centred on a random facade pixel (patches off the
-    facade would teach nothing when the loss is masked by it)."""
-    cam, p = tr.cameras[index], tr.params.patch_px
+def random_window(
+    cam: Camera, facade_mask: np.ndarray | None, patch_px: int, gen: torch.Generator
+) -> Window:
+    """The whole image, or a random patch of ``patch_px`` centred on a random pixel of ``facade_mask``
+    (patches off the facade would teach nothing when the loss is masked by it; None: anywhere)."""
+    p = patch_px
     if p <= 0 or (p >= cam.width and p >= cam.height):
         return (0, 0, cam.width, cam.height)
     pw, ph = min(p, cam.width), min(p, cam.height)
-    mask = tr.data.views[index].facade_mask
-    ys, xs = np.nonzero(mask) if tr.params.mask_by_facade else (np.zeros(0), np.zeros(0))
+    ys, xs = np.nonzero(facade_mask) if facade_mask is not None else (np.zeros(0), np.zeros(0))
     if len(xs) == 0:
         return (
-            random_int(tr.generator, cam.width - pw + 1),
-            random_int(tr.generator, cam.height - ph + 1),
+            random_int(gen, cam.width - pw + 1),
+            random_int(gen, cam.height - ph + 1),
             pw,
             ph,
         )
-    k = random_int(tr.generator, len(xs))
+    k = random_int(gen, len(xs))
     x0 = int(np.clip(xs[k] - pw // 2, 0, cam.width - pw))
     y0 = int(np.clip(ys[k] - ph // 2, 0, cam.height - ph))
     return (x0, y0, pw, ph)
@@ -94,30 +92,30 @@ def view_tensors(view: ViewTensors, window: Window) -> ViewTensors:
     )
 
 
-def camera(tr: Trainer, index: int) -> Camera:
-    """View ``index``'s camera as training sees it: with its pose correction when poses are refined."""
-    cam = tr.cameras[index]
-    if tr.corrections is None:
+def camera(cam: Camera, corrections: ViewCorrections | None, index: int) -> Camera:
+    """View ``index``'s camera ``cam`` as training sees it: with its pose correction when poses are
+    refined (``corrections``)."""
+    if corrections is None:
         return cam
-    return Camera(cam.K, tr.corrections.cam_from_world(index, cam.cam_from_world), cam.width, cam.height)
+    return Camera(cam.K, corrections.cam_from_world(index, cam.cam_from_world), cam.width, cam.height)
 
 
-def exposure_gain(tr: Trainer, index: int) -> Tensor | None:
-    """View ``index``'s exposure gain per colour channel [3] as estimated before training
-    (``exposure_estimate``), relative to the training views' geometric mean so that the splats keep the
-    mean exposure; None for held-out views and without the estimate."""
-    if index not in tr.data.train_idx or tr.gains is None:
+def exposure_gain(gains: Tensor | None, train_idx: tuple[int, ...], index: int) -> Tensor | None:
+    """View ``index``'s exposure gain per colour channel [3] of ``gains`` [V, 3], as estimated before
+    training (``exposure_estimate``), relative to the training views' geometric mean so that the splats
+    keep the mean exposure; None for held-out views and without the estimate (``gains`` None)."""
+    if index not in train_idx or gains is None:
         return None
-    return tr.gains[index]
+    return gains[index]
 
 
 @torch.no_grad()
-def exposure_gains(tr: Trainer) -> dict[str, list[float]]:
+def exposure_gains(gains: Tensor | None, data: TrainData) -> dict[str, list[float]]:
     """Each training view's exposure gain per colour channel as trained (stem -> [r, g, b]); empty when
     training assumed one exposure for all views."""
     out = {}
-    for i in tr.data.train_idx:
-        gain = exposure_gain(tr, i)
+    for i in data.train_idx:
+        gain = exposure_gain(gains, data.train_idx, i)
         if gain is not None:
-            out[tr.data.views[i].stem] = [round(float(x), 5) for x in gain]
+            out[data.views[i].stem] = [round(float(x), 5) for x in gain]
     return out

@@ -5,17 +5,12 @@ constants and parameters of their own, which the loop only applies."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch import nn
 
 from facade_pipeline.training.model import PARAM_NAMES, GaussianModel
 from facade_pipeline.training.params import TrainParams
 from facade_pipeline.training.schedule import position_lr, reflection_lr
-
-if TYPE_CHECKING:
-    from facade_pipeline.training.trainer import Trainer
 
 # Adam rates of the splat attributes that 2DGS shares with 3DGS (their training defaults; DESIGN.md). They
 # are per-attribute rates on activation-space parameters, not tied to a scene's size, and were never tuned
@@ -61,12 +56,13 @@ def reflection_optimizer(p: TrainParams, module: nn.Module) -> torch.optim.Adam:
     return torch.optim.Adam(groups)
 
 
-def set_learning_rates(tr: Trainer) -> None:
-    """The decaying rates (splat positions, the reflection module) at the trainer's iteration."""
-    p, it = tr.params, tr.iteration
-    for g in tr.opt.param_groups:
+def set_learning_rates(
+    opt: torch.optim.Adam, opt_refl: torch.optim.Adam | None, p: TrainParams, extent: float, it: int
+) -> None:
+    """The decaying rates (splat positions, the reflection module) at iteration ``it``."""
+    for g in opt.param_groups:
         if g["name"] == "means":
-            g["lr"] = position_lr(p, tr.extent, it)
-    if tr.opt_refl is not None:
-        for g in tr.opt_refl.param_groups:
+            g["lr"] = position_lr(p, extent, it)
+    if opt_refl is not None:
+        for g in opt_refl.param_groups:
             g["lr"] = reflection_lr(p, it, g["name"])

@@ -316,7 +316,7 @@ def render_window(
     """Render a window of view ``index`` with the current model (from its corrected pose, if poses are
     refined, and with its exposure gain, if exposures are); returns it with the view's data there. ``cam``
     replaces the view's camera."""
-    cam = camera(tr, index) if cam is None else cam
+    cam = camera(tr.cameras[index], tr.corrections, index) if cam is None else cam
     vt = view_tensors(tr.views[index], window)
     r = render_view(
         tr.model,
@@ -331,7 +331,7 @@ def render_window(
         select=select,
         chunk=chunk,
     )
-    gain = exposure_gain(tr, index)
+    gain = exposure_gain(tr.gains, tr.data.train_idx, index)
     if gain is not None:
         r = dataclasses.replace(r, rgb=r.rgb * gain.to(r.rgb.dtype))
     return r, vt
@@ -345,10 +345,11 @@ def step(tr: Trainer) -> dict[str, Tensor]:
     ``check_state`` when ``train`` reads the figures."""
     p = tr.params
     every_step = tr.device.type == "cpu"
-    set_learning_rates(tr)
+    set_learning_rates(tr.opt, tr.opt_refl, p, tr.extent, tr.iteration)
     index = tr.data.train_idx[random_int(tr.generator, len(tr.data.train_idx))]
     cam = tr.cameras[index]  # the imported pose: the view-space gradients for densification
-    window = random_window(tr, index)
+    mask = tr.data.views[index].facade_mask if p.mask_by_facade else None
+    window = random_window(cam, mask, p.patch_px, tr.generator)
     r, vt = render_window(
         tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.generator)
     )
