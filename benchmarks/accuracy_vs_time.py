@@ -170,14 +170,15 @@ def child(
             for k, idx in (("train", full.train_idx), ("test", full.test_idx))
         }
         files = TrainedModelFiles.variant(layout.path("variant_dir", variant=slug(label)), to_dict(p))
-        files.save(tr.model, tr.reflection, p.reflection_strategy(data.bounds), data.bounds, split)
+        strategy = p.reflection_strategy(data.bounds)
+        files.save(tr.state.model, tr.state.reflection, strategy, data.bounds, split)
     return {
         "label": label,
         "changes": changes,
         "train_s": round(t_train, 2),
         "eval_s": round(t_eval, 2),
         "peak_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        "n_gaussians": tr.model.n,
+        "n_gaussians": tr.state.model.n,
         "test_views": len(full.test_idx),
         "mean": mean,
         "params": to_dict(p),

@@ -204,7 +204,7 @@ def main() -> None:
         if a.save_variants:
             save_variant(a, name, tr)
         ev, ev_aligned = measure(tr, name, data, align)
-        rows.append((name, ev, ev_aligned, wall, tr.model.n))
+        rows.append((name, ev, ev_aligned, wall, tr.state.model.n))
         print(
             f"\n{name}: glass PSNR {ev['psnr_glass']:.2f} dB, facade PSNR {ev['psnr']:.2f} dB, "
             f"normal error {ev['normal_error_glass_deg']:.2f} deg, {wall:.0f} s"
@@ -237,8 +237,8 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
         sync()
         ms = 1000.0 * (time.perf_counter() - t0) / a.speed
         mem = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")
-        rows.append((name, ms, mem, tr.model.n))
-        print(f"{name}: {ms:.1f} ms per iteration, peak {mem:.2f} GiB, {tr.model.n} splats", flush=True)
+        rows.append((name, ms, mem, tr.state.model.n))
+        print(f"{name}: {ms:.1f} ms per iteration, peak {mem:.2f} GiB, {tr.state.model.n} splats", flush=True)
     where = machine()
     if device.type == "cuda":
         where += f" GPU: {torch.cuda.get_device_name(device)} (torch {torch.__version__})."
@@ -275,7 +275,8 @@ def save_variant(a, name: str, tr) -> None:
     folder = "".join(c if c.isalnum() else "_" for c in name)
     layout = BuildingLayout(Path(a.data_root), a.building)
     files = TrainedModelFiles.variant(layout.path("variant_dir", variant=folder), to_dict(tr.params), name)
-    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(data.bounds), data.bounds, split)
+    strategy = tr.params.reflection_strategy(data.bounds)
+    files.save(tr.state.model, tr.state.reflection, strategy, data.bounds, split)
 
 
 def measure(tr, name: str, data: TrainData, align: AlignParams) -> tuple[dict, dict | None]:

@@ -174,8 +174,9 @@ def _save_outputs(layout: BuildingLayout, tr: Trainer, evaluation: dict) -> list
     if gains:
         split["exposure_gain"] = gains
     files = TrainedModelFiles.pipeline(layout, to_dict(tr.params))
-    files.save(tr.model, tr.reflection, tr.params.reflection_strategy(tr.data.bounds), tr.data.bounds, split)
-    lines = [json.dumps(rec) for rec in tr.log] + [json.dumps({"evaluation": evaluation})]
+    strategy = tr.params.reflection_strategy(tr.data.bounds)
+    files.save(tr.state.model, tr.state.reflection, strategy, tr.data.bounds, split)
+    lines = [json.dumps(rec) for rec in tr.state.log] + [json.dumps({"evaluation": evaluation})]
     write_text(layout.path("train_log"), "\n".join(lines) + "\n")
     return targets(layout, tr.params)
 
@@ -221,16 +222,17 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     fp = fingerprint(layout, params)
     ckpt = layout.path("train_checkpoint")
     tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)
-    resumed_from = 0 if tr is None else tr.iteration
+    resumed_from = 0 if tr is None else tr.state.iteration
     tr = tr or build_trainer(params, data, rasterize, device)
     with tqdm(
-        total=params.iterations, initial=tr.iteration, desc="train_gs", unit="it", file=sys.stderr
+        total=params.iterations, initial=tr.state.iteration, desc="train_gs", unit="it", file=sys.stderr
     ) as bar:
 
         def progress(it: int, total: int, out: dict) -> None:
             bar.update(it - bar.n)
             if "loss" in out:  # the figures of the last log line ([run] log_every)
-                view = tr.log[-1].get("view_psnr") if tr.log else None  # the whole views' at that check
+                # the whole views' at that check
+                view = tr.state.log[-1].get("view_psnr") if tr.state.log else None
                 figures = {"loss": f"{out['loss']:.4f}", "psnr": f"{out['psnr']:.2f}", "view": view}
                 bar.set_postfix(**figures, n=out["n"], refresh=False)
 
@@ -248,16 +250,16 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             raise TrainingDivergedError(None, e.expected, e.found + kept) from None
     metrics = held_out_evaluation(tr, settings.raster_backend)
     outputs = _save_outputs(layout, tr, metrics)
-    last = tr.log[-1] if tr.log else {}
-    surroundings = getattr(getattr(tr.reflection, "proxy", None), "surroundings", None)
+    last = tr.state.log[-1] if tr.state.log else {}
+    surroundings = getattr(getattr(tr.state.reflection, "proxy", None), "surroundings", None)
     # cells of the proxy's surface model above the ground (0: the coarse points hold no surroundings)
     cells = None if surroundings is None else int((surroundings.heights[1] > 0).sum())
     return StageReport(
         outputs,
         {
-            "iterations": tr.iteration,
+            "iterations": tr.state.iteration,
             "resumed_from_iteration": resumed_from,
-            "n_gaussians": tr.model.n,
+            "n_gaussians": tr.state.model.n,
             "reflection_model": params.reflection.model,
             "device": str(device),
             "n_train_views": len(data.train_idx),
@@ -265,7 +267,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "n_views_without_facade": len(data.views) - len(data.train_idx) - len(data.test_idx),
             "final_train_loss": last.get("loss"),
             "final_train_psnr": last.get("psnr"),
-            "view_psnr": [r.get("view_psnr") for r in tr.log],
+            "view_psnr": [r.get("view_psnr") for r in tr.state.log],
             "view_size_px": [data.views[0].camera.width, data.views[0].camera.height],
             "clipped_fraction": clipped_fraction(data),
             "exposure_gain": exposure_gains(tr.gains, tr.data),

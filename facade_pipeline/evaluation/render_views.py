@@ -119,11 +119,11 @@ def from_trainer(tr: Trainer, name: str, backend: str = "auto") -> TrainedModel:
     p = tr.params
     return TrainedModel(
         name,
-        tr.model,
-        tr.reflection,
+        tr.state.model,
+        tr.state.reflection,
         p.reflection_strategy(tr.data.bounds),
         tr.shading,
-        active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration),
+        active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.state.iteration),
         tr.near,
         backend,
         p.lowpass_sigma_px,

@@ -1,5 +1,6 @@
-"""Checkpoints: what a trainer's checkpoint holds, writing it atomically (``save_checkpoint``,
-``save_torch``) and reading it back (``read_checkpoint``) with the reasons one is not resumed.
+"""Checkpoints: what a trainer's checkpoint holds (``TrainState``, everything a step changes), writing it
+atomically (``save_checkpoint``, ``save_torch``) and reading it back (``read_checkpoint``) with the reasons
+one is not resumed.
 
 A checkpoint holds everything needed to continue exactly (the model, the optimisers' moments, the one
 random generator), the fingerprint of the parameters, inputs and code it was made with, and the parameters
@@ -13,40 +14,64 @@ from __future__ import annotations
 import io
 import logging
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
+from torch import nn
 
 from facade_pipeline.config import to_dict
 from facade_pipeline.io.atomic import write_bytes
+from facade_pipeline.training.corrections import ViewCorrections
+from facade_pipeline.training.densify import DensifyStats
+from facade_pipeline.training.model import GaussianModel
 from facade_pipeline.training.params import TrainParams
-
-if TYPE_CHECKING:
-    from facade_pipeline.training.trainer import Trainer
 
 log = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = 2
 
 
-def save_checkpoint(tr: Trainer, path: str | Path, fingerprint: str) -> None:
+@dataclass
+class TrainState:
+    """Everything a training step changes, and so everything a checkpoint holds: the splats, the reflection
+    module, the per-view pose corrections, their optimisers, the one random generator, the densification
+    statistics, the iteration and the training log."""
+
+    model: GaussianModel
+    reflection: nn.Module | None
+    """the specular term's module (None: no specular term)"""
+    corrections: ViewCorrections | None
+    """per-view pose corrections (``pose_refinement``), else None"""
+    opt: torch.optim.Adam
+    opt_refl: torch.optim.Adam | None
+    opt_corrections: torch.optim.Adam | None
+    generator: torch.Generator
+    """every random draw of training (view order, patches, pixel subsets, densification)"""
+    stats: DensifyStats
+    iteration: int = 0
+    log: list[dict[str, Any]] = field(default_factory=list)
+
+
+def save_checkpoint(state: TrainState, params: TrainParams, path: str | Path, fingerprint: str) -> None:
     """Everything needed to continue exactly, written atomically."""
-    state = {
+    s = state
+    saved = {
         "format": CHECKPOINT_FORMAT,
         "fingerprint": fingerprint,
-        "params": to_dict(tr.params),  # to tell, when it does not match, what changed
-        "iteration": tr.iteration,
-        "model": tr.model.state(),
-        "opt": tr.opt.state_dict(),
-        "reflection": None if tr.reflection is None else tr.reflection.state_dict(),
-        "opt_refl": None if tr.opt_refl is None else tr.opt_refl.state_dict(),
-        "corrections": None if tr.corrections is None else tr.corrections.state_dict(),
-        "opt_corrections": None if tr.opt_corrections is None else tr.opt_corrections.state_dict(),
-        "generator": tr.generator.get_state(),
-        "stats": {"grad_accum": tr.stats.grad_accum, "count": tr.stats.count},
-        "log": tr.log,
+        "params": to_dict(params),  # to tell, when it does not match, what changed
+        "iteration": s.iteration,
+        "model": s.model.state(),
+        "opt": s.opt.state_dict(),
+        "reflection": None if s.reflection is None else s.reflection.state_dict(),
+        "opt_refl": None if s.opt_refl is None else s.opt_refl.state_dict(),
+        "corrections": None if s.corrections is None else s.corrections.state_dict(),
+        "opt_corrections": None if s.opt_corrections is None else s.opt_corrections.state_dict(),
+        "generator": s.generator.get_state(),
+        "stats": {"grad_accum": s.stats.grad_accum, "count": s.stats.count},
+        "log": s.log,
     }
-    save_torch(path, state)
+    save_torch(path, saved)
 
 
 def save_torch(path: str | Path, obj: Any) -> None:

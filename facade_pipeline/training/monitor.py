@@ -66,14 +66,15 @@ def monitored(tr: Trainer, record: dict[str, Any]) -> dict[str, Any]:
     if math.isnan(value):
         raise TrainingDivergedError(
             None,
-            f"a finite whole-view PSNR at iteration {tr.iteration}",
+            f"a finite whole-view PSNR at iteration {tr.state.iteration}",
             "NaN (the render or the photos' masks hold no finite pixel; lower train_gs.lr.*)",
         )
-    best = max((r["view_psnr"] for r in tr.log if r.get("view_psnr") is not None), default=-math.inf)
+    best = max((r["view_psnr"] for r in tr.state.log if r.get("view_psnr") is not None), default=-math.inf)
     if value < best - DIVERGENCE_DROP_DB:
         raise TrainingDivergedError(
             None,
-            f"a whole-view PSNR within {DIVERGENCE_DROP_DB:g} dB of its best at iteration {tr.iteration}",
+            f"a whole-view PSNR within {DIVERGENCE_DROP_DB:g} dB of its best at iteration "
+            f"{tr.state.iteration}",
             f"{value:.2f} dB after {best:.2f} dB (diverging: lower train_gs.lr.*)",
         )
     return {**record, "view_psnr": round(value, 4) if math.isfinite(value) else None}

@@ -1,7 +1,7 @@
-"""The training loop: the ``Trainer`` (everything that changes during training), ``build_trainer`` (at
-iteration 0) and ``load_checkpoint`` (from a checkpoint), ``step`` (one optimisation step: draw a window,
-render it, the losses, update, check for divergence, densify when due) and ``train`` (steps with
-checkpoints and a progress callback).
+"""The training loop: the ``Trainer`` (a run: its parameters, its data on the device and its ``TrainState``,
+everything a step changes), ``build_trainer`` (at iteration 0) and ``load_checkpoint`` (from a checkpoint),
+``step`` (one optimisation step: draw a window, render it, the losses, update, check for divergence,
+densify when due) and ``train`` (steps with checkpoints and a progress callback).
 
 What a step uses lives beside it: the window and data of a view (``training.batches``), the losses
 (``training.losses``, Eq. 13), the optimisers and their rates (``training.optimizers``,
@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.shading.reflection import build_reflection_module
@@ -33,7 +33,7 @@ from facade_pipeline.training.batches import (
     view_tensors,
     views_on_device,
 )
-from facade_pipeline.training.checkpoints import read_checkpoint, save_checkpoint
+from facade_pipeline.training.checkpoints import TrainState, read_checkpoint, save_checkpoint
 from facade_pipeline.training.corrections import ViewCorrections
 from facade_pipeline.training.data import ExposureEstimate, TrainData
 from facade_pipeline.training.densify import (
@@ -86,39 +86,25 @@ class TrainingDivergedError(PipelineError):
 
 @dataclass
 class Trainer:
-    """Everything that changes during training, and what it is trained on."""
+    """A training run: its parameters (``params``, the one config), what it trains on (``data``, with what
+    a step reads of it moved to ``device`` once: ``views``, ``cameras``, ``gains``, ``shading``), its
+    rasterizer, and ``state``, everything a step changes (what a checkpoint holds). Made one way:
+    ``build_trainer`` at iteration 0, ``load_checkpoint`` from a checkpoint, both through ``_assemble``."""
 
     params: TrainParams
     data: TrainData
     device: torch.device
     rasterize: Rasterizer
-    model: GaussianModel
-    reflection: nn.Module | None
-    opt: torch.optim.Adam
-    opt_refl: torch.optim.Adam | None
-    generator: torch.Generator
-    stats: DensifyStats
+    state: TrainState
     shading: ShadingOptions
     cameras: list[Camera]
-    iteration: int = 0
-    log: list[dict[str, Any]] = field(default_factory=list)
-    corrections: ViewCorrections | None = None
-    """per-view pose corrections (``pose_refinement``), else None"""
-    opt_corrections: torch.optim.Adam | None = None
-    exposure: ExposureEstimate | None = None
-    """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
-
-    views: tuple[ViewTensors, ...] = field(init=False, repr=False)
+    """every view's imported camera on the device"""
+    views: tuple[ViewTensors, ...] = field(repr=False)
     """every view's data on the device (``batches.views_on_device``)"""
-    gains: Tensor | None = field(init=False, repr=False)
+    exposure: ExposureEstimate | None
+    """per-view gains estimated from the photos before training (``exposure_estimate``), else None"""
+    gains: Tensor | None = field(repr=False)
     """[V, 3] the exposure gains on the device (``exposure``), else None"""
-
-    def __post_init__(self) -> None:
-        self.views = views_on_device(self.data.views, self.params.mask_by_facade, self.device)
-        self.gains = None
-        if self.exposure is not None:
-            log_gain = torch.as_tensor(self.exposure.log_gain, dtype=torch.float32, device=self.device)
-            self.gains = log_gain.exp()
 
     @property
     def extent(self) -> float:
@@ -138,7 +124,38 @@ def resolve_device(choice: str) -> torch.device:
     return torch.device(choice)
 
 
-def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: GaussianModel):
+def _build_corrections(
+    p: TrainParams, n_views: int, device: torch.device
+) -> tuple[ViewCorrections | None, torch.optim.Adam | None]:
+    if not p.pose_refinement:
+        return None, None
+    corr = ViewCorrections(n_views, device, pose=True)
+    return corr, corr.optimizer(LR_POSE_ROTATION, LR_POSE_TRANSLATION, lr_exposure=0.0)
+
+
+def _exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
+    if not p.exposure_estimate:
+        return None
+    if data.exposure is None:
+        raise PipelineError(
+            None,
+            "the views' exposure estimate in the training data (train_gs.exposure_estimate = true)",
+            "none: build the data with training.exposure.with_exposure_estimate (a bundle written without "
+            "it: write it again) or set exposure_estimate = false",
+        )
+    return data.exposure
+
+
+def _assemble(
+    p: TrainParams,
+    data: TrainData,
+    rasterize: Rasterizer,
+    device: torch.device,
+    model: GaussianModel,
+    saved: dict[str, Any] | None = None,
+) -> Trainer:
+    """The one way a trainer is made: around ``model``, every other part new at iteration 0, or, given
+    ``saved`` (a checkpoint's state, ``checkpoints.read_checkpoint``), as it was saved."""
     lo, hi = data.bounds
     f32 = dict(dtype=torch.float32, device=device)
     if p.supersample < 1:
@@ -169,29 +186,37 @@ def _build_parts(p: TrainParams, data: TrainData, device: torch.device, model: G
         )
         for v in data.views
     ]
-    return reflection, opt, opt_refl, shading, cameras
-
-
-def _build_corrections(
-    p: TrainParams, n_views: int, device: torch.device
-) -> tuple[ViewCorrections | None, torch.optim.Adam | None]:
-    if not p.pose_refinement:
-        return None, None
-    corr = ViewCorrections(n_views, device, pose=True)
-    return corr, corr.optimizer(LR_POSE_ROTATION, LR_POSE_TRANSLATION, lr_exposure=0.0)
-
-
-def _exposure(p: TrainParams, data: TrainData) -> ExposureEstimate | None:
-    if not p.exposure_estimate:
-        return None
-    if data.exposure is None:
-        raise PipelineError(
-            None,
-            "the views' exposure estimate in the training data (train_gs.exposure_estimate = true)",
-            "none: build the data with training.exposure.with_exposure_estimate (a bundle written without "
-            "it: write it again) or set exposure_estimate = false",
-        )
-    return data.exposure
+    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
+    generator = torch.Generator(device="cpu")
+    if saved is None:
+        generator.manual_seed(p.seed)
+        stats, iteration, log_ = DensifyStats.zeros(model.n, device), 0, []
+    else:
+        opt.load_state_dict(saved["opt"])
+        if reflection is not None:
+            reflection.load_state_dict(saved["reflection"])
+            opt_refl.load_state_dict(saved["opt_refl"])
+        if corrections is not None:
+            corrections.load_state_dict(saved["corrections"])
+            opt_corrections.load_state_dict(saved["opt_corrections"])
+        generator.set_state(saved["generator"])
+        stats = DensifyStats(saved["stats"]["grad_accum"].to(device), saved["stats"]["count"].to(device))
+        iteration, log_ = saved["iteration"], list(saved["log"])
+    exposure = _exposure(p, data)
+    state = TrainState(model, reflection, corrections, opt, opt_refl, opt_corrections, generator, stats,
+                       iteration, log_)  # fmt: skip
+    return Trainer(
+        params=p,
+        data=data,
+        device=device,
+        rasterize=rasterize,
+        state=state,
+        shading=shading,
+        cameras=cameras,
+        views=views_on_device(data.views, p.mask_by_facade, device),
+        exposure=exposure,
+        gains=None if exposure is None else torch.as_tensor(exposure.log_gain, **f32).exp(),
+    )
 
 
 def build_trainer(
@@ -216,27 +241,7 @@ def build_trainer(
         p.seed,
         device,
     )
-    reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
-    gen = torch.Generator(device="cpu")
-    gen.manual_seed(p.seed)
-    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
-    return Trainer(
-        p,
-        data,
-        device,
-        rasterize,
-        model,
-        reflection,
-        opt,
-        opt_refl,
-        gen,
-        DensifyStats.zeros(model.n, device),
-        shading,
-        cameras,
-        corrections=corrections,
-        opt_corrections=opt_corrections,
-        exposure=_exposure(p, data),
-    )
+    return _assemble(p, data, rasterize, device, model)
 
 
 def load_checkpoint(
@@ -249,42 +254,11 @@ def load_checkpoint(
 ) -> Trainer | None:
     """The trainer saved at ``path``, or None when ``checkpoints.read_checkpoint`` finds none to resume
     (none there, other parameters or inputs, an older format, a damaged file moved aside: the log says)."""
-    state = read_checkpoint(path, p, fingerprint)
-    if state is None:
+    saved = read_checkpoint(path, p, fingerprint)
+    if saved is None:
         return None
     device = torch.device(device)
-    model = GaussianModel.from_state(state["model"], device)
-    reflection, opt, opt_refl, shading, cameras = _build_parts(p, data, device, model)
-    opt.load_state_dict(state["opt"])
-    if reflection is not None:
-        reflection.load_state_dict(state["reflection"])
-        opt_refl.load_state_dict(state["opt_refl"])
-    corrections, opt_corrections = _build_corrections(p, len(data.views), device)
-    if corrections is not None:
-        corrections.load_state_dict(state["corrections"])
-        opt_corrections.load_state_dict(state["opt_corrections"])
-    gen = torch.Generator(device="cpu")
-    gen.set_state(state["generator"])
-    stats = DensifyStats(state["stats"]["grad_accum"].to(device), state["stats"]["count"].to(device))
-    return Trainer(
-        p,
-        data,
-        device,
-        rasterize,
-        model,
-        reflection,
-        opt,
-        opt_refl,
-        gen,
-        stats,
-        shading,
-        cameras,
-        state["iteration"],
-        list(state["log"]),
-        corrections,
-        opt_corrections,
-        _exposure(p, data),
-    )
+    return _assemble(p, data, rasterize, device, GaussianModel.from_state(saved["model"], device), saved)
 
 
 def _check_finite(tr: Trainer, what: str, tensors: dict[str, Tensor | None]) -> None:
@@ -292,7 +266,7 @@ def _check_finite(tr: Trainer, what: str, tensors: dict[str, Tensor | None]) -> 
         if t is not None and not bool(torch.isfinite(t).all()):
             raise TrainingDivergedError(
                 None,
-                f"finite {what} at iteration {tr.iteration + 1}",
+                f"finite {what} at iteration {tr.state.iteration + 1}",
                 f"NaN or Inf in '{name}' (learning rates too high? lower train_gs.lr.*)",
             )
 
@@ -300,12 +274,12 @@ def _check_finite(tr: Trainer, what: str, tensors: dict[str, Tensor | None]) -> 
 def _check_extent(tr: Trainer) -> None:
     lo, hi = tr.shading.bounds_lo, tr.shading.bounds_hi
     centre = 0.5 * (lo + hi)
-    far = float((tr.model.means.detach() - centre).norm(dim=-1).max()) if tr.model.n else 0.0
+    far = float((tr.state.model.means.detach() - centre).norm(dim=-1).max()) if tr.state.model.n else 0.0
     limit = DIVERGENCE_EXTENT_FACTOR * tr.extent
     if far > limit:
         raise TrainingDivergedError(
             None,
-            f"splats within {limit:.1f} m of the facade at iteration {tr.iteration + 1}",
+            f"splats within {limit:.1f} m of the facade at iteration {tr.state.iteration + 1}",
             f"a splat {far:.3g} m away (exploding position learning rate? lower train_gs.lr.position_init)",
         )
 
@@ -316,16 +290,16 @@ def render_window(
     """Render a window of view ``index`` with the current model (from its corrected pose, if poses are
     refined, and with its exposure gain, if exposures are); returns it with the view's data there. ``cam``
     replaces the view's camera."""
-    cam = camera(tr.cameras[index], tr.corrections, index) if cam is None else cam
+    cam = camera(tr.cameras[index], tr.state.corrections, index) if cam is None else cam
     vt = view_tensors(tr.views[index], window)
     r = render_view(
-        tr.model,
-        tr.reflection,
+        tr.state.model,
+        tr.state.reflection,
         cam,
         window,
         tr.rasterize,
         tr.near,
-        active_sh_degree(tr.params.sh_degree, tr.params.sh_degree_interval, tr.iteration),
+        active_sh_degree(tr.params.sh_degree, tr.params.sh_degree_interval, tr.state.iteration),
         tr.shading,
         spec_mask=vt.mask,
         select=select,
@@ -345,42 +319,42 @@ def step(tr: Trainer) -> dict[str, Tensor]:
     ``check_state`` when ``train`` reads the figures."""
     p = tr.params
     every_step = tr.device.type == "cpu"
-    set_learning_rates(tr.opt, tr.opt_refl, p, tr.extent, tr.iteration)
-    index = tr.data.train_idx[random_int(tr.generator, len(tr.data.train_idx))]
+    set_learning_rates(tr.state.opt, tr.state.opt_refl, p, tr.extent, tr.state.iteration)
+    index = tr.data.train_idx[random_int(tr.state.generator, len(tr.data.train_idx))]
     cam = tr.cameras[index]  # the imported pose: the view-space gradients for densification
     mask = tr.data.views[index].facade_mask if p.mask_by_facade else None
-    window = random_window(cam, mask, p.patch_px, tr.generator)
+    window = random_window(cam, mask, p.patch_px, tr.state.generator)
     r, vt = render_window(
-        tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.generator)
+        tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.state.generator)
     )
-    terms = compute_losses(p, r, vt, tr.iteration)
+    terms = compute_losses(p, r, vt, tr.state.iteration)
     if every_step:
         _check_finite(tr, "loss terms", terms)
     terms["loss"].backward()
     if every_step:
-        grads = {n: t.grad for n, t in tr.model.params().items()}
-        if tr.corrections is not None:
-            grads |= {f"view_{n}": t.grad for n, t in tr.corrections.named_parameters()}
+        grads = {n: t.grad for n, t in tr.state.model.params().items()}
+        if tr.state.corrections is not None:
+            grads |= {f"view_{n}": t.grad for n, t in tr.state.corrections.named_parameters()}
         _check_finite(tr, "gradients", grads)
     densify_end = at_fraction(DENSIFY_END_FRACTION, p.iterations)
-    if tr.iteration < densify_end and tr.model.means.grad is not None:
+    if tr.state.iteration < densify_end and tr.state.model.means.grad is not None:
         g, vis = view_space_grad(
-            tr.model.means,
-            tr.model.means.grad,
+            tr.state.model.means,
+            tr.state.model.means.grad,
             cam.cam_from_world,
             cam.K,
             (cam.width, cam.height),
             window,
             tr.near,
         )
-        accumulate(tr.stats, g, vis)
-    for opt in (tr.opt, tr.opt_refl, tr.opt_corrections):
+        accumulate(tr.state.stats, g, vis)
+    for opt in (tr.state.opt, tr.state.opt_refl, tr.state.opt_corrections):
         if opt is not None:
             opt.step()
             opt.zero_grad(set_to_none=True)
     if every_step:
         check_state(tr)
-    tr.iteration += 1
+    tr.state.iteration += 1
     _densify_if_due(tr)
     out = {k: v.detach() for k, v in terms.items()}
     seen = recorded(r.rgb.detach(), vt.image, vt.clipped).clamp(0, 1)
@@ -391,22 +365,23 @@ def step(tr: Trainer) -> dict[str, Tensor]:
 def check_state(tr: Trainer) -> None:
     """Raise ``TrainingDivergedError`` where a parameter is NaN or Inf (where a loss or a gradient was,
     the optimiser's step has carried it into them) or a splat has flown off."""
-    _check_finite(tr, "parameters", {n: t for n, t in tr.model.params().items()})
+    _check_finite(tr, "parameters", {n: t for n, t in tr.state.model.params().items()})
     _check_extent(tr)
 
 
 def _densify_if_due(tr: Trainer) -> None:
-    p, d, it = tr.params, tr.params.densify, tr.iteration
+    p, d, it = tr.params, tr.params.densify, tr.state.iteration
     start, end = (at_fraction(f, p.iterations) for f in (DENSIFY_START_FRACTION, DENSIFY_END_FRACTION))
     if not start < it <= end:
         return
     if d.interval > 0 and it % d.interval == 0:
         prune_big = d.opacity_reset_interval > 0 and it > d.opacity_reset_interval
-        counts = densify_and_prune(tr.model, tr.opt, tr.stats, d, tr.extent, prune_big, tr.generator)
-        tr.stats = DensifyStats.zeros(tr.model.n, tr.device)
-        log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.model.n)
+        s = tr.state
+        counts = densify_and_prune(s.model, s.opt, s.stats, d, tr.extent, prune_big, s.generator)
+        tr.state.stats = DensifyStats.zeros(tr.state.model.n, tr.device)
+        log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.state.model.n)
     if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
-        reset_opacity(tr.model, tr.opt, OPACITY_RESET_VALUE)
+        reset_opacity(tr.state.model, tr.state.opt, OPACITY_RESET_VALUE)
 
 
 ProgressCallback = Callable[[int, int, dict[str, float]], None]
@@ -429,27 +404,27 @@ def train(
     the last log line (none before the first)."""
     p = tr.params
     end = p.iterations if stop_at is None else min(stop_at, p.iterations)
-    start = tr.iteration
+    start = tr.state.iteration
     figures: dict[str, float] = {}
-    while tr.iteration < end:
+    while tr.state.iteration < end:
         out = step(tr)
-        if log_every > 0 and (tr.iteration % log_every == 0 or tr.iteration == p.iterations):
+        if log_every > 0 and (tr.state.iteration % log_every == 0 or tr.state.iteration == p.iterations):
             check_state(tr)
             figures = {k: float(v) for k, v in out.items()}
             record = {
-                "iteration": tr.iteration,
-                "n_gaussians": tr.model.n,
+                "iteration": tr.state.iteration,
+                "n_gaussians": tr.state.model.n,
                 **{k: (round(v, 6) if math.isfinite(v) else None) for k, v in figures.items()},
             }
-            tr.log.append(monitored(tr, record))  # the whole-view PSNR; stops a diverging run
-        if checkpoint is not None and checkpoint_every > 0 and tr.iteration % checkpoint_every == 0:
+            tr.state.log.append(monitored(tr, record))  # the whole-view PSNR; stops a diverging run
+        if checkpoint is not None and checkpoint_every > 0 and tr.state.iteration % checkpoint_every == 0:
             check_state(tr)
-            save_checkpoint(tr, checkpoint, fingerprint)
+            save_checkpoint(tr.state, tr.params, checkpoint, fingerprint)
         if progress is not None:
-            progress(tr.iteration, p.iterations, {**figures, "n": tr.model.n})
-    saved = checkpoint_every > 0 and tr.iteration % checkpoint_every == 0
-    if tr.iteration > start:
+            progress(tr.state.iteration, p.iterations, {**figures, "n": tr.state.model.n})
+    saved = checkpoint_every > 0 and tr.state.iteration % checkpoint_every == 0
+    if tr.state.iteration > start:
         check_state(tr)
-    if checkpoint is not None and tr.iteration > start and not saved:
-        save_checkpoint(tr, checkpoint, fingerprint)
+    if checkpoint is not None and tr.state.iteration > start and not saved:
+        save_checkpoint(tr.state, tr.params, checkpoint, fingerprint)
     return tr

@@ -69,16 +69,16 @@ def _ref_view(tr, index: int, align: AlignParams | None) -> dict:
 
     def render(cam_from_world):
         posed = Camera(cam.K, cam_from_world, cam.width, cam.height)
-        sh = active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.iteration)
+        sh = active_sh_degree(p.sh_degree, p.sh_degree_interval, tr.state.iteration)
         window = (0, 0, cam.width, cam.height)
-        return render_view(tr.model, tr.reflection, posed, window, raster, NEAR_M, sh, tr.shading,
+        return render_view(tr.state.model, tr.state.reflection, posed, window, raster, NEAR_M, sh, tr.shading,
                            spec_mask=facade, chunk=65536)  # fmt: skip
 
     gain = torch.ones(3)
     if align is None:
         r = render(cam.cam_from_world)
     else:
-        frozen = [*tr.model.params().values(), *tr.reflection.parameters()]
+        frozen = [*tr.state.model.params().values(), *tr.state.reflection.parameters()]
         fit = align_view(lambda M: render(M).rgb, cam.cam_from_world, image, facade, align, frozen=frozen)
         r, gain = render(fit.cam_from_world), fit.gain
     with torch.no_grad():
@@ -162,7 +162,7 @@ def test_core_aligns_a_held_out_view_whose_pose_is_off(data64):  # noqa: F811
     raster = splatting_rasterizer(default_run_settings().raster_backend, p.lowpass_sigma_px)
     tr = train(build_trainer(p, data64, raster))
     tm = from_trainer(tr, "t")
-    before = {n: t.detach().clone() for n, t in tr.model.params().items()}
+    before = {n: t.detach().clone() for n, t in tr.state.model.params().items()}
     (true_view,) = views_of(data64, (data64.test_idx[1],))
     cam = true_view.camera
     turn = np.eye(4)
@@ -183,7 +183,7 @@ def test_core_aligns_a_held_out_view_whose_pose_is_off(data64):  # noqa: F811
     coarse = evaluate_views(tm, [off_view], NO_LPIPS, half)
     assert coarse["views"][0]["alignment"]["align_rotation_deg"] == pytest.approx(np.degrees(0.05), rel=0.3)
     assert headline(coarse)["psnr"] > raw["psnr"] + 1.0
-    for n, t in tr.model.params().items():
+    for n, t in tr.state.model.params().items():
         assert torch.equal(t, before[n]) and t.requires_grad and t.grad is None, n
 
 
@@ -192,8 +192,8 @@ def test_held_out_views_of_a_pose_refined_model_align_without_touching_it(data64
     aligned, and the (frozen) corrections unchanged."""
     tr = train(build_trainer(small_params(iterations=4, pose_refinement=True), data64,
                              splatting_rasterizer("auto")))  # fmt: skip
-    before = tr.corrections.rotation.detach().clone()
+    before = tr.state.corrections.rotation.detach().clone()
     out = evaluate_views(from_trainer(tr, "t"), views_of(data64, data64.test_idx), NO_LPIPS, ALIGN)
     assert math.isfinite(headline(out)["psnr"])
     assert all(v["alignment"]["align_translation_m"] is not None for v in out["views"])
-    assert torch.equal(tr.corrections.rotation.detach(), before)
+    assert torch.equal(tr.state.corrections.rotation.detach(), before)

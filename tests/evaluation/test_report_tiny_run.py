@@ -41,9 +41,9 @@ def test_saved_variant_renders_like_the_trainer(tiny):
     folder = layout.path("variant_dir", variant="tiny")
 
     def save(params):
-        TrainedModelFiles.variant(folder, params).save(
-            tr.model, tr.reflection, tr.params.reflection_strategy(data.bounds), data.bounds, split
-        )
+        strategy = tr.params.reflection_strategy(data.bounds)
+        TrainedModelFiles.variant(folder, params).save(tr.state.model, tr.state.reflection, strategy,
+                                                       data.bounds, split)  # fmt: skip
 
     save(to_dict(tr.params))
     variant = TrainedModelFiles.from_dir(folder)

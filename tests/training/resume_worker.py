@@ -23,15 +23,15 @@ def main(data_root: str, checkpoint: str, out: str, iterations: str) -> None:
     p = small_params(iterations=int(iterations))
     raster = splatting_rasterizer("auto")
     tr = load_checkpoint(checkpoint, p, data, raster, "cpu", "worker")
-    print(f"resumed from {0 if tr is None else tr.iteration}", flush=True)
+    print(f"resumed from {0 if tr is None else tr.state.iteration}", flush=True)
     tr = tr or build_trainer(p, data, raster)
     train(tr, Path(checkpoint), "worker", log_every=5, checkpoint_every=2)
     torch.save(
         {
-            "model": tr.model.state(),
-            "reflection": tr.reflection.state_dict(),
-            "log": tr.log,
-            "opt": tr.opt.state_dict(),
+            "model": tr.state.model.state(),
+            "reflection": tr.state.reflection.state_dict(),
+            "log": tr.state.log,
+            "opt": tr.state.opt.state_dict(),
         },
         out,
     )

@@ -79,7 +79,7 @@ from tests.training.conftest import small_params
 
 p = small_params(iterations=3, proxy_channels=2, exposure_estimate=True)
 tr = train(build_trainer(p, load_bundle({bundle!r}), splatting_rasterizer("auto")), log_every=1)
-print(json.dumps({{"log": tr.log, "gains": exposure_gains(tr.gains, tr.data)}}))
+print(json.dumps({{"log": tr.state.log, "gains": exposure_gains(tr.gains, tr.data)}}))
 """
 
 

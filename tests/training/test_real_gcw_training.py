@@ -57,7 +57,7 @@ def test_whole_view_psnr_rises_on_real_photos(gcw_data):
     p = replace_keys(p, {"iterations": 60})
     tr = build_trainer(p, data, splatting_rasterizer("auto", p.lowpass_sigma_px))
     train(tr, log_every=10)
-    vp = [r["view_psnr"] for r in tr.log]
+    vp = [r["view_psnr"] for r in tr.state.log]
     assert len(vp) == 6 and all(v is not None for v in vp)
     assert vp[-1] > vp[0] + 1.0, vp
     for k in range(1, len(vp)):

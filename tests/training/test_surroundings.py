@@ -185,7 +185,7 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
 
     p = small_params(iterations=6, proxy_channels=2)
     tr = build_trainer(p, data64, splatting_rasterizer("torch"))
-    sur = tr.reflection.proxy.surroundings
+    sur = tr.state.reflection.proxy.surroundings
     assert sur.heights[1].max() > 1.0  # synthetic64's coarse points hold trees and buildings
     seen = []
     hit = sur.hit
@@ -195,10 +195,11 @@ def test_training_with_surroundings_saves_and_renders_back(data64, tmp_path):
     on_floor = torch.cat([o[0] for o in seen])
     on_wall = torch.cat([o[2][:, 1] < 0 for o in seen]) & ~on_floor
     assert on_floor.numel() > 0 and bool(on_wall.any())
-    assert all(torch.isfinite(q).all() for q in tr.reflection.parameters())
+    assert all(torch.isfinite(q).all() for q in tr.state.reflection.parameters())
     split = {"train": [], "test": []}
     files = TrainedModelFiles.variant(tmp_path, to_dict(p))
-    files.save(tr.model, tr.reflection, p.reflection_strategy(data64.bounds), data64.bounds, split)
+    strategy = p.reflection_strategy(data64.bounds)
+    files.save(tr.state.model, tr.state.reflection, strategy, data64.bounds, split)
     loaded = load_trained(TrainedModelFiles.from_dir(tmp_path))
     assert torch.equal(loaded.reflection.proxy.surroundings.heights, sur.heights)
     v = data64.views[data64.test_idx[0]]

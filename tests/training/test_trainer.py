@@ -48,9 +48,9 @@ def _mean_psnr(tr, indices) -> float:
 
 
 def _finite_state(tr) -> bool:
-    ok = all(torch.isfinite(p).all() for p in tr.model.params().values())
-    if tr.reflection is not None:
-        ok &= all(torch.isfinite(p).all() for p in tr.reflection.parameters())
+    ok = all(torch.isfinite(p).all() for p in tr.state.model.params().values())
+    if tr.state.reflection is not None:
+        ok &= all(torch.isfinite(p).all() for p in tr.state.reflection.parameters())
     return bool(ok)
 
 
@@ -61,7 +61,7 @@ def test_adapter_matches_the_dense_reference(data64, sigma):
     float64 reference."""
     p = small_params()
     tr = build_trainer(p, data64, RASTER)
-    cam, m = tr.cameras[1], tr.model
+    cam, m = tr.cameras[1], tr.state.model
     feats = torch.rand(m.n, 7, generator=torch.Generator().manual_seed(0))
     tensors = [
         t.detach().double()
@@ -92,16 +92,16 @@ def test_supersampled_render_is_the_mean_of_sub_pixel_renders(data64, monkeypatc
     p = small_params(mlp_max_pixels=0, supersample=2)
     tr = build_trainer(p, data64, RASTER)
     with torch.no_grad():
-        tr.model.opacity_logits.fill_(2.0)  # opaque splats: sharp edges, where the samples differ most
+        tr.state.model.opacity_logits.fill_(2.0)  # opaque splats: sharp edges, where the samples differ most
         # splats wider than the 2DGS low-pass filter (sigma 0.71 px of the render, so 0.35 px of the
         # pixel at s = 2), so that filter takes no part and the definition above is exact
-        tr.model.log_scales.add_(math.log(3.0))
+        tr.state.model.log_scales.add_(math.log(3.0))
     window, index = (8, 16, 40, 32), 1
-    cam, tm = tr.cameras[index], tr.model
+    cam, tm = tr.cameras[index], tr.state.model
     x0, y0, w, h = window
     spec = torch.as_tensor(data64.views[index].facade_mask[y0 : y0 + h, x0 : x0 + w])
     one = dataclasses.replace(tr.shading, supersample=1)
-    args = (tr.reflection, RASTER, NEAR_M, p.sh_degree)
+    args = (tr.state.reflection, RASTER, NEAR_M, p.sh_degree)
     with torch.no_grad():
         fine = render_view(tm, args[0], cam, window, args[1], args[2], args[3], tr.shading, spec)
         subs = []
@@ -136,17 +136,17 @@ def test_supersampled_training_and_evaluation_stay_finite(data64):
 def test_reflection_models_train_and_only_mlp_envmap_use_reflectivity(data64, model):
     p = small_params(reflection_model=model, iterations=4)
     tr = build_trainer(p, data64, RASTER)
-    assert (tr.reflection is None) == (model == "sh")
+    assert (tr.state.reflection is None) == (model == "sh")
     r, vt = render_window(tr, 1, (16, 16, 32, 32))
     compute_losses(p, r, vt, 0)["loss"].backward()
-    g = tr.model.refl_logits.grad
+    g = tr.state.model.refl_logits.grad
     if model == "sh":
         assert g is None or torch.all(g == 0)  # vanilla 2DGS: I = D
     else:
         assert bool(r.spec_pixels.any()) and float(g.abs().sum()) > 0
-    tr.opt.zero_grad()
+    tr.state.opt.zero_grad()
     train(tr)
-    assert tr.iteration == 4 and _finite_state(tr)
+    assert tr.state.iteration == 4 and _finite_state(tr)
 
 
 def test_mlp_runs_only_on_selected_reflective_facade_pixels(data64):
@@ -154,14 +154,14 @@ def test_mlp_runs_only_on_selected_reflective_facade_pixels(data64):
     tr = build_trainer(p, data64, RASTER)
     tr.shading = dataclasses.replace(tr.shading, refl_threshold=0.05)
     calls = []
-    inner = tr.reflection
+    inner = tr.state.reflection
 
     class Counting(torch.nn.Module):
         def forward(self, x, w):
             calls.append(x.shape[0])
             return inner(x, w)
 
-    tr.reflection = Counting()
+    tr.state.reflection = Counting()
     gen = torch.Generator().manual_seed(0)
     r, vt = render_window(tr, 1, (0, 0, 64, 64), select=lambda c: random_subset(c, 50, gen))
     eligible = vt.mask & (r.refl.detach() > 0.05)
@@ -207,7 +207,7 @@ def test_hard_scene_stays_finite(model, refl):
     )
     tr = build_trainer(p, data, RASTER)
     with torch.no_grad():
-        tr.model.refl_logits.fill_(refl)
+        tr.state.model.refl_logits.fill_(refl)
     for idx in (2, 3, 4):  # grazing, behind, sky
         r, vt = render_window(tr, idx, (0, 0, 24, 24))
         terms = compute_losses(p, r, vt, p.iterations - 1)  # late: every term is on
@@ -215,10 +215,10 @@ def test_hard_scene_stays_finite(model, refl):
         assert terms["hf"] == 0.0 and all(torch.isfinite(t) for t in terms.values())
         assert bool((r.alpha == 0).any()) or idx != 4  # the sky view has pixels with no splat
         terms["loss"].backward()
-        assert all(q.grad is None or torch.isfinite(q.grad).all() for q in tr.model.params().values())
-        tr.opt.zero_grad()
+        assert all(q.grad is None or torch.isfinite(q.grad).all() for q in tr.state.model.params().values())
+        tr.state.opt.zero_grad()
     train(tr, log_every=5)
-    assert tr.log and _finite_state(tr) and all(np.isfinite(rec["loss"]) for rec in tr.log)
+    assert tr.state.log and _finite_state(tr) and all(np.isfinite(rec["loss"]) for rec in tr.state.log)
     assert np.isfinite(_mean_psnr(tr, (0,)))
 
 
@@ -227,12 +227,13 @@ def test_proxy_features_train_at_their_own_rate(data64):
     feature maps' constant one; a few steps move both."""
     p = small_params(proxy_channels=4, proxy_resolution_px=64, iterations=6, mlp_max_pixels=0)
     tr = build_trainer(p, data64, RASTER)
-    groups = {g["name"]: g for g in tr.opt_refl.param_groups}
+    groups = {g["name"]: g for g in tr.state.opt_refl.param_groups}
     assert set(groups) == {"reflection", "proxy"} and groups["proxy"]["lr"] == p.lr.proxy
-    maps = [q.detach().clone() for q in tr.reflection.proxy.parameters()]
+    maps = [q.detach().clone() for q in tr.state.reflection.proxy.parameters()]
     train(tr)
     assert groups["proxy"]["lr"] == p.lr.proxy and groups["reflection"]["lr"] < p.lr.reflection_init
-    assert any(not torch.equal(a, b) for a, b in zip(maps, tr.reflection.proxy.parameters(), strict=True))
+    after = tr.state.reflection.proxy.parameters()
+    assert any(not torch.equal(a, b) for a, b in zip(maps, after, strict=True))
     assert _finite_state(tr)
 
 
@@ -250,7 +251,7 @@ def test_reflection_normal_grad_switch(data64, normal_grad):
     p = small_params(reflection_normal_grad=normal_grad)
     tr = build_trainer(p, data64, keeping)
     with torch.no_grad():
-        tr.model.refl_logits.fill_(2.0)
+        tr.state.model.refl_logits.fill_(2.0)
     r, vt = render_window(tr, 1, (0, 0, 64, 64))
     assert bool(r.spec_pixels.any())
     (r.rgb * vt.mask.unsqueeze(-1)).sum().backward()
@@ -266,17 +267,18 @@ def test_pose_corrections_move_training_views_only(data64, monkeypatch):
     monkeypatch.setattr(trainer_module, "LR_POSE_TRANSLATION", 1e-2)
     tr = build_trainer(small_params(iterations=10, pose_refinement=True), data64, RASTER)
     train(tr)
-    c = tr.corrections
+    c = tr.state.corrections
     train_idx, test_idx = list(data64.train_idx), list(data64.test_idx)
     for t in (c.rotation, c.translation):
         moved = t.detach().abs().sum(-1) > 0
         assert bool(moved[train_idx].any()) and not bool(moved[test_idx].any())
     for i in test_idx:
-        seen = camera(tr.cameras[i], tr.corrections, i)
+        seen = camera(tr.cameras[i], tr.state.corrections, i)
         assert torch.equal(seen.cam_from_world, tr.cameras[i].cam_from_world)
     assert c.log_gain is None
     plain = build_trainer(small_params(), data64, RASTER)
-    assert plain.corrections is None and camera(plain.cameras[1], plain.corrections, 1) is plain.cameras[1]
+    assert plain.state.corrections is None
+    assert camera(plain.cameras[1], plain.state.corrections, 1) is plain.cameras[1]
 
 
 def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkeypatch):
@@ -294,7 +296,7 @@ def test_estimated_exposure_renders_a_darker_training_view_darker(data64, monkey
         build_trainer(p, data, RASTER)  # the estimate travels with the data
     data = exposure.with_exposure_estimate(data, p.seed)
     tr = build_trainer(p, data, RASTER)
-    assert tr.corrections is None
+    assert tr.state.corrections is None
     g = torch.as_tensor(tr.exposure.log_gain).mean(-1)
     others = [i for i in data.train_idx if i != dark]
     assert abs(float(g[dark] - g[others].median()) - math.log(0.6)) < 0.05
@@ -345,28 +347,28 @@ def test_full_size_mlp_on_tiny_inputs():
         mask_by_facade=False,
     )
     tr = build_trainer(p, hard_scene(), RASTER)
-    assert sum(q.numel() for q in tr.reflection.parameters()) == 1_951_235
+    assert sum(q.numel() for q in tr.state.reflection.parameters()) == 1_951_235
     with torch.no_grad():
-        tr.model.refl_logits.fill_(2.0)
-    before = [q.detach().clone() for q in tr.reflection.parameters()]
+        tr.state.model.refl_logits.fill_(2.0)
+    before = [q.detach().clone() for q in tr.state.reflection.parameters()]
     train(tr)
     assert _finite_state(tr)
-    assert any(not torch.equal(a, b) for a, b in zip(before, tr.reflection.parameters(), strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(before, tr.state.reflection.parameters(), strict=True))
 
 
 def _states_equal(a, b) -> None:
-    for name, t in a.model.params().items():
-        assert torch.equal(t, getattr(b.model, name)), name
+    for name, t in a.state.model.params().items():
+        assert torch.equal(t, getattr(b.state.model, name)), name
     for (ka, va), (kb, vb) in zip(
-        a.reflection.state_dict().items(), b.reflection.state_dict().items(), strict=True
+        a.state.reflection.state_dict().items(), b.state.reflection.state_dict().items(), strict=True
     ):
         assert ka == kb and torch.equal(va, vb), ka
-    assert torch.equal(a.generator.get_state(), b.generator.get_state())
-    assert a.log == b.log
-    assert (a.corrections is None) == (b.corrections is None)
-    if a.corrections is not None:
+    assert torch.equal(a.state.generator.get_state(), b.state.generator.get_state())
+    assert a.state.log == b.state.log
+    assert (a.state.corrections is None) == (b.state.corrections is None)
+    if a.state.corrections is not None:
         for (ka, va), (kb, vb) in zip(
-            a.corrections.state_dict().items(), b.corrections.state_dict().items(), strict=True
+            a.state.corrections.state_dict().items(), b.state.corrections.state_dict().items(), strict=True
         ):
             assert ka == kb and torch.equal(va, vb), ka
 
@@ -384,9 +386,9 @@ def test_resume_from_checkpoint_equals_uninterrupted(data64, tmp_path, refine):
     ref = train(build_trainer(p, data64, RASTER), **every)
     ckpt = tmp_path / "ckpt.pt"
     part = train(build_trainer(p, data64, RASTER), ckpt, "fp", stop_at=7, **every)  # saves at 3, 6 and 7
-    assert part.iteration == 7
+    assert part.state.iteration == 7
     resumed = load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp")
-    assert resumed.iteration == 7 and resumed.model.n == part.model.n
+    assert resumed.state.iteration == 7 and resumed.state.model.n == part.state.model.n
     train(resumed, ckpt, "fp", **every)
     _states_equal(ref, resumed)
     assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "other") is None  # other parameters or inputs
@@ -403,7 +405,7 @@ def test_a_checkpoint_not_resumed_says_why_in_the_log(data64, tmp_path, caplog):
     ckpt = tmp_path / "ckpt.pt"
     train(build_trainer(p, data64, RASTER), ckpt, "fp")
     caplog.set_level(logging.INFO, logger="facade_pipeline.training.checkpoints")
-    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp").iteration == 4
+    assert load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp").state.iteration == 4
     assert "resuming from the checkpoint of iteration 4" in caplog.text
     caplog.clear()
     wider = small_params(iterations=4, lambda_normal=0.5, mlp_width=16)
@@ -434,7 +436,7 @@ def test_training_improves_the_training_views(data64):
 def test_save_checkpoint_is_atomic(data64, tmp_path, monkeypatch):
     tr = build_trainer(small_params(), data64, RASTER)
     ckpt = tmp_path / "c.pt"
-    save_checkpoint(tr, ckpt, "fp")
+    save_checkpoint(tr.state, tr.params, ckpt, "fp")
     good = ckpt.read_bytes()
 
     def boom(*a, **k):
@@ -442,7 +444,7 @@ def test_save_checkpoint_is_atomic(data64, tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch, "save", boom)
     with pytest.raises(KeyboardInterrupt):
-        save_checkpoint(tr, ckpt, "fp")
+        save_checkpoint(tr.state, tr.params, ckpt, "fp")
     assert ckpt.read_bytes() == good and [q.name for q in tmp_path.iterdir()] == ["c.pt"]
 
 
@@ -458,7 +460,7 @@ def test_reflection_evaluated_everywhere_and_masked_equals_gathered(data64, monk
         monkeypatch.setattr(render, "gathers_chosen", lambda device, g=gathered: g)
         r, _ = render_window(tr, index, (0, 0, 48, 40))
         (r.rgb * torch.linspace(0.5, 1.5, r.rgb.numel()).view_as(r.rgb)).sum().backward()
-        params = [*tr.model.params().values(), *tr.reflection.parameters()]
+        params = [*tr.state.model.params().values(), *tr.state.reflection.parameters()]
         out.append((r.rgb.detach(), r.spec_pixels, [q.grad.clone() for q in params if q.grad is not None]))
         for q in params:
             q.grad = None
@@ -477,7 +479,7 @@ def test_whole_view_psnr_rises_and_never_falls_a_db_below_its_best(data64):
     p = small_params(iterations=60)
     tr = build_trainer(p, data64, RASTER)
     train(tr, log_every=10)
-    vp = [r["view_psnr"] for r in tr.log]
+    vp = [r["view_psnr"] for r in tr.state.log]
     assert len(vp) == 6 and all(v is not None for v in vp)
     assert vp[-1] > vp[0] + 0.5
     for k in range(1, len(vp)):
@@ -508,18 +510,18 @@ def test_a_nan_stops_training_naming_the_iteration_and_keeps_the_last_good_check
     ckpt = tmp_path / "c.pt"
     train(tr, ckpt, "fp", stop_at=10, log_every=5, checkpoint_every=5)
     with torch.no_grad():
-        tr.model.sh_dc.fill_(float("nan"))  # a colour gone NaN: the next step's loss is NaN
+        tr.state.model.sh_dc.fill_(float("nan"))  # a colour gone NaN: the next step's loss is NaN
     with pytest.raises(TrainingDivergedError, match="at iteration 11") as e:
         train(tr, ckpt, "fp", log_every=5, checkpoint_every=5)
     assert "NaN" in str(e.value) and "\n" not in str(e.value)
     back = load_checkpoint(ckpt, p, data64, RASTER, "cpu", "fp")
-    assert back is not None and back.iteration == 10 and _finite_state(back)
+    assert back is not None and back.state.iteration == 10 and _finite_state(back)
 
 
 def test_a_whole_view_psnr_far_below_its_best_stops_training(data64, monkeypatch):
     tr = build_trainer(small_params(), data64, RASTER)
-    tr.log = [{"iteration": 5, "view_psnr": 21.0}, {"iteration": 10, "view_psnr": 24.0}]
-    tr.iteration = 15
+    tr.state.log = [{"iteration": 5, "view_psnr": 21.0}, {"iteration": 10, "view_psnr": 24.0}]
+    tr.state.iteration = 15
     monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 24.0 - monitor.DIVERGENCE_DROP_DB + 0.1)
     assert monitor.monitored(tr, {"iteration": 15})["view_psnr"] < 24.0
     monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 24.0 - monitor.DIVERGENCE_DROP_DB - 0.1)
@@ -538,10 +540,10 @@ def test_training_is_the_same_on_the_same_scene_at_1_to_25(data64):
     p = small_params(iterations=8, reflection_model="sh")
     small = scaled_scene(data64, 1.0 / 25.0)
     a, b = build_trainer(p, data64, RASTER), build_trainer(p, small, RASTER)
-    assert a.model.n == b.model.n
+    assert a.state.model.n == b.state.model.n
     train(a, log_every=4)
     train(b, log_every=4)
-    for ra, rb in zip(a.log, b.log, strict=True):
+    for ra, rb in zip(a.state.log, b.state.log, strict=True):
         for key in ("loss", "psnr", "view_psnr"):
             assert math.isclose(ra[key], rb[key], rel_tol=2e-3, abs_tol=2e-4), (key, ra, rb)
-    assert torch.allclose(b.model.means * 25.0, a.model.means, atol=1e-3 * data64.extent)
+    assert torch.allclose(b.state.model.means * 25.0, a.state.model.means, atol=1e-3 * data64.extent)

@@ -31,9 +31,9 @@ def raster_backend(request, cuda_device):
 
 
 def _finite(tr) -> bool:
-    tensors = list(tr.model.params().values())
-    if tr.reflection is not None:
-        tensors += list(tr.reflection.parameters())
+    tensors = list(tr.state.model.params().values())
+    if tr.state.reflection is not None:
+        tensors += list(tr.state.reflection.parameters())
     return all(bool(torch.isfinite(t).all()) for t in tensors)
 
 
@@ -45,16 +45,17 @@ def test_hard_scene_stays_finite_on_cuda(cuda_device, raster_backend, refl):
                      densify_interval=3)  # fmt: skip
     tr = build_trainer(p, hard_scene(), splatting_rasterizer(raster_backend), cuda_device)
     with torch.no_grad():
-        tr.model.refl_logits.fill_(refl)
+        tr.state.model.refl_logits.fill_(refl)
     for idx in (2, 3, 4):  # grazing, behind, sky
         r, vt = render_window(tr, idx, (0, 0, 24, 24))
         terms = compute_losses(p, r, vt, 0)
         assert all(bool(torch.isfinite(t)) for t in terms.values())
         terms["loss"].backward()
-        assert all(q.grad is None or bool(torch.isfinite(q.grad).all()) for q in tr.model.params().values())
-        tr.opt.zero_grad()
+        grads = [q.grad for q in tr.state.model.params().values()]
+        assert all(g is None or bool(torch.isfinite(g).all()) for g in grads)
+        tr.state.opt.zero_grad()
     train(tr)
-    assert tr.iteration == 6 and _finite(tr) and tr.model.means.device.type == "cuda"
+    assert tr.state.iteration == 6 and _finite(tr) and tr.state.model.means.device.type == "cuda"
 
 
 def test_short_cuda_run_lowers_the_loss_and_resumes_on_cpu(cuda_device, raster_backend, tmp_path):
@@ -76,11 +77,11 @@ def test_short_cuda_run_lowers_the_loss_and_resumes_on_cpu(cuda_device, raster_b
     after = loss_now()
     assert after < 0.95 * before, (before, after)
     ckpt = tmp_path / "ckpt.pt"
-    save_checkpoint(tr, ckpt, "fp")
+    save_checkpoint(tr.state, tr.params, ckpt, "fp")
     back = load_checkpoint(ckpt, p, data, splatting_rasterizer("torch"), torch.device("cpu"), "fp")
-    assert back is not None and back.iteration == tr.iteration
-    for name, value in tr.model.params().items():
-        assert torch.equal(value.detach().cpu(), back.model.params()[name].detach()), name
+    assert back is not None and back.state.iteration == tr.state.iteration
+    for name, value in tr.state.model.params().items():
+        assert torch.equal(value.detach().cpu(), back.state.model.params()[name].detach()), name
 
 
 def _with_surroundings(data):
@@ -118,7 +119,7 @@ def test_steps_on_cuda_never_wait_for_the_device(cuda_device):
             torch.cuda.set_sync_debug_mode("error")
 
     tr = build_trainer(p, data, rasterize, cuda_device)
-    assert tr.reflection.proxy.surroundings.blocks() is not None
+    assert tr.state.reflection.proxy.surroundings.blocks() is not None
     train(tr, stop_at=2)  # first calls: kernels load, memory pools fill
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
@@ -127,4 +128,5 @@ def test_steps_on_cuda_never_wait_for_the_device(cuda_device):
             out = step(tr)
     finally:
         torch.cuda.set_sync_debug_mode(0)
-    assert tr.iteration == 10 and all(bool(torch.isfinite(v)) for v in out.values())
+    assert tr.state.iteration == 10 and all(bool(torch.isfinite(v)) for v in out.values())
+
