@@ -14,7 +14,6 @@
 # OUT (default: a new temporary folder) receives each step's log and summary.md. Environment:
 #   TORCH_CUDA_ARCH_LIST  the GPU architecture gsplat is built for (default 9.0: H100, H200)
 #   SPEED_ITERS           timed iterations per model with gsplat (default 300, after 30 warm-up ones)
-#   SHIPPED_ITERS         the same as shipped, at demo's 0.5 px low-pass (the torch backend; default 10)
 #   ACCURACY_ITERS        whole-image iterations of the accuracy point (default 1000)
 #   DEVICE                cuda (default), or cpu for a dry run of the Python steps (no gsplat, tiny sizes)
 set -euo pipefail
@@ -24,7 +23,6 @@ WHEELS=${2:?usage: benchmarks/gpu_check.sh BUNDLE WHEELS [OUT]}
 OUT=${3:-$(mktemp -d -t gpu_check.XXXXXX)}
 DEVICE=${DEVICE:-cuda}
 SPEED_ITERS=${SPEED_ITERS:-300}
-SHIPPED_ITERS=${SHIPPED_ITERS:-10}
 ACCURACY_ITERS=${ACCURACY_ITERS:-1000}
 PY=${PYTHON:-python3}
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} PYTHONUNBUFFERED=1 TQDM_DISABLE=1
@@ -65,18 +63,15 @@ tail -3 "$OUT/tests.log"
 BENCH=("$PY" benchmarks/bench_train.py --bundle "$BUNDLE" --device "$DEVICE" --patch-px 0 --no-write)
 if [ "$DEVICE" = cpu ]; then  # a dry run: few splats, few iterations
   BENCH+=(--init-points 300 --max-gaussians 600)
-  SPEED_ITERS=2 SHIPPED_ITERS=1 ACCURACY_ITERS=2 WARMUP=1
+  SPEED_ITERS=2 ACCURACY_ITERS=2 WARMUP=1
 fi
 WARMUP=${WARMUP:-30}
 
-step "speed with gsplat's low-pass (0.7071 px)"
-"${BENCH[@]}" --speed "$SPEED_ITERS" --warmup "$WARMUP" --only mlp,sh --lowpass-sigma-px 0.7071 \
-  > "$OUT/speed.log" 2>&1 || { tail -30 "$OUT/speed.log"; exit 1; }
-step "speed as shipped (demo's 0.5 px low-pass)"
-"${BENCH[@]}" --speed "$SHIPPED_ITERS" --warmup 2 --only mlp > "$OUT/speed_shipped.log" 2>&1 \
-  || { tail -30 "$OUT/speed_shipped.log"; exit 1; }
+step "speed"
+"${BENCH[@]}" --speed "$SPEED_ITERS" --warmup "$WARMUP" --only mlp,sh > "$OUT/speed.log" 2>&1 \
+  || { tail -30 "$OUT/speed.log"; exit 1; }
 step "accuracy after $ACCURACY_ITERS whole-image iterations"
-"${BENCH[@]}" --iterations "$ACCURACY_ITERS" --only mlp --lowpass-sigma-px 0.7071 > "$OUT/accuracy.log" 2>&1 \
+"${BENCH[@]}" --iterations "$ACCURACY_ITERS" --only mlp > "$OUT/accuracy.log" 2>&1 \
   || { tail -30 "$OUT/accuracy.log"; exit 1; }
 
 "$PY" benchmarks/gpu_summary.py "$OUT" "$GSPLAT_BUILD_S" "$ACCURACY_ITERS" "$(( $(date +%s) - T0 ))" \
