@@ -115,7 +115,8 @@ def main() -> None:
                     help="also the real photos at each exposure and white balance of real_truth.EXPOSURES")
     ap.add_argument("--task", default="segment_panels", choices=["segment_panels", "regularize_corners"],
                     help="the synthetic buildings' last stage: regularize_corners adds the 3D panels' column")
-    ap.add_argument("buildings", nargs="*", default=["synthetic64", "synthetic64_curved", "demo", "real_like"])
+    ap.add_argument("buildings", nargs="*",
+                    default=["synthetic64", "synthetic64_curved", "demo", "real_like"])
     args = ap.parse_args()
     env = {**os.environ, "TQDM_DISABLE": "1"}
     real = [] if args.real is None else [real_row(args.real.resolve(), args.real_building,
