@@ -52,14 +52,29 @@ def row(building: str, layout: BuildingLayout) -> str:
     t_rect = read_manifest(layout, "rectify").metrics["seconds_per_view"]
     t_seg = read_manifest(layout, "segment_panels").metrics["seconds_per_view"]
     sizes = sorted({f"{v.camera.width}x{v.camera.height}" for v in scene.frontal_views})
+    e3 = panel_corner_errors_mm(layout, truth)
     return (
         f"| {building} | {len(r)} ({', '.join(sizes)}) | "
         f"{max(v['rectify_residual_px'] for v in r):.4f} | {straight.max():.3f} | "
         f"{np.median(err):.2f} / {np.percentile(err, 95):.2f} / {err.max():.2f} | {exact}/{len(r)} | "
         f"{iou_c.min():.3f} / {np.median(iou_c):.3f} ({len(iou_c)}) | {iou_x.min():.2f} / "
         f"{np.median(iou_x):.2f} "
-        f"({len(iou_x)}) | {vis_c.min():.3f} / {np.median(vis_c):.3f} | {t_rect:.2f} + {t_seg:.2f} |"
+        f"({len(iou_x)}) | {vis_c.min():.3f} / {np.median(vis_c):.3f} | "
+        + ("-" if e3 is None else f"{np.median(e3):.0f} / {e3.max():.0f} ({len(e3) // 4})")
+        + f" | {t_rect:.2f} + {t_seg:.2f} |"
     )
+
+
+def panel_corner_errors_mm(layout: BuildingLayout, truth: SyntheticTruth) -> np.ndarray | None:
+    """Each corner of regularize_corners' 3D panels against the nearest true glass corner (mm); None
+    where that stage has not run (``--task segment_panels``)."""
+    path = layout.path("regularize_panels")
+    if not path.is_file():
+        return None
+    panels = PanelSet.load(path).panels
+    c = np.array([p.corners for p in panels], float).reshape(-1, 3)
+    t = truth.panel_corners().reshape(-1, 3)
+    return 1000 * np.linalg.norm(c[:, None] - t[None], axis=2).min(axis=1)
 
 
 def real_row(src: Path, building: str, data_root: Path, env: dict, label: str | None = None) -> str:
@@ -98,7 +113,10 @@ def main() -> None:
     ap.add_argument("--real-building", default="gcw_dev", help="the building (config) they are run as")
     ap.add_argument("--exposures", action="store_true",
                     help="also the real photos at each exposure and white balance of real_truth.EXPOSURES")
-    ap.add_argument("buildings", nargs="*", default=["synthetic64", "synthetic64_curved", "demo"])
+    ap.add_argument("--task", default="segment_panels", choices=["segment_panels", "regularize_corners"],
+                    help="the synthetic buildings' last stage: regularize_corners adds the 3D panels' column")
+    ap.add_argument("buildings", nargs="*",
+                    default=["synthetic64", "synthetic64_curved", "demo", "real_like"])
     args = ap.parse_args()
     env = {**os.environ, "TQDM_DISABLE": "1"}
     real = [] if args.real is None else [real_row(args.real.resolve(), args.real_building,
@@ -119,7 +137,7 @@ def main() -> None:
                 "doit",
                 "-f",
                 str(REPO / "dodo.py"),
-                "segment_panels",
+                args.task,
                 f"building={b}",
                 f"data_root={args.data_root}",
             ],
@@ -131,7 +149,8 @@ def main() -> None:
         rows.append(row(b, BuildingLayout(Path(args.data_root), b)))
     command = " ".join(["python benchmarks/bench_segmentation.py", "--data-root", args.data_root]
                        + ([] if args.real is None else ["--real", str(args.real)])
-                       + (["--exposures"] if args.exposures else []) + args.buildings)
+                       + (["--exposures"] if args.exposures else [])
+                       + ([] if args.task == "segment_panels" else ["--task", args.task]) + args.buildings)
     text = "\n".join([
         "## rectify and segment_panels\n",
         "### Synthetic scenes\n",
@@ -145,13 +164,18 @@ def main() -> None:
         "overlaps most, min / median (count), whole panels and panels cut by the border apart; the last "
         "IoU is of whole panels against the visible glass. Targets: residual <= 0.5 px, straightness <= 1 "
         "px, corner median <= 1 px and p95 <= 2 px, count exact, IoU >= 0.95. `curved12` is demo with a "
-        "12 m radius; `oblique` has frontal views at 1600 x 1200 px turned by up to 35 degrees.\n",
+        "12 m radius; `oblique` has frontal views at 1600 x 1200 px turned by up to 35 degrees; `real_like` "
+        "has "
+        "close-ups through a distorted wide lens at exposures from -1 to +1.5 stops, two units without glass "
+        "showing a room, and poles and a crane reflected across the bars. *3D*: with `--task "
+        "regularize_corners`, each corner of the 3D panels against the nearest true corner, median / max mm "
+        "(panels).\n",
         f"{machine()}",
         f"`{command}`\n",
         "| building | frontal views (size) | warp residual px | straightness px | corner median / p95 / max "
-        "px | views with exact count | IoU whole | IoU cut | IoU whole vs visible glass | s per view "
-        "(rectify + segment) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "px | views with exact count | IoU whole | IoU cut | IoU whole vs visible glass | 3D corner mm | s "
+        "per view (rectify + segment) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *rows,
         "",
     ] + ([] if not real else [

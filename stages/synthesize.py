@@ -136,7 +136,7 @@ def write_models(layout: BuildingLayout, sim: Simulator, xyz: np.ndarray, rgb: n
     """COLMAP models: raw/ with the declared pose noise, gt/ with the true poses."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.colmap import ColmapView, write_pinhole_model
-    from facade_pipeline.synthetic.simulate import raw_camera
+    from facade_pipeline.synthetic.simulate import raw_view
 
     p = sim.scene.params
     out = []
@@ -145,7 +145,7 @@ def write_models(layout: BuildingLayout, sim: Simulator, xyz: np.ndarray, rgb: n
         ("frontal", layout.raw_frontal_sparse_dir, layout.gt("frontal_sparse_dir")),
     ):
         views = [v for v in sim.views if v.kind == kind]
-        write_pinhole_model(raw_dir, [ColmapView(v.name, raw_camera(p, v)) for v in views], xyz, rgb)
+        write_pinhole_model(raw_dir, [raw_view(p, v) for v in views], xyz, rgb)
         write_pinhole_model(gt_dir, [ColmapView(v.name, v.camera) for v in views], xyz, rgb)
         out += [d / f for d in (raw_dir, gt_dir) for f in MODEL_FILES]
     return out

@@ -24,10 +24,13 @@ MODEL_FILES = ("cameras", "images", "points3D")
 
 @dataclass(frozen=True)
 class ColmapView:
-    """One registered image of a model: its file name (relative to the image folder) and camera."""
+    """One registered image of a model: its file name (relative to the image folder) and camera; with
+    ``radial`` (k1, k2) the image was taken through that lens, and the camera is written as COLMAP's
+    OPENCV model with ``camera``'s K, size and pose."""
 
     name: str
     camera: PinholeCamera
+    radial: tuple[float, float] | None = None
 
 
 def read_reconstruction(model_dir: str | Path) -> pycolmap.Reconstruction:
@@ -163,22 +166,22 @@ def write_pinhole_model(
     points_rgb: np.ndarray | None = None,  # [P, 3] uint8
     binary: bool = True,
 ) -> None:
-    """Write a COLMAP model with one PINHOLE camera per distinct intrinsics, atomically (the folder is
-    built under a temporary name and renamed into place)."""
+    """Write a COLMAP model with one PINHOLE camera (OPENCV for a view with ``radial``) per distinct
+    intrinsics, atomically (the folder is built under a temporary name and renamed into place)."""
     rec = pycolmap.Reconstruction()
     cam_ids: dict[tuple, int] = {}
     for image_id, view in enumerate(views, start=1):
         c = view.camera
-        key = (c.width, c.height, *np.round(c.K[[0, 1, 0, 1], [0, 1, 2, 2]], 9))
+        key = (c.width, c.height, *np.round(c.K[[0, 1, 0, 1], [0, 1, 2, 2]], 9), view.radial)
         if key not in cam_ids:
             cam_ids[key] = len(cam_ids) + 1
             fx, fy, cx, cy = c.K[0, 0], c.K[1, 1], c.K[0, 2], c.K[1, 2]
             rec.add_camera_with_trivial_rig(
                 pycolmap.Camera(
-                    model="PINHOLE",
+                    model="PINHOLE" if view.radial is None else "OPENCV",
                     width=c.width,
                     height=c.height,
-                    params=[fx, fy, cx, cy],
+                    params=[fx, fy, cx, cy] + ([] if view.radial is None else [*view.radial, 0.0, 0.0]),
                     camera_id=cam_ids[key],
                 )
             )

@@ -28,12 +28,14 @@ def view_stem(kind: str, index: int) -> str:
 @dataclass(frozen=True, eq=False)
 class View:
     """A view to render: ``kind`` "uav" or "frontal", file ``name`` (e.g. ``uav_0003.png``), its ``stem``,
-    the true camera, and for frontal views the (part, rows, cols) block it covers."""
+    the true camera, and for frontal views the (part, rows, cols) block it covers. With a ``lens``, the
+    raw image is taken through it and ``camera`` is the pinhole its undistorted image has (the truth)."""
 
     kind: str
     index: int
     camera: PinholeCamera
     block: tuple[int, tuple[int, ...], tuple[int, ...]] | None = None
+    lens: Lens | None = None
 
     @property
     def stem(self) -> str:
@@ -42,6 +44,48 @@ class View:
     @property
     def name(self) -> str:
         return self.stem + ".png"
+
+
+@dataclass(frozen=True, eq=False)
+class Lens:
+    """A camera with radial distortion: ``camera`` holds K, size and pose of the distorted image, and
+    (k1, k2) of OpenCV's model (COLMAP's OPENCV camera with no tangential terms)."""
+
+    camera: PinholeCamera
+    k1_k2: tuple[float, float]
+
+    def colmap_camera(self):
+        import pycolmap
+
+        K = self.camera.K
+        return pycolmap.Camera(model="OPENCV", width=self.camera.width, height=self.camera.height,
+                               params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2], *self.k1_k2, 0.0, 0.0])
+
+    def pixel_rays(self, supersample: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rays [N, 3] + [N, 3] through the distorted image's pixels, in ``PinholeCamera.all_pixel_rays``'
+        order: each sub-pixel position undistorted by COLMAP's own inverse of the model."""
+        cam = self.camera
+        s = int(supersample)
+        offs = (np.arange(s) + 0.5) / s
+        ys = np.arange(cam.height)[:, None, None, None] + offs[None, None, :, None]
+        xs = np.arange(cam.width)[None, :, None, None] + offs[None, None, None, :]
+        ys, xs = np.broadcast_arrays(ys, xs)
+        xy = self.colmap_camera().cam_from_img(np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64))
+        d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        W = cam.world_from_cam
+        d = d_cam @ W[:3, :3].T
+        return np.broadcast_to(W[:3, 3], d.shape).copy(), d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def with_lens(view: View, k1_k2: tuple[float, float]) -> View:
+    """``view`` taken through a radial lens: its camera becomes the pinhole that the importer undistorts
+    its image to (COLMAP's ``undistort_camera`` with the importer's options), the truth's camera."""
+    from facade_pipeline.io.colmap import undistort_camera, undistort_options
+
+    lens = Lens(view.camera, (float(k1_k2[0]), float(k1_k2[1])))
+    u = undistort_camera(undistort_options(), lens.colmap_camera())
+    pin = PinholeCamera(u.calibration_matrix(), view.camera.cam_from_world, u.width, u.height)
+    return View(view.kind, view.index, pin, view.block, lens)
 
 
 def camera_matrix(width: int, height: int, fov_deg: float) -> np.ndarray:
@@ -192,7 +236,10 @@ def check_frontal_views(views: list[View], panels, tracer, arrays) -> None:
     or the fountain between the camera and the facade)."""
     for view in (v for v in views if v.kind == "frontal"):
         part, rows, cols = view.block
-        ids = [i for i, pn in enumerate(panels) if pn.part == part and pn.row in rows and pn.col in cols]
+        ids = [i for i, pn in enumerate(panels)
+               if pn.part == part and pn.row in rows and pn.col in cols and pn.glazed]
+        if not ids:  # a block of units without glass: nothing to hide
+            continue
         centres = np.array([panels[i].corners.mean(axis=0) for i in ids])
         d = centres - view.camera.center
         d /= np.linalg.norm(d, axis=1, keepdims=True)

@@ -144,11 +144,20 @@ class Placement:
 
     buildings: tuple[tuple[float, float, float, float, float, float], ...]  # x, y, width, depth, height, yaw
     trees: tuple[tuple[float, float, float], ...]  # x, y, height
+    poles: tuple[tuple[float, float, float], ...] = ()  # x, y, height ("masts_and_cranes")
+    crane: tuple[float, ...] = ()  # x, y, height, jib length ("masts_and_cranes")
 
 
-def place_objects(env: EnvironmentParams, half_span_m: float, rng: np.random.Generator) -> Placement:
+def place_objects(
+    env: EnvironmentParams,
+    half_span_m: float,
+    rng: np.random.Generator,
+    masts: np.random.Generator | None = None,
+) -> Placement:
     """Buildings in slots across site x beyond ``building_distance_m``; trees at random spots that keep
-    ``CLEARANCE_M`` from the fountain, the court, the road and each other."""
+    ``CLEARANCE_M`` from the fountain, the court, the road and each other; with a generator ``masts``
+    ("masts_and_cranes", drawn apart so that the other objects stay where they were) poles across the
+    facade's span and a tower crane beside it."""
     buildings = []
     span = max(half_span_m, env.building_distance_m[1])
     slots = np.linspace(-span, span, env.building_count + 1)
@@ -166,7 +175,17 @@ def place_objects(env: EnvironmentParams, half_span_m: float, rng: np.random.Gen
         h = rng.uniform(*env.tree_height_m)
         if _tree_fits(env, x, y, h * CROWN_RADIUS_FRACTION, trees):
             trees.append((x, y, h))
-    return Placement(tuple(buildings), tuple(trees))
+    if masts is None:
+        return Placement(tuple(buildings), tuple(trees))
+    # poles spread across the span (a stratum each), so that every part of the facade reflects one
+    edges = np.linspace(-half_span_m, half_span_m, env.pole_count + 1)
+    poles = tuple(
+        (float(masts.uniform(a, b)), float(masts.uniform(*env.pole_distance_m)), env.pole_height_m)
+        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    )
+    crane = (float(masts.uniform(-half_span_m, half_span_m)) / 2, env.crane_distance_m, env.crane_height_m,
+             env.crane_height_m)
+    return Placement(tuple(buildings), tuple(trees), poles, crane)
 
 
 def _tree_fits(env: EnvironmentParams, x: float, y: float, r: float, trees: list) -> bool:
@@ -199,4 +218,43 @@ def environment_mesh(env: EnvironmentParams, T: np.ndarray, placement: Placement
         meshes.append(
             sphere_mesh(c + [0.0, 0.0, CROWN_CENTER_FRACTION * h], CROWN_RADIUS_FRACTION * h, Material.CROWN)
         )
+    meshes += [mast_mesh(T, x, y, h) for x, y, h in placement.poles]
+    if placement.crane:
+        meshes.append(crane_mesh(T, *placement.crane))
     return concat(meshes)
+
+
+POLE_RADIUS_FRACTION = 0.015  # pole radius / pole height
+POLE_ARM_FRACTION = 0.2  # length of a pole's arm toward the facade / pole height
+CRANE_MAST_FRACTION = 0.04  # side of the crane's square mast / its height
+CRANE_JIB_FRACTION = 0.025  # depth of the jib / the crane's height
+CRANE_COUNTER_FRACTION = 0.3  # the counter-jib's length / the jib's
+
+
+def mast_mesh(T: np.ndarray, x: float, y: float, h: float) -> TriMesh:
+    """A pole at site (x, y), ``h`` tall, with an arm reaching toward the facade at its top (a lamp post)."""
+    c = _to_world(T, np.array([[x, y, 0.0]]))[0]
+    r = POLE_RADIUS_FRACTION * h
+    yaw = math.atan2(T[1, 0], T[0, 0])
+    arm_c = _to_world(T, np.array([[x, y - POLE_ARM_FRACTION * h / 2, h - 2 * r]]))[0]
+    return concat([
+        box_mesh(c, np.array([2 * r, 2 * r, h]), yaw, Material.MAST, 0),
+        box_mesh(arm_c, np.array([2 * r, POLE_ARM_FRACTION * h, 2 * r]), yaw, Material.MAST, 0),
+    ])
+
+
+def crane_mesh(T: np.ndarray, x: float, y: float, h: float, jib: float) -> TriMesh:
+    """A tower crane at site (x, y): a square mast ``h`` tall, a jib of length ``jib`` along site +x and a
+    counter-jib along -x at its top, and a hoist cable hanging from the jib's far half."""
+    yaw = math.atan2(T[1, 0], T[0, 0])
+    m, d = CRANE_MAST_FRACTION * h, CRANE_JIB_FRACTION * h
+    cw = CRANE_COUNTER_FRACTION * jib
+    parts = [
+        (x, y, 0.0, m, m, h + d),
+        (x + (jib - cw) / 2, y, h, jib + cw, d, d),
+        (x + 0.6 * jib, y, 0.35 * h, 0.2 * d, 0.2 * d, 0.65 * h),
+    ]
+    return concat([
+        box_mesh(_to_world(T, np.array([[px, py, pz]]))[0], np.array([sx, sy, sz]), yaw, Material.MAST, 1)
+        for px, py, pz, sx, sy, sz in parts
+    ])

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facade_pipeline.synthetic.mesh import Material, TriMesh, concat, prism, sheet
+from facade_pipeline.synthetic.mesh import Material, TriMesh, concat, prism, quads_to_mesh, sheet
 from facade_pipeline.synthetic.params import FacadePart, FacadeStyle
 
 
@@ -109,11 +109,16 @@ class Panel:
     corners: np.ndarray
     normal: np.ndarray
     diffuse: np.ndarray
+    glazed: bool = True
+    """False for a unit without glass ("unglazed_units"): an opening onto a room, not a panel."""
 
 
-def build_panels(geom: PartGeometry, style: FacadeStyle, rng: np.random.Generator) -> list[Panel]:
+def build_panels(
+    geom: PartGeometry, style: FacadeStyle, rng: np.random.Generator, unglazed: frozenset = frozenset()
+) -> list[Panel]:
     """The panels of one part, rows bottom to top then columns left to right. D = tint * interior * (1 + v u),
-    u uniform in [-1, 1] per panel (v = ``interior_variation``)."""
+    u uniform in [-1, 1] per panel (v = ``interior_variation``); the (row, col) in ``unglazed`` have no
+    glass."""
     base = np.asarray(style.glass_tint) * np.asarray(style.interior_color)
     out = []
     for r in range(geom.part.rows):
@@ -129,6 +134,7 @@ def build_panels(geom: PartGeometry, style: FacadeStyle, rng: np.random.Generato
                     corners,
                     geom.normal(np.array(0.5 * (s0 + s1))),
                     np.clip(base * shade, 0.0, 1.0),
+                    (r, c) not in unglazed,
                 )
             )
     return out
@@ -144,10 +150,16 @@ def curve_segments(geom: PartGeometry, style: FacadeStyle, width_m: float) -> in
 
 
 def part_meshes(
-    geom: PartGeometry, style: FacadeStyle, first_panel: int, ground_z: float
+    geom: PartGeometry,
+    style: FacadeStyle,
+    first_panel: int,
+    ground_z: float,
+    unglazed: frozenset = frozenset(),
 ) -> tuple[TriMesh, TriMesh, TriMesh]:
     """(glass, frames, body) meshes of one part. Glass triangles carry their global panel index
-    (``first_panel`` + row * cols + col); the body reaches down to world height ``ground_z``."""
+    (``first_panel`` + row * cols + col); the body reaches down to world height ``ground_z``. The units
+    (row, col) in ``unglazed`` have no glass: the body's front face is open behind them onto a room (walls,
+    shelves and a cloth, part of the body mesh)."""
     p, fw = geom.part, style.frame_width_m
     pitch = (p.width_m - fw) / p.cols
     seg = curve_segments(geom, style, pitch)  # per panel column
@@ -155,6 +167,8 @@ def part_meshes(
     glass, frames = [], []
     for r in range(p.rows):
         for c in range(p.cols):
+            if (r, c) in unglazed:
+                continue
             s0, s1, z0, z1 = geom.panel_bounds(r, c)
             glass.append(
                 sheet(geom.surface, (s0, s1), (z0, z1), seg, Material.GLASS, first_panel + r * p.cols + c)
@@ -177,4 +191,72 @@ def part_meshes(
         seg * p.cols,
         Material.WALL,
     )
+    if unglazed:
+        body = _open_body(geom, style, body, seg * p.cols, min(z_floor, 0.0), unglazed)
     return concat(glass), concat(frames), body
+
+
+def _open_body(
+    geom: PartGeometry, style: FacadeStyle, body: TriMesh, front_quads: int, z_floor: float, units: frozenset
+) -> TriMesh:
+    """The body with its front face (the first ``front_quads`` quads of its prism) rebuilt with a hole
+    behind each unit of ``units``, and a room behind each hole."""
+    p = geom.part
+    keep = np.arange(len(body.triangles)) >= 2 * front_quads
+    holes = [geom.panel_bounds(r, c) for r, c in sorted(units)]
+    back = style.frame_back_m
+
+    def front(s, z, hh):  # the body's front face as a sheet at h = 0
+        return geom.surface(s, z, np.asarray(hh) - back)
+
+    s_cuts = np.unique([-p.width_m / 2, p.width_m / 2, *[v for b in holes for v in b[:2]]])
+    pieces = [body.select(keep)]
+    for sa, sb in zip(s_cuts[:-1], s_cuts[1:], strict=True):
+        over = [b for b in holes if b[0] <= sa and sb <= b[1]]
+        z_cuts = np.unique([z_floor, p.height_m, *[v for b in over for v in b[2:]]])
+        for za, zb in zip(z_cuts[:-1], z_cuts[1:], strict=True):
+            if any(b[2] <= za and zb <= b[3] for b in over):
+                continue
+            seg = curve_segments(geom, style, sb - sa)
+            pieces.append(sheet(front, (sa, sb), (za, zb), seg, Material.WALL))
+    for s0, s1, z0, z1 in holes:
+        pieces.append(room_mesh(geom, style, (s0, s1), (z0, z1)))
+    return concat(pieces)
+
+
+SHELF_HEIGHTS = (0.2, 0.45, 0.7)  # shelves' heights, fractions of the room's height (-)
+SHELF_DEPTH = 0.3  # shelves' depth, a fraction of the room's (-)
+
+
+def room_mesh(
+    geom: PartGeometry, style: FacadeStyle, s: tuple[float, float], z: tuple[float, float]
+) -> TriMesh:
+    """A room behind the opening s x z of the body's front face: a box (floor, ceiling, side and back
+    walls, seen from inside), shelves along its back wall and a cloth hanging in its front half, folded
+    in waves. Material INTERIOR, object id 0 (walls), 1 (shelves), 2 (cloth)."""
+    back, depth = style.frame_back_m, style.room_depth_m
+    h0, h1 = -back - depth, -back
+    seg = curve_segments(geom, style, s[1] - s[0])
+    box = prism(geom.surface, s, z, (h0, h1), seg, Material.INTERIOR, 0)
+    # the box's front face closes the opening: the room is seen through where it was
+    box = box.select(np.arange(len(box.triangles)) >= 2 * seg)
+    height, width = z[1] - z[0], s[1] - s[0]
+    thick = 0.04 * height
+    shelves = [
+        prism(geom.surface, s, (z[0] + f * height, z[0] + f * height + thick), (h0, h0 + SHELF_DEPTH * depth),
+              seg, Material.INTERIOR, 1)
+        for f in SHELF_HEIGHTS
+    ]
+    # a cloth from the ceiling down to a third of the height over the left half, in vertical folds
+    n = 24
+    ss = np.linspace(s[0] + 0.1 * width, s[0] + 0.55 * width, n + 1)
+    fold = h1 - 0.35 * depth + 0.04 * depth * np.sin(ss / width * 2 * np.pi * 6)
+    za, zb = z[0] + 0.3 * height, z[1]
+    quads = np.stack([
+        geom.surface(ss[:-1], np.full(n, za), fold[:-1]), geom.surface(ss[1:], np.full(n, za), fold[1:]),
+        geom.surface(ss[1:], np.full(n, zb), fold[1:]), geom.surface(ss[:-1], np.full(n, zb), fold[:-1]),
+    ], axis=1)
+    mid = 0.5 * (ss[:-1] + ss[1:])
+    out = geom.surface(mid, np.full(n, za), np.full(n, 1.0)) - geom.surface(mid, np.full(n, za), np.zeros(n))
+    cloth = quads_to_mesh(quads, out, Material.INTERIOR, 2)
+    return concat([box, *shelves, cloth])

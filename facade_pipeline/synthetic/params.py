@@ -23,6 +23,10 @@ Effect = Literal[
     "sensor_noise",  # Gaussian pixel noise in raw images
     "exposure_change",  # a per-view exposure gain in raw images
     "pose_noise",  # raw COLMAP poses perturbed (gt/ keeps the true ones)
+    "exposure_spread",  # views' exposures spread over noise.exposure_spread_stops, highlights clipped
+    "lens_distortion",  # frontal raw images through a radial lens (noise.lens_k1_k2); gt/ undistorted
+    "unglazed_units",  # facade.unglazed_units: openings without glass onto a room with shelves and cloth
+    "masts_and_cranes",  # poles and a tower crane in front of the facade, reflected across its bars
 ]
 ALL_EFFECTS: tuple[str, ...] = Effect.__args__  # type: ignore[attr-defined]
 
@@ -92,6 +96,10 @@ class FacadeStyle:
     """Albedo of frames (0-1)."""
     wall_color: RGB
     """Albedo of the building body (0-1)."""
+    unglazed_units: tuple[tuple[Count, Count, Count], ...]
+    """(part index, row, col) of units without glass ("unglazed_units"): the opening shows a room."""
+    room_depth_m: Positive
+    """Depth of the room behind an unglazed unit ("unglazed_units") (m)."""
 
 
 @dataclass(frozen=True)
@@ -152,6 +160,17 @@ class EnvironmentParams:
     """Lambert term scale of direct sun light (-)."""
     ambient: NonNeg
     """Ambient light level (-)."""
+    pole_count: Count
+    """Poles (lamp posts, masts) in front of the facade ("masts_and_cranes")."""
+    pole_distance_m: tuple[Positive, Positive]
+    """Site y range of the poles (m)."""
+    pole_height_m: Positive
+    crane_distance_m: Positive
+    """Site y of a tower crane's mast ("masts_and_cranes") (m)."""
+    crane_height_m: Positive
+    """Height of the crane's jib (m); the jib reaches as far across site x."""
+    mast_color: RGB
+    crane_color: RGB
 
     def __post_init__(self) -> None:
         for key in ("building_width_m", "building_depth_m"):
@@ -258,6 +277,11 @@ class NoiseParams:
     """Std of Gaussian pixel noise on [0, 1] intensities (sensor_noise)."""
     exposure_stops: NonNeg
     """Per-view exposure gain 2^u with u uniform in +- this (exposure_change)."""
+    exposure_spread_stops: tuple[Real, Real]
+    """Range of the views' exposures (stops), spread evenly over the views of each kind (exposure_spread);
+    above 0 the glass's reflected sky and the frames clip."""
+    lens_k1_k2: tuple[Real, Real]
+    """Radial distortion of frontal views (OpenCV k1, k2 of the normalised radius) (lens_distortion)."""
 
 
 @dataclass(frozen=True)
@@ -304,6 +328,19 @@ def _check_effects(p: SynthesizeParams) -> None:
         _fail("effects", "to declare 'curved' (a part is cylindrical)", list(p.effects))
     if "curved" in p.effects and not curved:
         _fail("effects", "to declare 'curved' only with a cylindrical part", list(p.effects))
+    units = p.facade.unglazed_units
+    if units and "unglazed_units" not in p.effects:
+        _fail("facade.unglazed_units", "empty unless effect 'unglazed_units' is declared", list(units))
+    for k, (part, row, col) in enumerate(units):
+        if part >= len(p.parts) or row >= p.parts[part].rows or col >= p.parts[part].cols:
+            _fail(f"facade.unglazed_units[{k}]", "(part index, row, col) of a unit of the facade",
+                  [part, row, col])
+    if "unglazed_units" in p.effects:
+        if not units:
+            _fail("facade.unglazed_units", "at least one (part, row, col) with effect 'unglazed_units'", [])
+        if p.facade.room_depth_m > p.facade.body_depth_m - p.facade.frame_back_m:
+            _fail("facade.room_depth_m", "within the body (body_depth_m - frame_back_m)",
+                  p.facade.room_depth_m)
 
 
 def _check_part(part: FacadePart, i: int, style: FacadeStyle, curved_declared: bool) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 import open3d as o3d
 
 from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.synthetic.cameras import Lens
 from facade_pipeline.synthetic.mesh import Material, TriMesh
 from facade_pipeline.synthetic.scene import Scene
 from facade_pipeline.synthetic.textures import albedo, lighting, sky
@@ -195,14 +196,21 @@ class ViewRender:
 
 
 def render_view(
-    scene: Scene, tracer: Tracer, arrays: SceneArrays, camera: PinholeCamera, supersample: int | None = None
+    scene: Scene,
+    tracer: Tracer,
+    arrays: SceneArrays,
+    camera: PinholeCamera,
+    supersample: int | None = None,
+    lens: Lens | None = None,
 ) -> ViewRender:
     """Render ``camera``'s image (supersampled ``supersample`` per side, default ``render.supersample``;
-    chunked) and its ground-truth maps."""
+    chunked) and its ground-truth maps; with a ``lens``, the image is taken through it (its size) and the
+    maps stay ``camera``'s."""
     r = scene.params.render
     ss = r.supersample if supersample is None else supersample
-    H, W, S = camera.height, camera.width, ss * ss
-    o, d = camera.all_pixel_rays(ss)
+    shot = camera if lens is None else lens.camera
+    H, W, S = shot.height, shot.width, ss * ss
+    o, d = camera.all_pixel_rays(ss) if lens is None else lens.pixel_rays(ss)
     rgb = np.empty((len(o), 3), np.float32)
     for a in range(0, len(o), r.chunk_rays):
         rgb[a : a + r.chunk_rays] = shade(

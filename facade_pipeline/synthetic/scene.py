@@ -60,14 +60,16 @@ def build_scene(params: SynthesizeParams) -> Scene:
     panels: list[Panel] = []
     glass, frames, bodies = [], [], []
     for geom in parts:
-        g, f, b = part_meshes(geom, style, len(panels), 0.0)
-        panels.extend(build_panels(geom, style, rng))
+        unglazed = frozenset((r, c) for k, r, c in style.unglazed_units if k == geom.index)
+        g, f, b = part_meshes(geom, style, len(panels), 0.0, unglazed)
+        panels.extend(build_panels(geom, style, rng, unglazed))
         glass.append(g)
         frames.append(f)
         bodies.append(b)
     T = site_frame(params.parts)
     half_span = _half_span(parts, T) + SITE_MARGIN_M
-    placement = place_objects(params.environment, half_span, rng_for(params.seed, "placement"))
+    masts = rng_for(params.seed, "masts") if params.has("masts_and_cranes") else None
+    placement = place_objects(params.environment, half_span, rng_for(params.seed, "placement"), masts)
     env = environment_mesh(params.environment, T, placement)
     g, f, b = concat(glass), concat(frames), concat(bodies)
     mesh = concat([g, f, b, env])
@@ -128,6 +130,14 @@ def scene_description(scene: Scene) -> dict:
             "world_from_site": scene.world_from_site.tolist(),
             "buildings_site_x_y_width_depth_height_yaw": [list(b) for b in scene.placement.buildings],
             "trees_site_x_y_height": [list(t) for t in scene.placement.trees],
+            **(
+                {
+                    "poles_site_x_y_height": [list(t) for t in scene.placement.poles],
+                    "crane_site_x_y_height_jib": list(scene.placement.crane),
+                }
+                if p.has("masts_and_cranes")
+                else {}
+            ),
             "params": {k: getattr(p.environment, k) for k in p.environment.__dataclass_fields__},
         },
         "triangles": {
@@ -140,18 +150,24 @@ def scene_description(scene: Scene) -> dict:
 
 
 def panels_description(scene: Scene) -> dict:
-    """The true panels, for gt/panels.json (JSON-ready)."""
-    return {
+    """The true panels, for gt/panels.json (JSON-ready): the glazed units under ``panels``; with
+    "unglazed_units", the units without glass under ``openings``, in the same form (not panels: the
+    segmentation should not find them)."""
+
+    def entry(pn) -> dict:
+        return {
+            "part": scene.parts[pn.part].part.name,
+            "part_index": pn.part,
+            "row": pn.row,
+            "col": pn.col,
+            "corners": pn.corners.tolist(),
+            "normal": pn.normal.tolist(),
+        }
+
+    out = {
         "corner_order": "bottom-left, bottom-right, top-right, top-left as seen from outside",
-        "panels": [
-            {
-                "part": scene.parts[pn.part].part.name,
-                "part_index": pn.part,
-                "row": pn.row,
-                "col": pn.col,
-                "corners": pn.corners.tolist(),
-                "normal": pn.normal.tolist(),
-            }
-            for pn in scene.panels
-        ],
+        "panels": [entry(pn) for pn in scene.panels if pn.glazed],
     }
+    if scene.params.has("unglazed_units"):
+        out["openings"] = [entry(pn) for pn in scene.panels if not pn.glazed]
+    return out

@@ -22,6 +22,13 @@ COURT_CIRCLE_M = 1.8  # radius of the court's centre circle (m)
 WINDOW_PITCH_M = (3.0, 3.5)  # horizontal and vertical window spacing on nearby buildings (m)
 WINDOW_FILL = (0.6, 0.55)  # fraction of each pitch that is window (-)
 WATER_RIPPLE_M = 0.35  # wavelength of the fountain's ripples (m)
+ROOM_WALL = (0.5, 0.48, 0.45)  # bare concrete of a room behind an unglazed unit (0-1)
+ROOM_LIGHT = 0.55  # light reaching a room's inside, a fraction of the outside's (-)
+# things on the shelves: boxes, planks (0-1)
+SHELF_ITEMS = ((0.55, 0.38, 0.2), (0.8, 0.78, 0.7), (0.25, 0.3, 0.45), (0.7, 0.2, 0.15))
+SHELF_ITEM_M = 0.35  # width of the things on a shelf (m)
+CLOTH = ((0.85, 0.85, 0.8), (0.2, 0.35, 0.6))  # a dust sheet's two stripe colours (0-1)
+CLOTH_STRIPE_M = 0.25  # stripe width of the cloth (m)
 
 
 def sun_direction(env: EnvironmentParams) -> np.ndarray:
@@ -153,4 +160,23 @@ def albedo(
     out[sel] = np.asarray(env.water_color) * (0.8 + 0.2 * np.sin(2 * math.pi * r / WATER_RIPPLE_M))[:, None]
     sel = mat == Material.BUILDING
     out[sel] = building_albedo(p[sel], n[sel], obj[sel], env, seed)
+    sel = mat == Material.INTERIOR
+    if sel.any():
+        out[sel] = interior_albedo(p[sel], obj[sel], seed)
+    sel = mat == Material.MAST
+    out[sel] = np.where((obj[sel] == 1)[:, None], np.asarray(env.crane_color), np.asarray(env.mast_color))
     return out
+
+
+def interior_albedo(p: np.ndarray, obj: np.ndarray, seed: int) -> np.ndarray:
+    """A room behind an unglazed unit [N, 3], dimmed by ``ROOM_LIGHT``: mottled concrete walls (object
+    0), things of mixed colours along the shelves (1), a striped cloth (2)."""
+    q = p[:, 0] + p[:, 1]
+    wall = np.asarray(ROOM_WALL) * (0.75 + 0.5 * fbm(q / 0.8, p[:, 2] / 0.8, seed + 6, 2))[:, None]
+    pick = np.floor(lattice_random(np.floor(q / SHELF_ITEM_M), np.floor(p[:, 2] / 0.3), seed + 7)
+                    * len(SHELF_ITEMS)).astype(int)
+    items = np.asarray(SHELF_ITEMS)[pick]
+    stripe = (np.floor(q / CLOTH_STRIPE_M) % 2).astype(int)
+    cloth = np.asarray(CLOTH)[stripe]
+    out = np.where((obj == 1)[:, None], items, np.where((obj == 2)[:, None], cloth, wall))
+    return ROOM_LIGHT * out

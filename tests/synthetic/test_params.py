@@ -22,9 +22,14 @@ def test_shipped_scenes_load(building):
     assert from_dict(SynthesizeParams, to_dict(p)) == p  # a manifest's params rebuild the same scene
 
 
-def test_demo_declares_every_effect_and_both_kinds():
+#: the effects of frontal photos taken on site, which real_like declares and demo (UAV-first) does not
+REAL_LIKE_EFFECTS = {"exposure_spread", "lens_distortion", "unglazed_units", "masts_and_cranes"}
+
+
+def test_demo_and_real_like_declare_every_effect_and_demo_both_kinds():
     p = shipped("demo")
-    assert set(p.effects) == set(ALL_EFFECTS)
+    assert set(p.effects) == set(ALL_EFFECTS) - REAL_LIKE_EFFECTS
+    assert REAL_LIKE_EFFECTS <= set(shipped("real_like").effects)
     assert {part.kind for part in p.parts} == {"planar", "cylindrical"}
 
 

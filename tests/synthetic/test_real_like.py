@@ -1,0 +1,136 @@
+"""The real-like effects (exposure spread, lens distortion, unglazed units, masts and cranes): each is
+there when declared, and a scene that does not declare it is the scene without it (nothing is cast,
+built or drawn for it)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from facade_pipeline.errors import ConfigError
+from facade_pipeline.io.colmap import undistort_options, undistort_rgb
+from facade_pipeline.io.images import to_uint8
+from facade_pipeline.synthetic.mesh import Material
+from facade_pipeline.synthetic.render import first_hits, render_view
+from facade_pipeline.synthetic.scene import panels_description
+from facade_pipeline.synthetic.simulate import build_simulator, raw_view, sensor_image, spread_stops
+from tests.synthetic.conftest import replace_in, shipped, tiny, with_effects, without
+
+
+def test_the_shipped_real_like_scene_declares_the_four_effects():
+    p = shipped("real_like")
+    assert {"exposure_spread", "lens_distortion", "unglazed_units", "masts_and_cranes"} <= set(p.effects)
+
+
+def test_exposure_spread_covers_its_range_and_clips_highlights():
+    p = with_effects(tiny(uav_count=8), "exposure_spread")
+    p = replace_in(p, "noise", exposure_spread_stops=(-1.0, 1.5))
+    p = without(p, "sensor_noise")
+    sim = build_simulator(p)
+    image = np.full((8, 8, 3), 0.25, np.float32)
+    image[0, 0] = 0.9  # a highlight: clips at every gain above 2^0.15
+    stops = []
+    for view in sim.views:
+        raw = sensor_image(p, view, image).astype(float) / 255
+        u = spread_stops(p, view)
+        assert -1.0 <= u <= 1.5
+        assert raw[1, 1, 0] == pytest.approx(min(0.25 * 2**u, 1.0), abs=1 / 255)
+        if u > 0.2:
+            assert raw[0, 0, 0] == 1.0
+        stops.append(u)
+    uav = [u for u, v in zip(stops, sim.views, strict=True) if v.kind == "uav"]
+    assert min(uav) < -0.5 and max(uav) > 1.0  # spread over the range, not bunched
+    off = without(p, "exposure_spread")
+    for view in sim.views:
+        assert np.array_equal(sensor_image(off, view, image), to_uint8(np.clip(image.astype(float), 0, 1)))
+
+
+def test_a_lens_distorted_frontal_view_undistorts_to_its_truth_camera():
+    p = replace_in(with_effects(tiny(size_px=192), "lens_distortion"), "noise", lens_k1_k2=(-0.2, 0.04))
+    sim = build_simulator(p)
+    off = build_simulator(without(p, "lens_distortion"))
+    assert all(v.lens is None for v in off.views)
+    assert all(v.lens is None for v in sim.views if v.kind == "uav")
+    view = next(v for v in sim.views if v.kind == "frontal")
+    assert view.lens is not None and (view.camera.width, view.camera.height) != (192, 192)
+    raw = render_view(sim.scene, sim.tracer, sim.arrays, view.camera, 3, view.lens)
+    assert raw.image.shape[:2] == (192, 192) and raw.material.shape == (view.camera.height, view.camera.width)
+    # the glass seen through the lens, undistorted as the importer does, is the truth camera's glass
+    hits = first_hits(sim.tracer, sim.arrays, *view.lens.pixel_rays(1), "other")
+    seen = np.repeat((hits.material == Material.GLASS).reshape(192, 192, 1), 3, axis=2).astype(np.uint8) * 255
+    undistorted = undistort_rgb(undistort_options(), seen, view.lens.colmap_camera())[..., 0] > 127
+    truth = raw.material == Material.GLASS
+
+    def iou(a, b):
+        return (a & b).sum() / (a | b).sum()
+
+    resized = cv2.resize(seen[..., 0], truth.shape[::-1], interpolation=cv2.INTER_NEAREST) > 127
+    assert iou(undistorted, truth) > 0.95 and iou(resized, truth) < iou(undistorted, truth) - 0.02, (
+        iou(undistorted, truth), iou(resized, truth))
+    model = raw_view(p, view)
+    assert model.radial == (-0.2, 0.04) and (model.camera.width, model.camera.height) == (192, 192)
+
+
+def test_unglazed_units_are_openings_onto_a_room_and_not_panels():
+    p = tiny()
+    p = dataclasses.replace(p, effects=(*p.effects, "unglazed_units"),
+                            facade=dataclasses.replace(p.facade, unglazed_units=((0, 1, 2),)))
+    sim = build_simulator(p)
+    scene = sim.scene
+    ids = [i for i, pn in enumerate(scene.panels) if not pn.glazed]
+    assert [(scene.panels[i].row, scene.panels[i].col) for i in ids] == [(1, 2)]
+    glass = scene.mesh.material == Material.GLASS
+    assert not np.isin(scene.mesh.object_id[glass], ids).any()
+    described = panels_description(scene)
+    assert len(described["panels"]) == len(scene.panels) - 1
+    assert [(o["row"], o["col"]) for o in described["openings"]] == [(1, 2)]
+    # a ray through the opening's centre enters the room (walls, shelves or cloth), none hits glass
+    pn = scene.panels[ids[0]]
+    view = next(v for v in sim.views if v.kind == "frontal" and 1 in v.block[1] and 2 in v.block[2])
+    r = render_view(scene, sim.tracer, sim.arrays, view.camera, 1)
+    uv, _ = view.camera.project(pn.corners)
+    lo, hi = np.ceil(uv.min(axis=0)).astype(int) + 1, np.floor(uv.max(axis=0)).astype(int) - 1
+    inside = r.material[lo[1]:hi[1], lo[0]:hi[0]]
+    assert (inside == Material.INTERIOR).mean() > 0.95 and not (inside == Material.GLASS).any()
+    plain = build_simulator(tiny()).scene
+    assert not (plain.mesh.material == Material.INTERIOR).any()
+    assert "openings" not in panels_description(plain)
+
+
+@pytest.mark.parametrize(("units", "effects", "named"), [
+    (((0, 1, 2),), (), "synthesize.facade.unglazed_units"),
+    (((0, 7, 0),), ("unglazed_units",), "synthesize.facade.unglazed_units[0]"),
+    ((), ("unglazed_units",), "synthesize.facade.unglazed_units"),
+])
+def test_unglazed_units_name_the_key_when_wrong(units, effects, named):
+    p = tiny()
+    with pytest.raises(ConfigError) as e:
+        facade = dataclasses.replace(p.facade, unglazed_units=units)
+        dataclasses.replace(p, effects=(*p.effects, *effects), facade=facade)
+    assert named in str(e.value)
+
+
+def test_masts_and_cranes_stand_in_front_and_are_reflected_by_the_glass():
+    p = replace_in(tiny(), "render", supersample=1)
+    on, off = build_simulator(with_effects(p, "masts_and_cranes")), build_simulator(p)
+    mast = on.scene.mesh.material == Material.MAST
+    assert mast.any() and not (off.scene.mesh.material == Material.MAST).any()
+    assert len(on.scene.placement.poles) == p.environment.pole_count and on.scene.placement.crane
+    # everything else stays where it was: the masts are added after the other objects
+    n = len(off.scene.mesh.triangles)
+    assert np.array_equal(on.scene.mesh.vertices[on.scene.mesh.triangles[:n]],
+                          off.scene.mesh.vertices[off.scene.mesh.triangles])
+    assert on.scene.placement.trees == off.scene.placement.trees
+    s = on.scene.site_xy(on.scene.mesh.vertices[on.scene.mesh.triangles[mast]].reshape(-1, 3))
+    assert s[:, 1].min() > 0  # in front of the facade
+    changed = 0
+    for a, b in zip(on.views, off.views, strict=True):
+        ra = render_view(on.scene, on.tracer, on.arrays, a.camera, 1)
+        rb = render_view(off.scene, off.tracer, off.arrays, b.camera, 1)
+        glass = ra.material == Material.GLASS
+        assert np.array_equal(ra.material[glass], rb.material[glass])
+        changed += int((np.abs(ra.image - rb.image).max(axis=2)[glass] > 1e-3).sum())
+    assert changed > 0  # seen in the glass
