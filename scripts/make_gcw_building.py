@@ -1,6 +1,6 @@
 """Make a building's raw/ from posed photos of a glass curtain wall (the layout of ``shared/real/gcw_dev``).
 
-    python scripts/make_gcw_building.py SRC_DIR --building NAME [--data-root DIR]
+    python scripts/make_gcw_building.py SRC_DIR --building NAME [--data-root DIR] [--scale S]
 
 SRC_DIR holds ``images/*.jpg`` and ``cameras.json`` (``{img: {K, cam_from_world, width, height}}``: K in
 OpenCV's pixel convention, ``cam_from_world`` from the wall frame to OpenCV camera axes, metres). Its
@@ -13,6 +13,9 @@ photogrammetry would give it:
 - ``coarse_mesh.ply``: the wall-plane rectangle covering every photo's footprint (with a margin), a grid of
   cells with Gaussian noise along the wall normal (``--noise-mm``), and ``coarse_points.ply`` sampled on it,
   each point coloured by the median of the photos that see it.
+
+``--scale S`` makes the same photos of a wall S times the size (the poses' positions and the coarse mesh's
+noise times S, as a full-size wall seen from S times as far with the same cameras would give them).
 
 Refuses to write into an existing raw/ unless ``--force``; nothing is written outside the data root.
 """
@@ -41,8 +44,9 @@ WORLD_FROM_WALL = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1
                             [0.0, 0.0, 0.0, 1.0]])
 
 
-def read_cameras(src: Path) -> dict[str, PinholeCamera]:
-    """The photos' cameras in the world frame (pixel centres at +0.5, as everywhere in the pipeline)."""
+def read_cameras(src: Path, scale: float = 1.0) -> dict[str, PinholeCamera]:
+    """The photos' cameras in the world frame (pixel centres at +0.5, as everywhere in the pipeline), of a
+    wall ``scale`` times the size (the cameras' positions scaled about the wall frame's origin)."""
     path = src / "cameras.json"
     try:
         raw = json.loads(path.read_text())
@@ -60,7 +64,8 @@ def read_cameras(src: Path) -> dict[str, PinholeCamera]:
         if K.shape != (3, 3) or T.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(T).all()):
             raise InputError(path, f"a finite 3 x 3 K and 4 x 4 cam_from_world for {stem!r}",
                              f"shapes {K.shape} and {T.shape}")
-        K = K.copy()
+        K, T = K.copy(), T.copy()
+        T[:3, 3] *= scale  # a camera at s C: t = -R C scales with it
         K[:2, 2] += 0.5  # OpenCV's top-left pixel centre (0, 0) -> (0.5, 0.5)
         cams[stem] = PinholeCamera(K, T @ np.linalg.inv(WORLD_FROM_WALL), w, h)
     return cams
@@ -124,12 +129,13 @@ def point_colours(points: np.ndarray, cams: dict[str, PinholeCamera], images: li
 
 
 def make_building(src: Path, layout: BuildingLayout, noise_m: float, n_points: int, seed: int,
-                  force: bool) -> dict:
-    """Write raw/ (module docstring); returns counts for the summary line."""
+                  force: bool, scale: float = 1.0) -> dict:
+    """Write raw/ (module docstring) of the wall at ``scale`` (``noise_m`` is the noise at that scale);
+    returns counts for the summary line."""
     images = sorted((src / "images").glob("*.jpg")) + sorted((src / "images").glob("*.png"))
     if not images:
         raise InputError(src / "images", "photos (*.jpg or *.png)", "none")
-    cams = read_cameras(src)
+    cams = read_cameras(src, scale)
     missing = sorted({p.stem for p in images} - set(cams))
     if missing:
         raise InputError(src / "cameras.json", "a camera for every photo", f"none for {', '.join(missing)}")
@@ -172,10 +178,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=20000, help="coarse points sampled on the mesh")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--force", action="store_true", help="replace an existing raw/")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="the wall this many times the size: poses and mesh noise scaled (-)")
     a = ap.parse_args(argv)
+    if not (np.isfinite(a.scale) and a.scale > 0):
+        print(f"error: --scale: expected a positive number, found {a.scale}; give the wall's size factor",
+              file=sys.stderr)
+        return 2
     try:
         layout = BuildingLayout(resolve_data_root(a.data_root), a.building)
-        stats = make_building(a.src, layout, a.noise_mm * 1e-3, a.points, a.seed, a.force)
+        stats = make_building(a.src, layout, a.noise_mm * 1e-3 * a.scale, a.points, a.seed, a.force, a.scale)
     except PipelineError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -22,8 +22,10 @@ from facade_pipeline.segmentation.real_truth import (
     evaluate_building,
     exposed_copy,
     grid_corner_errors_m,
+    iou,
     summary,
 )
+from facade_pipeline.segmentation.result import ViewSegmentation
 from facade_pipeline.threads import usable_cores
 from scripts.make_gcw_building import WORLD_FROM_WALL
 from tests.segmentation.conftest import REPO, _cmd, doit
@@ -149,13 +151,44 @@ def test_the_same_photos_at_a_smaller_size_give_the_same_panels(gcw, tmp_path):
     assert s["corner_error_median_px"] / 0.6 <= 1.2 * full["corner_error_median_px"]
 
 
-#: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do): frames and the
-#: bright glass beside them meet at full scale, where no edge is left to find
-OVEREXPOSED = pytest.mark.xfail(strict=True, reason="frames clipped against bright glass lose their edges")
-#: what does not hold yet, by exposure: brighter, the frames beside clipped glass; at -0.5 EV one of img042's
-#: three whole panes (one of fifteen) is not found, a decision that the re-encoded photo's rounding moves
+@pytest.mark.xfail(strict=True, reason="gcw_dev.toml's lengths are the 1:25 model's, not measured from the "
+                   "photos: at x25 no whole pane is found (0 of 15; 249 of 277 complete panels under half "
+                   "glass)")
+def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks(gcw, tmp_path):
+    """One config for any scale: the same photos with the poses and the coarse mesh 25 times the size (a
+    full-size wall, ``make_gcw_building.py --scale``) give the same masks, with the same config."""
+    layout, per_photo = gcw
+    env = {**os.environ, "TQDM_DISABLE": "1"}
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_gcw_building.py"), str(SRC),
+                          "--building", "gcw_dev", "--data-root", str(tmp_path), "--scale", "25"], cwd=REPO,
+                         env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    doit(["segment_panels", "building=gcw_dev"], env, tmp_path)
+    big = BuildingLayout(tmp_path, "gcw_dev")
+    s, full = summary(evaluate_building(big, SRC)), summary(per_photo)
+    assert s["found"] == full["found"]
+    cams = json.loads((SRC / "cameras.json").read_text())
+    for stem in per_photo:
+        W, H = cams[stem]["width"], cams[stem]["height"]
+        seg = [ViewSegmentation.load(lay, stem, W, H).mask for lay in (layout, big)]
+        assert iou(*seg) >= 0.95, stem
+
+
+#: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do). At +0.5 EV 12 of
+#: 15 whole panes, mask IoU median 0.76, min 0.00; at +1 EV 8 of 15, 0.64 / 0.00. What is lost: the frames
+#: and the bright glass beside them meet at full scale, where no edge is left to find (img041 finds no
+#: transoms at any pitch, img060 its left mullion); the empty unit's shelves and cloth clip to the frames'
+#: white, so its shelves pass the transoms' colour prior and its cell is taken for a pane; and the frames'
+#: lit side faces merge with their clipped front faces, a parallax of 7 mm that the photos as taken do not
+#: show (without the parallax correction corners go from 5.5 to 3.4 px at +1 EV, the IoU stays)
+OVEREXPOSED = pytest.mark.xfail(strict=True, reason="frames clipped against bright glass lose their edges; "
+                                "the empty unit clips to the frames' colour")
+#: what does not hold yet, by exposure: brighter, ``OVEREXPOSED``; at -0.5 EV one of img042's three whole
+#: panes (one of fifteen: 0.067 off) is not found: its top transom lies 15 px from the photo's border, and
+#: the panel found on the pane (IoU 0.97) is not a complete one, a decision that the re-encoded photo's
+#: rounding moves
 NOT_YET = {"+0.5 EV": OVEREXPOSED, "+1 EV": OVEREXPOSED,
-           "-0.5 EV": pytest.mark.xfail(strict=True, reason="one whole pane of 15 lost (img042)")}
+           "-0.5 EV": pytest.mark.xfail(strict=True, reason="one whole pane of 15 lost (img042's top row)")}
 
 
 @pytest.fixture(scope="module")
