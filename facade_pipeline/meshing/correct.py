@@ -4,6 +4,8 @@ Each 3D panel is shrunk in its surface about its centre; the coarse mesh inside 
 shrunk footprint, extended by a half-depth either way along the normal) is removed and the shrunk panel
 is put in its place, triangulated with its front facing outward, so the frames around it stay. On a
 cylindrical part the footprint and the panel follow the cylinder (the cuboid bends with the surface).
+Where the removal leaves the frames between and around the panels without surface (a coarse mesh whose
+cells are wider than a frame bar loses every cell that touches a panel), a frame backing fills them.
 Frames: local (01_import), metres; surface coordinates (s, z, h) as in ``facade_pipeline.panels3d.model``.
 """
 
@@ -18,7 +20,7 @@ import numpy as np
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.io.atomic import write_bytes
-from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface, part_outline
+from facade_pipeline.panels3d.model import Panel, PanelSet, PartSurface, frame_width, part_outline
 
 OTHER, FRAME, GLASS = 0, 1, 2  # triangle labels of the corrected mesh (05_correct_mesh/triangle_labels.npy)
 LABEL_NAMES = {OTHER: "other", FRAME: "frame", GLASS: "glass"}
@@ -27,12 +29,14 @@ LABEL_NAMES = {OTHER: "other", FRAME: "frame", GLASS: "glass"}
 @dataclass(frozen=True, eq=False)
 class CorrectedMesh:
     """The corrected mesh: ``vertices`` [V, 3], ``triangles`` [F, 3], ``is_panel`` [F] (True on inserted
-    glass), and how many coarse triangles were removed."""
+    glass), how many coarse triangles were removed and how many triangles of frame backing were added
+    (``frame_backing``; they are last)."""
 
     vertices: np.ndarray
     triangles: np.ndarray
     is_panel: np.ndarray
     n_removed: int
+    n_backing: int = 0
 
 
 def shrunk_corners(surface: PartSurface, panel: Panel, factor: float) -> np.ndarray:
@@ -115,7 +119,81 @@ def correct_mesh(
     keep = np.concatenate([~remove, np.ones(sum(len(x) for x in new_f[1:]), bool)])
     all_f = np.concatenate(new_f)[keep]
     is_panel = np.concatenate([np.zeros(len(f), bool), np.ones(len(keep) - len(f), bool)])[keep]
-    return CorrectedMesh(np.concatenate(new_v), all_f, is_panel, int(remove.sum()))
+    all_v = np.concatenate(new_v)
+    bv, bf = frame_backing(panels, v, f[~remove], cuboid_half_depth_m, insert_factor or shrink_factor)
+    return CorrectedMesh(
+        np.concatenate([all_v, bv]),
+        np.concatenate([all_f, bf + len(all_v)]),
+        np.concatenate([is_panel, np.zeros(len(bf), bool)]),
+        int(remove.sum()),
+        len(bf),
+    )
+
+
+#: The frame backing's cells are this fraction of the part's frame width on a side: fine enough that the
+#: frame bars keep their width within a quarter of it.
+BACKING_CELL_FRACTION = 0.25
+#: The backing lies this fraction of the frame width behind the glass surface: the glass, which may run
+#: under its cells' edges, is hit first; a twentieth keeps the backing's parallax far below a bar's width.
+BACKING_DEPTH_FRACTION = 0.05
+
+
+def frame_backing(
+    panels: PanelSet,
+    vertices: np.ndarray,
+    kept: np.ndarray,
+    half_depth_m: float,
+    insert_factor: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices [M, 3] and outward triangles [K, 3] of surface where the frames between and around the
+    panels have none: square cells (``BACKING_CELL_FRACTION`` of the part's frame width) within one frame
+    width of a panel and outside every inserted panel (the panels scaled by ``insert_factor``), kept where
+    the coarse mesh's ``kept`` triangles [F, 3] of ``vertices`` [V, 3] have no surface within
+    ``half_depth_m`` (m) of the glass along its normal. They lie just behind the glass surface
+    (``BACKING_DEPTH_FRACTION``): a coarse frame that stands proud of the glass is hit before them."""
+    # imported here: correct_mesh's tests of the geometry alone need no ray caster
+    from facade_pipeline.geometry.raycast import MeshRaycaster
+
+    rc = MeshRaycaster(np.asarray(vertices, np.float64), np.asarray(kept, np.int64).reshape(-1, 3))
+    out_v, out_f, offset = [], [], 0
+    for k, surface in enumerate(panels.parts):
+        own = panels.of_part(k)
+        fw = frame_width(own, surface) if own else 0.0
+        if fw <= 0.0:
+            continue
+        cell = BACKING_CELL_FRACTION * fw
+        boxes = np.stack([surface.coords(p.corners)[:, :2] for p in own])  # [P, 4, 2]
+        lo, hi = boxes.min(axis=(0, 1)) - fw, boxes.max(axis=(0, 1)) + fw
+        s, z = (np.arange(a + cell / 2, b, cell) for a, b in zip(lo, hi, strict=True))
+        ss, zz = (g.ravel() for g in np.meshgrid(s, z, indexing="ij"))
+        centres = np.stack([ss, zz, np.zeros_like(ss)], axis=1)
+        d = cell / 2
+        square = np.array([[-d, -d, 0], [d, -d, 0], [d, d, 0], [-d, d, 0]])  # BL, BR, TR, TL: outward
+        near = np.zeros(len(ss), bool)
+        glass = np.zeros(len(ss), bool)  # cells wholly behind an inserted panel (one that it cuts stays)
+        for p, box in zip(own, boxes, strict=True):
+            near |= ((centres[:, :2] >= box.min(0) - fw) & (centres[:, :2] <= box.max(0) + fw)).all(1)
+            ins = shrunk_corners(surface, p, insert_factor)
+            corners = surface.points((centres[:, None] + square).reshape(-1, 3))
+            glass |= in_cuboid(surface, ins, np.inf, corners).reshape(-1, 4).all(axis=1)
+        centres = centres[near & ~glass]
+        if not len(centres):
+            continue
+        if not rc.empty:
+            foot = surface.points(centres)
+            normal = surface.normals_at(foot)
+            hits = rc.cast(foot + 2.0 * half_depth_m * normal, -normal)
+            covered = np.isfinite(hits.t) & (hits.t <= 4.0 * half_depth_m)
+            centres = centres[~covered]
+        corners = centres[:, None, :] + square
+        corners[..., 2] = -BACKING_DEPTH_FRACTION * fw
+        out_v.append(surface.points(corners.reshape(-1, 3)))
+        base = offset + 4 * np.arange(len(centres))[:, None]
+        out_f.append(np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]))
+        offset += 4 * len(centres)
+    if not out_v:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.concatenate(out_v), np.concatenate(out_f).astype(np.int64)
 
 
 def label_triangles(

@@ -248,9 +248,8 @@ class PanelSet:
         return cls(parts, panels, d.get("meta", {}))
 
 
-def part_outline(panels: tuple[Panel, ...], surface: PartSurface) -> np.ndarray:
-    """Surface coordinates [4, 3] of a part's facade: its panels' extent grown by one frame width (the
-    median gap between neighbouring panels; zero with a single panel)."""
+def frame_width(panels: tuple[Panel, ...], surface: PartSurface) -> float:
+    """A part's frame width (m): the median gap between neighbouring panels (zero with a single panel)."""
     szh = np.stack([surface.coords(p.corners) for p in panels])  # [P, 4, 3]
     gaps = []
     for axis, (lo_k, hi_k) in ((0, (1, 0)), (1, (2, 1))):  # s: right -> next left; z: top -> next bottom
@@ -260,7 +259,14 @@ def part_outline(panels: tuple[Panel, ...], surface: PartSurface) -> np.ndarray:
         d = d[d > 0]
         if len(d):
             gaps.append(float(d.min()))
-    fw = float(np.median(gaps)) if gaps else 0.0
+    return float(np.median(gaps)) if gaps else 0.0
+
+
+def part_outline(panels: tuple[Panel, ...], surface: PartSurface) -> np.ndarray:
+    """Surface coordinates [4, 3] of a part's facade: its panels' extent grown by one frame width
+    (``frame_width``)."""
+    szh = np.stack([surface.coords(p.corners) for p in panels])  # [P, 4, 3]
+    fw = frame_width(panels, surface)
     s0, s1 = szh[..., 0].min() - fw, szh[..., 0].max() + fw
     z0, z1 = szh[..., 1].min() - fw, szh[..., 1].max() + fw
     return np.array([[s0, z0, 0.0], [s1, z0, 0.0], [s1, z1, 0.0], [s0, z1, 0.0]])

@@ -37,8 +37,9 @@ class EnvironmentProxy:
     """texels across the proxy's finest floor map (and around its finest wall map)"""
     levels: PosInt = 3
     """feature maps per part, each a quarter of the resolution of the one before"""
-    cell_m: Positive = 1.0
-    """cell size of the surroundings' surface model (m)"""
+    cell: Positive = 1.0 / 60.0
+    """cell size of the surroundings' surface model, a fraction of the facade's size (the diagonal of the
+    corrected mesh's bounds, ``training.params.facade_size``): 1/60 is about 1 m on demo, 62 m across"""
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from facade_pipeline.shading.params import (
 )
 from facade_pipeline.shading.proxy import ProxyFeatures, proxy_reach_m
 from facade_pipeline.shading.surroundings import Surroundings
+from facade_pipeline.training.params import facade_size
 
 #: Standard deviation of the proxy feature maps' initial values.
 PROXY_INIT_STD = 0.1
@@ -87,9 +88,8 @@ class ReflectionMLPModule(nn.Module):
             lo, hi = (b.detach().float() for b in bounds)
             self.register_buffer("bounds_lo", lo.clone(), persistent=False)
             self.register_buffer("bounds_hi", hi.clone(), persistent=False)
-            surroundings = Surroundings(
-                lo, hi, proxy_reach_m(lo, hi), proxy.cell_m, points, cfg.proxy_margin_m
-            )
+            cell_m = proxy.cell * facade_size((lo, hi))
+            surroundings = Surroundings(lo, hi, proxy_reach_m(lo, hi), cell_m, points, cfg.proxy_margin_m)
             self.proxy = ProxyFeatures(
                 surroundings, proxy.channels, proxy.resolution_px, proxy.levels, PROXY_INIT_STD
             )
@@ -233,4 +233,13 @@ def _mlp_from_record(config: dict[str, Any], path: Path | None) -> ReflectionMLP
     proxy = config.pop("proxy", None)
     if flat:
         proxy = flat
+    if proxy is not None and "cell_m" in proxy:
+        # the surface model's cell in metres, before it was a fraction of the facade's size
+        if proxy.get("channels", 0):
+            raise InputError(
+                path,
+                "a reflection MLP this version builds (the proxy's cell a fraction of the facade's size)",
+                f"cell_m = {proxy['cell_m']!r}, a cell in metres: retrain the model",
+            )
+        proxy = {k: v for k, v in proxy.items() if k != "cell_m"}
     return ReflectionMLP(**config, proxy=None if proxy is None else EnvironmentProxy(**proxy))

@@ -9,10 +9,10 @@ them. Here they become a surface model (a DSM, as photogrammetry software export
 rays of the environment proxy (``shading.proxy``) are cast against:
 
 - points off the facade (beyond its bounds by ``margin_m``, horizontally) and above the ground (by
-  ``MIN_HEIGHT_M``) are binned into square cells of ``cell_m`` around the facade's centre, out to
+  ``MIN_HEIGHT_CELLS`` cells) are binned into square cells of ``cell_m`` around the facade's centre, out to
   ``reach_m``; a cell's top is its highest point's height, and a grey-level closing over 3 x 3 cells fills
   the one-cell holes that sparse points leave in roofs and crowns; its bottom is its lowest point's, or the
-  ground where that is within ``GROUND_SNAP_M`` of it (walls and trunks);
+  ground where that is within ``GROUND_SNAP_CELLS`` cells of it (walls and trunks);
 - each cell with something in it is a block from its bottom to its top, with walls where a neighbour does
   not cover that span: a building is a box, a tree's crown a lump that rays can pass under.
 
@@ -39,12 +39,14 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-#: Points this far above the ground or less are ground; the proxy's floor stands for them (m).
-MIN_HEIGHT_M = 0.5
-#: A cell whose lowest point is at most this high stands on the ground (walls, trunks) (m).
-GROUND_SNAP_M = 1.5
-#: Rays start this far along w_r from X_r (m): off the facade, whatever the mesh's numerical noise.
-RAY_OFFSET_M = 0.05
+#: The heights below are in cells of the surface model (``cell_m``, itself a fraction of the facade's size),
+#: so that a model of a building at 1:25 has the building's surroundings at 1:25: 1 m cells on demo.
+#: Points this many cells above the ground or less are ground; the proxy's floor stands for them.
+MIN_HEIGHT_CELLS = 0.5
+#: A cell whose lowest point is at most this many cells high stands on the ground (walls, trunks).
+GROUND_SNAP_CELLS = 1.5
+#: Rays start this many cells along w_r from X_r: off the facade, whatever the mesh's numerical noise.
+RAY_OFFSET_CELLS = 0.05
 #: The elevation of the highest point is at most this (rad).
 MAX_ELEVATION = math.radians(60.0)
 #: At most this many cells across the surface model (a 4096 x 4096 grid of two heights is 128 MiB).
@@ -79,7 +81,7 @@ def surface_heights(
     p = np.asarray(points, np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(axis=1)]
     off = np.any((p[:, :2] < lo[:2] - margin_m) | (p[:, :2] > hi[:2] + margin_m), axis=1)
-    q = p[off & (p[:, 2] > lo[2] + MIN_HEIGHT_M)]
+    q = p[off & (p[:, 2] > lo[2] + MIN_HEIGHT_CELLS * cell_m)]
     ij = np.floor((q[:, :2] - 0.5 * (lo[:2] + hi[:2])) / cell_m + 0.5 * cells).astype(np.int64)
     inside = ((ij >= 0) & (ij < cells)).all(axis=1)
     at, z = (ij[inside, 0], ij[inside, 1]), q[inside, 2] - lo[2]
@@ -91,8 +93,8 @@ def surface_heights(
     # a filled cell takes the lowest bottom around it
     top = _filter3(_filter3(top, np.max), np.min)
     bottom = np.where(np.isfinite(bottom), bottom, _filter3(bottom, np.min))
-    # what starts this low stands on the ground (walls, trunks: the points stop MIN_HEIGHT_M above it)
-    bottom = np.where(np.isfinite(bottom) & (bottom > GROUND_SNAP_M), bottom, 0.0)
+    # what starts this low stands on the ground (walls, trunks: the points stop MIN_HEIGHT_CELLS above it)
+    bottom = np.where(np.isfinite(bottom) & (bottom > GROUND_SNAP_CELLS * cell_m), bottom, 0.0)
     bottom = np.where(top > 0, np.minimum(bottom, top), 0.0)
     return np.stack([bottom, top])
 
@@ -395,7 +397,7 @@ class Surroundings(nn.Module):
         up = torch.zeros_like(w[:1])
         up[0, 2] = 1.0  # filled on the device: a tensor made from host values would be a copy from the host
         w = torch.where(ok[:, None], w, up)
-        o = torch.where(ok[:, None], x, torch.zeros_like(x)) + RAY_OFFSET_M * w
+        o = torch.where(ok[:, None], x, torch.zeros_like(x)) + RAY_OFFSET_CELLS * self.cell_m * w
         t_obj = self.cast(o, w)
         wz = w[:, 2]
         down = wz < -_EPS

@@ -139,7 +139,7 @@ def flat_params(params: dict[str, Any]) -> dict[str, Any]:
         "mlp_proxy_channels": proxy["channels"],
         "mlp_proxy_resolution_px": proxy["resolution_px"],
         "mlp_proxy_levels": proxy["levels"],
-        "mlp_proxy_cell_m": proxy["cell_m"],
+        "mlp_proxy_cell": proxy["cell"],
         "mlp_proxy_surroundings": True,  # the proxy's rays always meet the surroundings now
         "envmap_height_px": envmap["height_px"],
         "envmap_width_px": envmap["width_px"],

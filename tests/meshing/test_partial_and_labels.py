@@ -22,7 +22,7 @@ from facade_pipeline.meshing.correct import (
 from facade_pipeline.meshing.overlay import panels_over_view, scaled_camera, shaded_render, upscale_factor
 from facade_pipeline.panels3d.grid import build_panel_set, true_corners
 from tests.meshing.conftest import params_of
-from tests.panels3d.test_panels_geometry import DEPTH, cfg, facade
+from tests.panels3d.test_panels_geometry import DEPTH, FW, cfg, facade
 
 W, H = 200, 150
 
@@ -170,3 +170,42 @@ def test_a_panel_placed_by_two_parts_is_kept_once_where_the_glass_is():
     assert [(p.part, p.col) for p in kept] == [(0, 0), (1, 1)]
     kept = dedupe_across_parts([a, b, other], [near, far], glass + [0, 0.3, 0], cfg())
     assert [(p.part, p.col) for p in kept] == [(1, 0), (1, 1)]
+
+
+def test_frames_finer_than_the_coarse_cells_are_backed_not_holes(corrected):
+    surf, ps, fine, _ = corrected
+    s_lines = np.arange(4) * (2.0 + FW) - 1.5 * (2.0 + FW)
+    z_lines = np.arange(3) * (1.8 + FW) + 1.0
+    back = surf.coords(fine.vertices[fine.triangles[len(fine.triangles) - fine.n_backing :]].mean(axis=1))
+    under_bar = (np.abs(back[:, :1] - s_lines) < 0.4 * FW).any(-1) | (
+        np.abs(back[:, 1:2] - z_lines) < 0.4 * FW
+    ).any(-1)
+    assert not under_bar.any()  # the coarse mesh's own frames stand there: nothing doubles them
+    # a photogrammetric mesh of a wall, flat, in cells far wider than a frame bar: every cell touches a panel
+    s, z = np.linspace(-5, 5, 5), np.linspace(0, 6, 4)
+    S, Z = np.meshgrid(s, z, indexing="ij")
+    v = surf.points(np.stack([S.ravel(), Z.ravel(), np.zeros(S.size)], axis=1))
+    idx = np.arange(S.size).reshape(S.shape)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    p = params_of("correct_mesh")
+    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg, 1.0)
+    labels = label_triangles(out.vertices, out.triangles, out.is_panel, ps, p.frame_half_depth_m)
+    assert out.n_backing > 0
+    cam = narrow_camera(surf, 0.0, 2.9)
+    baked = bake_view(MeshRaycaster(out.vertices, out.triangles), cam, 1000, labels=labels)
+    o, dirs = cam.all_pixel_rays()
+    t = surf.intersect(o, dirs)
+    szh = surf.coords(o + t[:, None] * dirs).reshape(H, W, 3)
+    ds = np.abs(szh[..., :1] - s_lines).min(-1)
+    dz = np.abs(szh[..., 1:2] - z_lines).min(-1)
+    inside = (szh[..., 0] > s_lines[0]) & (szh[..., 0] < s_lines[-1])
+    inside &= (szh[..., 1] > z_lines[0]) & (szh[..., 1] < z_lines[-1])
+    bar = inside & ((ds < 0.4 * FW) | (dz < 0.4 * FW))  # well inside a bar (its true half width: 0.5)
+    pane = inside & (ds > 0.6 * FW) & (dz > 0.6 * FW)  # well inside a pane
+    assert bar.sum() > 100 and pane.sum() > 1000
+    assert (baked.label[bar] == FRAME).all()  # the bars were holes: the backing fills them
+    assert (baked.label[pane] == GLASS).all()  # and hides no glass
+    hit = o + baked.depth.reshape(-1, 1) / (dirs @ cam.cam_from_world[2, :3])[:, None] * dirs
+    h = surf.coords(hit[bar.ravel()])[:, 2]
+    assert (h < 0).all() and (h > -0.1 * FW).all()  # just behind the glass

@@ -83,6 +83,7 @@ def small_params(**changes) -> TrainParams:
         patch_px=16,
         mlp_max_pixels=128,
         exposure_estimate=False,  # one exposure unless a test asks (synthetic64 has no exposure change)
+        pose_refinement=False,  # the imported poses unless a test asks
     )
     tables = {
         "densify": dict(interval=5, max_gaussians=400),

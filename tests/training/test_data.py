@@ -12,8 +12,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.shading.reflection import EnvironmentProxy, ReflectionMLP, build_reflection_module
 from facade_pipeline.training.data import (
     ExposureEstimate,
     InitGeometry,
@@ -24,7 +26,7 @@ from facade_pipeline.training.data import (
     pixel_budget_factor,
     save_bundle,
 )
-from facade_pipeline.training.params import facade_size, near_plane
+from facade_pipeline.training.params import INIT_BOUNDS_MARGIN, facade_size, near_plane
 from tests.training.scenes import hard_scene
 
 REPO = Path(__file__).resolve().parents[2]
@@ -140,14 +142,32 @@ def test_a_downscaled_view_sees_the_world_as_its_blocks_do():
 
 
 def test_the_extent_scales_with_the_scene():
-    """Every length training derives from the scene (extent, near plane, the splats' bounds margin)
-    scales with it: the same scene at 1:25 has lengths 25 times smaller."""
+    """Every length training derives from the scene (extent, near plane, the splats' bounds margin, the
+    proxy's surface model of the surroundings) scales with it: the same scene at 1:25 has lengths 25 times
+    smaller."""
     data = hard_scene()
     s = 1.0 / 25.0
     small = scaled_scene(data, s)
     assert np.isclose(small.extent, s * data.extent)
     assert np.isclose(near_plane(small.bounds), s * near_plane(data.bounds))
     assert np.isclose(facade_size(small.bounds), s * facade_size(data.bounds))
+    # the reflection proxy's surface model of the surroundings: its cells and heights, 25 times smaller
+    lo, hi = data.bounds
+    size = facade_size(data.bounds)
+    g = np.random.default_rng(0).uniform([0.5, -0.1, 0.05], [0.7, 0.1, 0.3], (500, 3))
+    block = 0.5 * (lo + hi) * [1, 1, 0] + [0, 0, lo[2]] + size * g  # a building in front of the facade
+    models = []
+    for d, k in ((data, 1.0), (small, s)):
+        b = d.bounds
+        proxy = EnvironmentProxy(channels=1, resolution_px=16, levels=1)
+        margin = INIT_BOUNDS_MARGIN * facade_size(b)
+        cfg = ReflectionMLP(fourier_levels=2, depth=2, width=4, proxy=proxy, proxy_margin_m=margin)
+        bt = tuple(torch.as_tensor(x, dtype=torch.float32) for x in b)
+        models.append(build_reflection_module(cfg, "cpu", bt, block * k).proxy.surroundings)
+    big, tiny = models
+    assert np.isclose(tiny.cell_m, s * big.cell_m) and np.isclose(big.cell_m, size / 60.0)
+    assert big.heights[1].max() > 0.2 * size  # the building is in the surface model
+    assert torch.allclose(tiny.heights, s * big.heights, rtol=1e-4, atol=1e-6 * size)
 
 
 def scaled_scene(data: TrainData, s: float) -> TrainData:

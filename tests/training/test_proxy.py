@@ -4,6 +4,7 @@ the surroundings, hard cases, and the MLP built with it."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -102,18 +103,20 @@ def test_a_saved_record_of_either_form_rebuilds_its_strategy(tmp_path):
     from facade_pipeline.errors import InputError
     from facade_pipeline.shading.reflection import EnvMap, reflection_record, strategy_from_record
 
-    proxy = EnvironmentProxy(channels=5, resolution_px=64, levels=2, cell_m=2.0)
+    proxy = EnvironmentProxy(channels=5, resolution_px=64, levels=2, cell=0.03)
     cfg = ReflectionMLP(fourier_levels=4, depth=4, width=16, proxy=proxy, proxy_margin_m=0.5)
     record = reflection_record(cfg, (LO.tolist(), HI.tolist()), None)
     assert strategy_from_record(record["model"], record["config"]) == cfg
     flat = {"fourier_levels": 4, "depth": 4, "width": 16, "skip": True, "proxy_channels": 5,
             "proxy_resolution_px": 64, "proxy_levels": 2, "proxy_radius_m": 0.0, "proxy_surroundings": True,
-            "proxy_cell_m": 2.0, "proxy_reach_m": 0.0, "proxy_margin_m": 0.5, "self_hits": False,
+            "proxy_reach_m": 0.0, "proxy_margin_m": 0.5, "self_hits": False,
             "self_hit_offset_m": 0.02, "self_hit_max_m": 0.0}  # fmt: skip
-    assert strategy_from_record("mlp", flat) == cfg
-    # without proxy features the room's fields never mattered
-    paper = {**flat, "proxy_channels": 0, "proxy_surroundings": False}
+    assert strategy_from_record("mlp", flat) == replace(cfg, proxy=replace(proxy, cell=1.0 / 60.0))
+    # without proxy features the room's fields (and the cell of the surroundings) never mattered
+    paper = {**flat, "proxy_channels": 0, "proxy_surroundings": False, "proxy_cell_m": 2.0}
     assert strategy_from_record("mlp", paper).proxy.channels == 0
+    with pytest.raises(InputError, match="cell_m = 2.0, a cell in metres: retrain"):
+        strategy_from_record("mlp", {**flat, "proxy_cell_m": 2.0}, tmp_path / "reflection.pt")
     assert strategy_from_record("envmap", {"height_px": 8, "width_px": 16}) == EnvMap(8, 16)
     path = tmp_path / "reflection.pt"
     for field, value in (("self_hits", True), ("proxy_surroundings", False), ("proxy_reach_m", 40.0)):

@@ -95,7 +95,7 @@ def test_stage_trains_writes_outputs_and_resumes_at_the_end(upstream):
     other_run = run_settings(raster_backend="torch", log_every=3, checkpoint_every=2)
     assert execute(train_gs, upstream, p, other_run)["metrics"]["resumed_from_iteration"] == 6
     # any setting that changes the result changes the fingerprint, in the nested tables too
-    for change in ({"reflection.model": "envmap"}, {"reflection.proxy.cell_m": 2.0}, {"lr.proxy": 0.2},
+    for change in ({"reflection.model": "envmap"}, {"reflection.proxy.cell": 0.03}, {"lr.proxy": 0.2},
                    {"densify.grad_threshold": 1e-3}, {"hf_steps": 2}):  # fmt: skip
         assert train_gs.fingerprint(upstream, replace_keys(p, change)) != train_gs.fingerprint(upstream, p)
     # other parameters: the old checkpoint is not trusted, training starts over

@@ -264,7 +264,7 @@ def test_pose_corrections_move_training_views_only(data64, monkeypatch):
     """Training views' pose corrections move; held-out views keep the imported pose exactly; without
     refinement the trainer renders the imported poses as they are, and nothing corrects exposure."""
     monkeypatch.setattr(trainer_module, "LR_POSE_ROTATION", 1e-3)  # faster than the default, to see moves
-    monkeypatch.setattr(trainer_module, "LR_POSE_TRANSLATION", 1e-2)
+    monkeypatch.setattr(trainer_module, "LR_POSE_TRANSLATION", 1e-3)  # times the scene extent
     tr = build_trainer(small_params(iterations=10, pose_refinement=True), data64, RASTER)
     train(tr)
     c = tr.state.corrections
