@@ -31,12 +31,14 @@ def map_views(
     views: Iterable[T],
     workers: int = 1,
     done: Callable[[R], Any] | None = None,
+    spread: bool = True,
 ) -> list[R]:
     """``[fn(v) for v in views]``, fanned out as the module says; ``done(result)`` after each view, in
-    order (a progress bar)."""
+    order (a progress bar). ``spread=False`` keeps every view in the stage's own process (views that need
+    its device: a GPU renders them faster than processes sharing it would)."""
     views = list(views)
-    address = os.environ.get(SCHEDULER_ENV)
-    n = usable_cores() if workers == 0 else workers
+    address = os.environ.get(SCHEDULER_ENV) if spread else None
+    n = (usable_cores() if workers == 0 else workers) if spread else 1
     if address and len(views) > 1:
         return _on_cluster(address, fn, views, done)
     if min(n, len(views)) > 1:
