@@ -8,7 +8,9 @@ collects; results come back in the order of ``views``, so the stage's manifest a
 serial loop. What every view needs (a mesh, a point cloud) is loaded once per process through ``shared``.
 Processes are started with ``spawn``: forking a process whose OpenMP or OpenCV thread pools already run
 can hang the child. They inherit the stage's environment, thread policy included, so each view computes
-with the thread counts of the serial loop.
+with the thread counts of the serial loop; a Dask worker has its own (its nanny's: one OpenMP thread), so a
+view whose bytes depend on the thread count sets the stage's count in ``fn`` (evaluate's renders: a sum
+split over another number of threads rounds differently).
 """
 
 from __future__ import annotations
