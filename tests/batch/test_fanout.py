@@ -4,6 +4,7 @@ processes or a Dask cluster, write byte for byte what the serial loop writes."""
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import pytest
 import torch
@@ -34,6 +35,15 @@ def test_map_views_keeps_the_order_and_reports_each_view(tmp_path):
     seen.clear()
     assert map_views(_square, range(7), workers=3, done=seen.append) == [x * x for x in range(7)]
     assert seen == [x * x for x in range(7)]
+
+
+def _pid(_) -> int:
+    return os.getpid()
+
+
+def test_views_kept_in_the_stage_process_go_neither_to_processes_nor_to_a_cluster(monkeypatch):
+    monkeypatch.setenv(SCHEDULER_ENV, "tcp://127.0.0.1:9")  # nothing listens there: a call would fail
+    assert map_views(_pid, range(4), workers=2, spread=False) == [os.getpid()] * 4
 
 
 def test_shared_loads_once_until_the_file_changes(tmp_path):
