@@ -446,24 +446,49 @@ def headless_page(
         proc.wait()
 
 
+#: a screenshot shows the server's last render once their brightness correlates at least this well
+SHOWN_CORRELATION = 0.7
+
+
+def shown_correlation(png: bytes, image: np.ndarray) -> float:
+    """How well a screenshot of the page (PNG bytes) shows ``image`` [H, W, 3] uint8, the server's last
+    render: the correlation of their brightness over the lower left of the canvas, where no overlay covers
+    it (the sidebar is top right, viser's buttons along the left edge, the frustums thin lines)."""
+    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float64)
+    h, w = shot.shape[:2]
+    sent = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    region = (slice(h // 2, h - 40), slice(110, w // 2))
+    a, b = shot[region].mean(axis=2).ravel(), sent[region].mean(axis=2).ravel()
+    return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else 0.0
+
+
 def browser_screenshot(
     browser: str,
     url: str,
-    ready: Callable[[], bool],
+    last_image: Callable[[], np.ndarray | None],
     workdir: Path,
     timeout: float = 90.0,
     size: tuple[int, int] = (800, 600),
 ) -> bytes:
     """PNG of ``url`` in headless Chromium (``browser``: its executable), taken through the DevTools
-    protocol once ``ready()`` is true (the server has sent its render) and the page had a moment to draw it;
-    Chromium's profile goes in ``workdir``."""
+    protocol once it shows the server's last render (``last_image()``, None before the first;
+    ``shown_correlation``): the image travels and is drawn in the page's own time (software WebGL), so
+    the page is looked at until it is there. Chromium's profile goes in ``workdir``; ``TimeoutError``
+    after ``timeout`` seconds."""
     deadline = time.time() + timeout
     with headless_page(browser, url, workdir, timeout, size) as call:
-        while not ready():
-            assert time.time() < deadline, "the viewer sent no render to the browser"
+        seen = "no render sent"
+        while True:
+            image = last_image()
+            if image is not None:
+                png = base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
+                correlation = shown_correlation(png, image)
+                if correlation > SHOWN_CORRELATION:
+                    return png
+                seen = f"the last screenshot correlates {correlation:.2f} with the render"
+            if time.time() > deadline:
+                raise TimeoutError(f"the page did not show the viewer's render in {timeout:.0f} s ({seen})")
             time.sleep(0.2)
-        time.sleep(3.0)  # the image travels and is drawn (software WebGL)
-        return base64.b64decode(call("Page.captureScreenshot", format="png")["data"])
 
 
 def _free_port() -> int:
@@ -546,9 +571,17 @@ def _save_screenshot(viewer: Viewer, url: str, out: Path) -> int:
         print("view: --screenshot needs Chromium (Debian: apt-get install chromium)", file=sys.stderr)
         viewer.stop()
         return 2
+    def last_image() -> np.ndarray | None:
+        images = list(viewer.last_image.values())  # one browser: one client
+        return images[-1] if images else None
+
     try:
         with tempfile.TemporaryDirectory(prefix="facade-view-") as tmp:
-            png = browser_screenshot(browser, url, lambda: len(viewer.last_image) > 0, Path(tmp))
+            try:
+                png = browser_screenshot(browser, url, last_image, Path(tmp))
+            except TimeoutError as e:
+                print(f"view: no screenshot of {url}: {e}", file=sys.stderr)
+                return 1
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(png)
         print(f"view: {out}")

@@ -7,11 +7,14 @@ separately on glass and on frames (masks baked from the corrected mesh, 06_bake_
 buildings it also measures geometry against gt/ (read here for evaluation only): surface distance and
 normal error of the coarse mesh, the corrected mesh and the Gaussians, and the panel corner error. Writes
 ``metrics.json``, the renders and photo | render | error comparisons, and the report (Markdown and a
-self-contained HTML page) into 08_evaluate/.
+self-contained HTML page) into 08_evaluate/. On the CPU every render (a view as imported or aligned, a
+fly-through frame) is one task of the stage's fan-out (``batch.fanout.map_views``: the batch's workers or
+``[run] view_workers`` processes), with the same outputs as one process.
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
 
@@ -21,7 +24,7 @@ from tqdm import tqdm
 from facade_pipeline.config import RunSettings
 from facade_pipeline.errors import InputError
 from facade_pipeline.evaluation.params import EvaluateParams
-from facade_pipeline.evaluation.video import render_path, video_path
+from facade_pipeline.evaluation.video import video_path
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
@@ -83,15 +86,19 @@ def targets(layout: BuildingLayout, params: Params) -> list[Path]:
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # imported here, not at the top: doit loads every stage module to build its task list
+    import torch
+
+    from facade_pipeline.batch.fanout import map_views
     from facade_pipeline.evaluation.building import (
+        RenderTask,
         body_file,
-        evaluate_split,
-        facade_masker,
         gaussian_geometry,
+        load_model,
         measures_geometry,
         metrics_header,
-        renderer,
+        run_task,
         scene_geometry,
+        split_result,
         split_views,
         summary,
         trained_models,
@@ -101,7 +108,6 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         write_reports,
     )
     from facade_pipeline.evaluation.geometry_eval import load_truth
-    from facade_pipeline.evaluation.render_views import load_trained
     from facade_pipeline.training.data import pixel_budget_factor, scaled_camera
     from facade_pipeline.training.trainer import resolve_device
 
@@ -114,31 +120,41 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     )
     found = trained_models(layout, params)
     metrics = metrics_header(layout, params, found[0].params["test_every"])
-    outputs: list[Path] = []
-    jobs = {v.name: [(s, split_views(layout, v, scene, s)) for s in params.splits] for v in found}
     # the fly-through at the size the pipeline's model was trained at (a pixel budget, not the photos')
     budget = int(found[0].params.get("max_view_pixels", 0))
     cams = [(v.stem, v.camera) for v in scene.uav_views]
     cams = [(s, scaled_camera(c, pixel_budget_factor(c.width, c.height, budget))) for s, c in cams]
     path = video_path(params.video, cams)
-    facade_mask = facade_masker(layout) if path else None
+    aligned = (False, True) if params.align.steps > 0 else (False,)  # as imported, and aligned
+    tasks = [RenderTask(v, camera=c) for v in found for c in path] + [
+        RenderTask(v, split, view, a)
+        for v in found
+        for split in params.splits
+        for a in aligned
+        for view in split_views(layout, v, scene, split)
+    ]
+    # every render, of every model, is one task of the stage's fan-out (processes or the batch's
+    # workers) on the CPU; on a GPU they stay in this process, whose device renders them
+    fn = functools.partial(run_task, layout, params, str(device), settings.raster_backend,
+                           torch.get_num_threads())  # fmt: skip
+    with tqdm(total=len(tasks), desc="evaluate", unit="view", file=sys.stderr) as bar:
+        results = map_views(fn, tasks, settings.view_workers, lambda _: bar.update(), device.type == "cpu")
+    outputs: list[Path] = []
     films: list[list[np.ndarray]] = []
-    measures = 2 if params.align.steps > 0 else 1  # as imported, and aligned
-    n_views = measures * sum(len(views) for j in jobs.values() for _, views in j) + len(path) * len(found)
-    with tqdm(total=n_views, desc="evaluate", unit="view", file=sys.stderr) as bar:
-        for v in found:
-            tm = load_trained(v, device, settings.raster_backend)
-            if path:
-                films.append(render_path(path, renderer(tm), facade_mask, bar.update))
-            entry = variant_entry(v, tm)
-            for split, views in jobs[v.name]:
-                max_pixels = int(v.params.get("max_view_pixels", 0))  # measured as it was trained
-                measured, written = evaluate_split(layout, params, tm, views, split, bar.update, max_pixels)
-                entry |= measured
-                outputs += written
-            if truth is not None:
-                entry["geometry"] = gaussian_geometry(tm, truth, params)
-            metrics["variants"][v.name] = entry
+    for v in found:
+        mine = [(t, r) for t, r in zip(tasks, results, strict=True) if t.variant is v]
+        if path:
+            films.append([r for t, r in mine if t.camera is not None])
+        tm = load_model(v, str(device), settings.raster_backend)
+        entry = variant_entry(v, tm)
+        for split in params.splits:
+            rows = {a: [r for t, r in mine if t.split == split and t.aligned == a] for a in aligned}
+            entry |= split_result(params, split, [row for row, _ in rows[False]],
+                                  [row for row, _ in rows[True]] if True in rows else None)  # fmt: skip
+            outputs += [f for _, files in rows[False] for f in files]
+        if truth is not None:
+            entry["geometry"] = gaussian_geometry(tm, truth, params)
+        metrics["variants"][v.name] = entry
     if truth is not None:
         metrics["geometry"] = scene_geometry(layout, params, scene, truth)
     if films:

@@ -240,11 +240,12 @@ def test_a_manifest_that_does_not_hold_a_stages_tables_is_damaged(layout):
 def test_a_second_run_stops_at_once_and_a_dead_runs_lock_is_taken_over(real):
     layout, env, _ = real
     layout.root.mkdir(parents=True, exist_ok=True)
+    # it holds the lock until it is killed, however long the runs below take under load
     holder = subprocess.Popen(
         [sys.executable, "-c",
-         "import sys, time; from facade_pipeline.io.lock import acquire; acquire(sys.argv[1]); "
-         "print('held', flush=True); time.sleep(60)", str(layout.lock)],
-        cwd=REPO, stdout=subprocess.PIPE, text=True,
+         "import sys; from facade_pipeline.io.lock import acquire; acquire(sys.argv[1]); "
+         "print('held', flush=True); sys.stdin.read()", str(layout.lock)],
+        cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
         assert holder.stdout.readline().strip() == "held"

@@ -8,7 +8,9 @@ collects; results come back in the order of ``views``, so the stage's manifest a
 serial loop. What every view needs (a mesh, a point cloud) is loaded once per process through ``shared``.
 Processes are started with ``spawn``: forking a process whose OpenMP or OpenCV thread pools already run
 can hang the child. They inherit the stage's environment, thread policy included, so each view computes
-with the thread counts of the serial loop.
+with the thread counts of the serial loop; a Dask worker has its own (its nanny's: one OpenMP thread), so a
+view whose bytes depend on the thread count sets the stage's count in ``fn`` (evaluate's renders: a sum
+split over another number of threads rounds differently).
 """
 
 from __future__ import annotations
@@ -31,12 +33,14 @@ def map_views(
     views: Iterable[T],
     workers: int = 1,
     done: Callable[[R], Any] | None = None,
+    spread: bool = True,
 ) -> list[R]:
     """``[fn(v) for v in views]``, fanned out as the module says; ``done(result)`` after each view, in
-    order (a progress bar)."""
+    order (a progress bar). ``spread=False`` keeps every view in the stage's own process (views that need
+    its device: a GPU renders them faster than processes sharing it would)."""
     views = list(views)
-    address = os.environ.get(SCHEDULER_ENV)
-    n = usable_cores() if workers == 0 else workers
+    address = os.environ.get(SCHEDULER_ENV) if spread else None
+    n = (usable_cores() if workers == 0 else workers) if spread else 1
     if address and len(views) > 1:
         return _on_cluster(address, fn, views, done)
     if min(n, len(views)) > 1:

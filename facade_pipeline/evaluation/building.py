@@ -1,7 +1,8 @@
 """Evaluating a building's trained models (what the ``evaluate`` stage runs): its parameters, which models
 there are (``07_train`` and the saved variants), the views they are measured on, the measurement of each
-split through the evaluation core (``core.evaluate_views``) with its renders and comparison images, the
-geometry against gt/ on synthetic buildings, and ``metrics.json`` with the report.
+view through the evaluation core (``core.measure_view``) with its render and comparison image, the
+geometry against gt/ on synthetic buildings, and ``metrics.json`` with the report. ``run_task`` is one
+render of the stage (a view, or a fly-through frame) in whichever process the stage's fan-out runs it.
 """
 
 from __future__ import annotations
@@ -9,16 +10,19 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from facade_pipeline.bake.maps import BakedPrior, bake_view
+from facade_pipeline.batch.fanout import shared
 from facade_pipeline.errors import InputError
-from facade_pipeline.evaluation.core import EvalView, MeasuredView, evaluate_views
+from facade_pipeline.evaluation.core import EvalView, measure_view
 from facade_pipeline.evaluation.geometry_eval import Truth, mesh_errors, panel_corner_errors, point_errors
-from facade_pipeline.evaluation.image_eval import error_heatmap, side_by_side
+from facade_pipeline.evaluation.image_eval import error_heatmap, mean_metrics, side_by_side
 from facade_pipeline.evaluation.lpips import (
     UNAVAILABLE_TEXT,
     LpipsUnavailable,
@@ -26,13 +30,14 @@ from facade_pipeline.evaluation.lpips import (
     find_lpips_weights,
 )
 from facade_pipeline.evaluation.params import EvaluateParams
-from facade_pipeline.evaluation.render_views import TrainedModel, render_trained
+from facade_pipeline.evaluation.render_views import TrainedModel, load_trained, render_trained
 from facade_pipeline.evaluation.report import ARCHITECTURE_KEYS, build_html, build_markdown
 from facade_pipeline.evaluation.video import (
     CLIP_FRAMES,
     CLIP_WIDTH_PX,
     VideoParams,
     merge_films,
+    to_frame,
     write_clip,
     write_mp4,
 )
@@ -134,6 +139,42 @@ def lpips_status(params: EvaluateParams) -> dict[str, str]:
     return out
 
 
+def measure_one(
+    layout: BuildingLayout,
+    params: EvaluateParams,
+    tm: TrainedModel,
+    view: View,
+    split: str,
+    aligned: bool,
+    max_pixels: int = 0,
+) -> tuple[dict[str, Any], list[Path]]:
+    """Render and measure one view of ``split`` (``core.measure_view``) at the size ``max_pixels`` allows
+    (``load_eval_view``): as imported, writing its render and comparison image, or ``aligned`` first (with
+    what the alignment changed; nothing written). Returns its row and the files written."""
+    ev = load_eval_view(layout, view, max_pixels)
+    m = measure_view(tm, ev, params.lpips, params.align if aligned else None)
+    if aligned:
+        return m.row, []
+    names = {"variant": tm.name, "split": split, "stem": view.stem}
+    render_path, comp_path = layout.path("eval_render", **names), layout.path("eval_comparison", **names)
+    write_image(render_path, np.round(m.rgb * 255).astype(np.uint8))
+    heat = error_heatmap(m.rgb, ev.image, ev.facade_mask, params.heatmap_max_error)
+    write_image(comp_path, side_by_side(ev.image, m.rgb, heat))
+    return m.row, [render_path, comp_path]
+
+
+def split_result(
+    params: EvaluateParams, split: str, rows: list[dict[str, Any]], aligned: list[dict[str, Any]] | None
+) -> dict[str, dict[str, Any]]:
+    """``{split: {"views", "mean"}}`` of the rows as imported and, where the views were also measured
+    aligned, ``{split}_aligned`` of those."""
+    conv = params.lpips.conventions
+    out = {split: {"views": rows, "mean": mean_metrics(rows, conv)}}
+    if aligned is not None:
+        out[f"{split}_aligned"] = {"views": aligned, "mean": mean_metrics(aligned, conv)}
+    return out
+
+
 def evaluate_split(
     layout: BuildingLayout,
     params: EvaluateParams,
@@ -143,29 +184,65 @@ def evaluate_split(
     advance: Callable[[int], Any] = lambda n: None,
     max_pixels: int = 0,
 ) -> tuple[dict[str, dict[str, Any]], list[Path]]:
-    """Render and measure ``views`` (``core.evaluate_views``); writes each render and its comparison image.
-    Returns ``{split: {"views", "mean"}}`` and, when ``params.align`` has steps, ``{split}_aligned`` with the
-    views measured after alignment (each with what the alignment changed); and the files written.
-    ``advance(1)`` is called after each view as imported and after each as aligned. The views are measured
-    at the size ``max_pixels`` allows (``load_eval_view``)."""
-    eval_views = [load_eval_view(layout, v, max_pixels) for v in views]
-    written: list[Path] = []
-
-    def write(view: EvalView, m: MeasuredView) -> None:
-        names = {"variant": tm.name, "split": split, "stem": view.stem}
-        render_path, comp_path = layout.path("eval_render", **names), layout.path("eval_comparison", **names)
-        write_image(render_path, np.round(m.rgb * 255).astype(np.uint8))
-        heat = error_heatmap(m.rgb, view.image, view.facade_mask, params.heatmap_max_error)
-        write_image(comp_path, side_by_side(view.image, m.rgb, heat))
-        written.extend((render_path, comp_path))
+    """``views`` measured one by one in this process (``measure_one``), as imported and, when
+    ``params.align`` has steps, aligned: ``split_result`` and the files written. ``advance(1)`` is called
+    after each view as imported and after each as aligned."""
+    rows, aligned, written = [], [], []
+    for view in views:
+        row, files = measure_one(layout, params, tm, view, split, False, max_pixels)
+        rows.append(row)
+        written += files
         advance(1)
-
-    out = {split: evaluate_views(tm, eval_views, params.lpips, on_view=write)}
     if params.align.steps > 0:
-        out[f"{split}_aligned"] = evaluate_views(
-            tm, eval_views, params.lpips, params.align, on_view=lambda view, m: advance(1)
-        )
-    return out, written
+        for view in views:
+            aligned.append(measure_one(layout, params, tm, view, split, True, max_pixels)[0])
+            advance(1)
+    return split_result(params, split, rows, aligned if params.align.steps > 0 else None), written
+
+
+@dataclass(frozen=True)
+class RenderTask:
+    """One render of the evaluation, done wherever ``run_task`` runs it: a view of ``split`` measured as
+    imported or ``aligned``, or (``camera`` given) a frame of the fly-through."""
+
+    variant: TrainedModelFiles
+    split: str = ""
+    view: View | None = None
+    aligned: bool = False
+    camera: PinholeCamera | None = None
+
+
+def load_model(variant: TrainedModelFiles, device: str, backend: str) -> TrainedModel:
+    """``render_views.load_trained``, once per process while the model's files stay the same
+    (``batch.fanout.shared``)."""
+    v = variant
+    params = json.dumps(v.params, sort_keys=True)
+    return shared(_load_model, v.ply, v.reflection, v.split, v.name, params, device, backend)
+
+
+def _load_model(ply: Path, reflection: Path, split: Path, name: str, params: str, device: str,
+                backend: str) -> TrainedModel:  # fmt: skip
+    return load_trained(TrainedModelFiles(name, ply, reflection, split, json.loads(params)), device, backend)
+
+
+def run_task(
+    layout: BuildingLayout, params: EvaluateParams, device: str, backend: str, threads: int, task: RenderTask
+) -> np.ndarray | tuple[dict[str, Any], list[Path]]:
+    """A fly-through frame (uint8 [H, W, 3]) or a view's ``measure_one``, on ``threads`` torch threads
+    (the stage's own count: a reduction split over another number of threads sums in another order, and
+    a fitted pose then differs in its last bits)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        tm = load_model(task.variant, device, backend)
+        if task.camera is not None:
+            mask = shared(_facade_masker, layout.path("correct_mesh"), layout.path("correct_mesh_labels"))
+            return to_frame(render_trained(tm, task.camera, mask(task.camera)).rgb)
+        assert task.view is not None
+        max_pixels = int(task.variant.params.get("max_view_pixels", 0))  # measured as it was trained
+        return measure_one(layout, params, tm, task.view, task.split, task.aligned, max_pixels)
+    finally:
+        torch.set_num_threads(previous)
 
 
 def gaussian_geometry(tm: TrainedModel, truth: Truth, params: EvaluateParams) -> dict[str, Any]:
@@ -239,17 +316,12 @@ def metrics_header(layout: BuildingLayout, params: EvaluateParams, test_every: i
     }
 
 
-def facade_masker(layout: BuildingLayout) -> Callable[[PinholeCamera], np.ndarray]:
+def _facade_masker(mesh_path: Path, labels_path: Path) -> Callable[[PinholeCamera], np.ndarray]:
     """camera -> its facade mask [H, W] bool, cast from the corrected mesh as bake_normals casts it."""
-    mesh = read_mesh(layout.path("correct_mesh"))
+    mesh = read_mesh(mesh_path)
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
-    labels = read_labels(layout.path("correct_mesh_labels"), len(mesh.triangles))
+    labels = read_labels(labels_path, len(mesh.triangles))
     return lambda cam: bake_view(rc, cam, 1 << 18, None, labels).label >= FRAME
-
-
-def renderer(tm: TrainedModel) -> Callable[[PinholeCamera, np.ndarray | None], np.ndarray]:
-    """(camera, facade mask) -> the model's colour [H, W, 3] in [0, 1] (for the fly-through)."""
-    return lambda camera, facade_mask: render_trained(tm, camera, facade_mask).rgb
 
 
 def write_fly_through(

@@ -201,11 +201,15 @@ def render_path(
     """uint8 frames [H, W, 3]: ``render(camera, facade_mask)`` -> RGB in [0, 1] for each camera."""
     frames = []
     for cam in path:
-        rgb = render(cam, facade_mask(cam))
-        frames.append((np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+        frames.append(to_frame(render(cam, facade_mask(cam))))
         if progress is not None:
             progress(1)
     return frames
+
+
+def to_frame(rgb: np.ndarray) -> np.ndarray:
+    """A video frame, uint8 [H, W, 3], of a render's colour [H, W, 3] in [0, 1]."""
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 def merge_films(per_variant: Sequence[Sequence[np.ndarray]], gap_px: int = 4) -> list[np.ndarray]:

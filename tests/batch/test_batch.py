@@ -156,10 +156,12 @@ def test_a_killed_worker_is_retried_and_a_broken_building_fails_alone(tmp_path, 
                             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     layout = BuildingLayout(root, "synthetic64")
     deadline = time.monotonic() + 300
-    while record.read_record(layout).get("synthesize", {}).get("state") != "running":
+    # into the stage's doit run: synthesize has written its first file (the truth comes before the
+    # cameras, the coarse model and the rendered views), so the kill finds it midway
+    while not (record.read_record(layout).get("synthesize", {}).get("state") == "running"
+               and layout.gt("scene").is_file()):  # fmt: skip
         assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()
-        time.sleep(0.2)
-    time.sleep(3.0)  # into the stage's doit run
+        time.sleep(0.01)
     killed = record.read_record(layout)["synthesize"]["pid"]
     os.kill(killed, signal.SIGKILL)
     stdout, stderr = proc.communicate(timeout=900)

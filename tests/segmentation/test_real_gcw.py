@@ -6,7 +6,6 @@ in benchmarks/RESULTS.md (bench_segmentation.py --real). Skipped where shared/ i
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
@@ -28,33 +27,18 @@ from facade_pipeline.segmentation.real_truth import (
 from facade_pipeline.segmentation.result import ViewSegmentation
 from facade_pipeline.threads import usable_cores
 from scripts.make_gcw_building import WORLD_FROM_WALL
+from tests.conftest import GCW_SRC
 from tests.segmentation.conftest import REPO, _cmd, doit
 
-SRC = REPO.parent / "shared" / "real" / "gcw_dev"
+SRC = GCW_SRC
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not (SRC / "cameras.json").is_file(), reason=f"no real photos at {SRC}")]
 
 
-def _digest(folder) -> str:
-    h = hashlib.sha256()
-    for p in sorted(folder.rglob("*")):
-        if p.is_file():
-            h.update(p.name.encode() + p.read_bytes())
-    return h.hexdigest()
-
-
 @pytest.fixture(scope="module")
-def gcw(tmp_path_factory):
-    root = tmp_path_factory.mktemp("gcw")
-    before = _digest(SRC)
-    env = {**os.environ, "TQDM_DISABLE": "1"}
-    out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_gcw_building.py"), str(SRC),
-                          "--building", "gcw_dev", "--data-root", str(root)], cwd=REPO, env=env,
-                         capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
-    doit(["regularize_corners", "building=gcw_dev"], env, root)
-    assert _digest(SRC) == before  # the source folder is only read
-    layout = BuildingLayout(root, "gcw_dev")
+def gcw(gcw_dev):
+    """The session's gcw_dev (tests/conftest.py, through regularize_corners) and its figures per photo."""
+    layout, _ = gcw_dev
     return layout, evaluate_building(layout, SRC)
 
 

@@ -329,3 +329,14 @@ def test_cpp_binning_equals_torch_binning(case, sigma):
     finite = torch.isfinite(a.bounds)
     assert torch.equal(finite, torch.isfinite(b.bounds))
     torch.testing.assert_close(a.bounds[finite], b.bounds[finite], rtol=1e-9, atol=1e-9)
+
+
+@needs_cpp
+def test_cpp_gradients_repeat_bit_for_bit_on_several_threads():
+    """The kernel's backward deals the tiles to its threads in a fixed order: a fit run again, or in
+    another process on as many threads (evaluate's fanned-out alignments), gives the same bits."""
+    scene = random_scene(7, n=300, width=130, height=97, channels=3).to(torch.float32)
+    torch.set_num_threads(4)  # the autouse fixture sets one (reproducible anyway) and restores
+    runs = [maps_and_grads(scene, lambda p: render(scene, "cpp", p))[1] for _ in range(6)]
+    for grads in runs[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(runs[0], grads, strict=True))

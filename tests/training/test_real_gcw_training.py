@@ -6,39 +6,30 @@ shared/ is absent."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
 from facade_pipeline.config import load_building_config
-from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.training.data import CLIP_LEVEL
 from facade_pipeline.training.params import TrainParams, replace_keys
 from facade_pipeline.training.render import splatting_rasterizer
 from facade_pipeline.training.trainer import build_trainer, train
-from tests.segmentation.conftest import REPO, doit
+from tests.conftest import GCW_SRC
+from tests.segmentation.conftest import doit
 
-SRC = REPO.parent / "shared" / "real" / "gcw_dev"
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not (SRC / "cameras.json").is_file(), reason=f"no real photos at {SRC}")]
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not (GCW_SRC / "cameras.json").is_file(),
+                                                   reason=f"no real photos at {GCW_SRC}")]
 
 
 @pytest.fixture(scope="module")
-def gcw_data(tmp_path_factory):
+def gcw_data(gcw_dev):
+    """The session's gcw_dev (tests/conftest.py) run on through bake_normals, and its training data."""
     from stages.train_gs import load_train_data
 
-    root = tmp_path_factory.mktemp("gcw_train")
-    env = {**os.environ, "TQDM_DISABLE": "1"}
-    out = subprocess.run([sys.executable, str(REPO / "scripts" / "make_gcw_building.py"), str(SRC),
-                          "--building", "gcw_dev", "--data-root", str(root)], cwd=REPO, env=env,
-                         capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
-    doit(["bake_normals", "building=gcw_dev"], env, root)
+    layout, env = gcw_dev
+    doit(["bake_normals", "building=gcw_dev"], env, layout.data_root)
     p = load_building_config("gcw_dev").section("train_gs", TrainParams)
-    return p, load_train_data(BuildingLayout(root, "gcw_dev"), p)
+    return p, load_train_data(layout, p)
 
 
 def test_views_are_loaded_at_the_pixel_budget_with_their_clipping(gcw_data):

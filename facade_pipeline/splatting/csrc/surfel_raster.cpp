@@ -227,8 +227,10 @@ void backward(const Splats<S>& sp, const int64_t* offsets, const int64_t* ids, G
     const int tid = omp_get_thread_num();
     std::vector<S>& buf = buffers[tid];
     buf.assign(size_t(N * stride), S(0));
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < n_tiles; ++t) {
+    // tiles dealt round robin, not on demand: each thread's buffer then sums the same tiles in the same
+    // order at every call, so the gradients are reproducible bit for bit at a given thread count
+    const int team = omp_get_num_threads();
+    for (int64_t t = tid; t < n_tiles; t += team) {
       const int64_t tx = t % g.tiles_x, ty = t / g.tiles_x;
       const int64_t begin = offsets[t], end = offsets[t + 1];
       std::vector<int32_t> row;
@@ -281,6 +283,7 @@ void backward(const Splats<S>& sp, const int64_t* offsets, const int64_t* ids, G
         }
       }
     }
+#pragma omp barrier
 #pragma omp for schedule(static)
     for (int64_t id = 0; id < N; ++id) {
       for (int th = 0; th < threads; ++th) {
