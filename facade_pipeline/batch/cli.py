@@ -17,7 +17,7 @@ import sys
 import time
 import uuid
 
-from facade_pipeline.config import config_dir, load_building_config
+from facade_pipeline.config import chosen_budget, config_dir, load_building_config
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.layout import BuildingLayout, resolve_data_root
 from stages import PIPELINE
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
                 previous = client.submit(
                     run_stage, b, s, str(data_root), str(config_dir()), cluster.threads,
                     stages if i == 0 else None, address, previous,
-                    key=f"{b}/{s}-{token}", pure=False, resources=resources or None,
+                    budget=chosen_budget(), key=f"{b}/{s}-{token}", pure=False, resources=resources or None,
                 )
                 futures.append(previous)
         n_workers = len(client.scheduler_info()["workers"])

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import facade_pipeline
-from facade_pipeline.config import CONFIG_DIR_ENV
+from facade_pipeline.config import BUDGET_ENV, CONFIG_DIR_ENV
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.io.lock import BuildingBusyError, acquire, release
 from facade_pipeline.layout import BuildingLayout
@@ -69,11 +69,13 @@ def run_stage(
     first_of: list[str] | None,
     scheduler: str | None = None,
     after: Any = None,
+    budget: str = "cpu",
 ) -> dict[str, Any]:
     """Run ``stage`` of ``building`` and return {"building", "stage", "ran", "seconds", "worker"}; raise
     ``StageFailed`` with the one-line error. ``first_of``: the building's stages, for the first task of a
     batch (the record starts anew); ``scheduler``: the address the stage fans its views out to (None:
-    its own process); ``after``: the previous stage's result (Dask waits for it)."""
+    its own process); ``after``: the previous stage's result (Dask waits for it); ``budget``: the compute
+    budget (``config.BUDGETS``) the batch was started with."""
     bad = check_data_root(data_root)
     if bad is not None:
         raise StageFailed(bad)
@@ -87,7 +89,7 @@ def run_stage(
     try:
         _wait_for_lock(layout)
         log = layout.path("batch_log", stage=stage)
-        code = _run_doit(building, stage, data_root, config_dir, threads, scheduler, log)
+        code = _run_doit(building, stage, data_root, config_dir, threads, scheduler, log, budget)
         text = log.read_text(errors="replace")
     except (PipelineError, OSError) as e:
         code, text = -1, f"{stage}: {e}"
@@ -116,8 +118,9 @@ def _wait_for_lock(layout: BuildingLayout) -> None:
 
 
 def _run_doit(building: str, stage: str, data_root: str, config_dir: str, threads: int | None,
-              scheduler: str | None, log: Path) -> int:
-    env = {**os.environ, CONFIG_DIR_ENV: config_dir, "TQDM_DISABLE": "1"}
+              scheduler: str | None, log: Path, budget: str) -> int:
+    # the budget the batch was started with, not a remote worker's own environment's
+    env = {**os.environ, CONFIG_DIR_ENV: config_dir, BUDGET_ENV: budget, "TQDM_DISABLE": "1"}
     env.pop(SCHEDULER_ENV, None)
     if threads is not None:  # the worker's share of its machine's cores
         env |= {var: str(threads) for var in COUNT_VARS}

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from facade_pipeline.batch import record
+from facade_pipeline.batch import record, task
 from facade_pipeline.batch.task import check_data_root, error_line
 from facade_pipeline.config import config_dir, load_building_config
 from facade_pipeline.errors import ConfigError
@@ -72,6 +72,20 @@ def test_the_error_line_is_the_stages_own():
     crash = "Traceback (most recent call last):\n  File x\nZeroDivisionError: division by zero\n#####\n"
     assert error_line(crash, "rectify", 1) == "ZeroDivisionError: division by zero"
     assert error_line("", "rectify", 137) == "exit code 137, no output"
+
+
+def test_a_stage_runs_at_the_budget_the_batch_chose_not_the_workers_own(tmp_path, monkeypatch):
+    seen = {}
+
+    def fake_run(command, env, **kw):
+        seen.update(env)
+        return subprocess.CompletedProcess(command, 0)
+
+    monkeypatch.setenv("FACADE_BUDGET", "cpu")  # the worker's own shell
+    monkeypatch.setattr(task.subprocess, "run", fake_run)
+    code = task._run_doit("demo", "train_gs", str(tmp_path), str(config_dir()), None, None,
+                          tmp_path / "log.txt", "gpu")
+    assert code == 0 and seen["FACADE_BUDGET"] == "gpu"
 
 
 def test_a_worker_that_cannot_see_the_data_root_says_which_path_and_worker(tmp_path):
