@@ -45,7 +45,7 @@ def _digest(folder: Path) -> str:
 @pytest.fixture(scope="session")
 def gcw_dev(tmp_path_factory):
     """(layout, env): gcw_dev made from ``GCW_SRC`` by scripts/make_gcw_building.py as a user would bring
-    it, and run through regularize_corners with configs/buildings/gcw_dev.toml, once per session for every
+    it, and run through regularize_corners with configs/buildings/gcw_dev.toml, once per test run for every
     test on the real photos (the segmentation's and the training's). A test that needs a later stage runs
     doit on it for that stage: what is done stays done. The source folder is only read."""
     from tests.segmentation.conftest import doit

@@ -37,7 +37,7 @@ pytestmark = [pytest.mark.slow,
 
 @pytest.fixture(scope="module")
 def gcw(gcw_dev):
-    """The session's gcw_dev (tests/conftest.py, through regularize_corners) and its figures per photo."""
+    """The test run's gcw_dev (tests/conftest.py, through regularize_corners) and its figures per photo."""
     layout, _ = gcw_dev
     return layout, evaluate_building(layout, SRC)
 

@@ -23,7 +23,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.skipif(not (GCW_SRC / "cameras.json"
 
 @pytest.fixture(scope="module")
 def gcw_data(gcw_dev):
-    """The session's gcw_dev (tests/conftest.py) run on through bake_normals, and its training data."""
+    """The test run's gcw_dev (tests/conftest.py) run on through bake_normals, and its training data."""
     from stages.train_gs import load_train_data
 
     layout, env = gcw_dev
