@@ -75,11 +75,12 @@ log = logging.getLogger(__name__)
 #: real splat (the surroundings are within a few extents).
 DIVERGENCE_EXTENT_FACTOR = 100.0
 #: Adam rates of the per-view pose corrections (``pose_refinement``, constant): rotation (rad) and
-#: translation (times the scene extent, so that a 1:25 model's poses move as the building's). Enough to
-#: undo a real photo's pose error within a short run (gcw_dev's motion capture: about 5 mm, 3 % of its
-#: extent, in 300 steps), and still small steps for demo's (3 cm, 0.05 % of its extent).
-LR_POSE_ROTATION = 1e-4
-LR_POSE_TRANSLATION = 1e-4
+#: translation (times the scene extent, so that a 1:25 model's poses move as the building's). demo's steps
+#: (1e-5 rad, 3e-4 m at its 70 m extent): rates 10x and 23x these, large enough to undo gcw_dev's motion-
+#: capture error within 300 steps, cost demo 2.3 dB on held-out glass as imported (benchmarks/RESULTS.md,
+#: "Pose refinement's rates on demo").
+LR_POSE_ROTATION = 1e-5
+LR_POSE_TRANSLATION = 4.3e-6
 
 
 class TrainingDivergedError(PipelineError):
