@@ -27,8 +27,15 @@ DEFAULT_NEAR = 0.2
 """Near plane (m) of the reference rasterizer."""
 DEFAULT_FAR = 100.0
 """Far plane (m) of the NDC depth in the reference's distortion term."""
-_WARNED_LOWPASS: set[float] = set()
-"""Low-pass sigmas already warned about (gsplat cannot render them): one warning per sigma, not per call."""
+_WARNED: set[tuple] = set()
+"""Fallbacks already warned about (a missing gsplat or C++ kernel, a low-pass sigma gsplat cannot render): a
+renderer is called once per training step, so each fallback is logged once per process, not per call."""
+
+
+def _warn_once(key: tuple, msg: str, *args) -> None:
+    if key not in _WARNED:
+        _WARNED.add(key)
+        log.warning(msg, *args)
 
 
 def _check_inputs(means, quats, scales, opacities, features, cam_from_world, K, width, height) -> None:
@@ -60,14 +67,16 @@ def resolve_backend(backend: Backend, device: torch.device) -> Backend:
 
             if gsplat_backend.available():
                 return "gsplat"
-            log.warning("gsplat is not installed: rendering with the torch backend on %s", device)
+            _warn_once(("no gsplat", str(device)),
+                       "gsplat is not installed: rendering with the torch backend on %s", device)
             return "torch"
         return resolve_backend("cpp", device) if device.type == "cpu" else "torch"
     if backend == "cpp":
         if device.type != "cpu":
             raise ValueError(f"the cpp backend runs on CPU tensors only, got {device}")
         if cpu_kernel.load() is None:
-            log.warning("C++ kernel unavailable (%s): using the torch backend", cpu_kernel.load_error())
+            _warn_once(("no cpp",), "C++ kernel unavailable (%s): using the torch backend",
+                       cpu_kernel.load_error())
             return "torch"
         return "cpp"
     if backend == "gsplat":
@@ -120,10 +129,8 @@ def render_2dgs(
                 f"the gsplat backend's low-pass filter is fixed at sigma {LOWPASS_SIGMA_PX:.4f} px (2DGS's), "
                 f"got lowpass_sigma_px = {lowpass_sigma_px}: use that sigma or another backend"
             )
-        if lowpass_sigma_px not in _WARNED_LOWPASS:
-            _WARNED_LOWPASS.add(lowpass_sigma_px)
-            log.warning("gsplat has only the low-pass sigma %.4f px, %s px asked: rendering with torch",
-                        LOWPASS_SIGMA_PX, lowpass_sigma_px)
+        _warn_once(("lowpass", lowpass_sigma_px), "gsplat has only the low-pass sigma %.4f px, %s px asked: "
+                   "rendering with torch", LOWPASS_SIGMA_PX, lowpass_sigma_px)
         chosen = "torch"
     if chosen == "gsplat":
         from facade_pipeline.splatting import gsplat_backend

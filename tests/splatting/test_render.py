@@ -174,7 +174,7 @@ def test_gsplat_is_refused_or_replaced_for_another_lowpass_sigma(monkeypatch, ca
     args = s.params() + [s.cam_from_world, s.K, s.width, s.height]
     ref = render_2dgs(*args, backend="torch", lowpass_sigma_px=0.5)
     monkeypatch.setattr(render_module, "resolve_backend", lambda backend, device: "gsplat")
-    monkeypatch.setattr(render_module, "_WARNED_LOWPASS", set())
+    monkeypatch.setattr(render_module, "_WARNED", set())
     with pytest.raises(ValueError, match="gsplat backend's low-pass filter is fixed"):
         render_2dgs(*args, backend="gsplat", lowpass_sigma_px=0.5)
     with caplog.at_level(logging.WARNING):
@@ -185,6 +185,23 @@ def test_gsplat_is_refused_or_replaced_for_another_lowpass_sigma(monkeypatch, ca
         torch.testing.assert_close(getattr(got, k), getattr(ref, k), atol=0, rtol=0)
     with pytest.raises(ValueError, match="CUDA"):  # 2DGS's sigma goes to gsplat, which needs CUDA tensors
         render_2dgs(*args, backend="auto", lowpass_sigma_px=0.7071)
+
+
+def test_a_missing_cpp_kernel_is_warned_about_once(monkeypatch, caplog):
+    """Every training step renders: the fallback to the torch backend is logged once per process, and the
+    torch backend then renders what the kernel would."""
+    import facade_pipeline.splatting.render as render_module
+
+    s = random_scene(1, n=6)
+    args = s.params() + [s.cam_from_world, s.K, s.width, s.height]
+    ref = render_2dgs(*args, backend="torch")
+    monkeypatch.setattr(render_module, "_WARNED", set())
+    monkeypatch.setattr(render_module.cpu_kernel, "load", lambda: None)
+    with caplog.at_level(logging.WARNING):
+        got = [render_2dgs(*args, backend="cpp") for _ in range(3)]
+    assert caplog.text.count("C++ kernel unavailable") == 1
+    for k in MAP_NAMES:
+        torch.testing.assert_close(getattr(got[-1], k), getattr(ref, k), atol=0, rtol=0)
 
 
 def test_torch_backend_is_independent_of_chunking():
