@@ -54,7 +54,8 @@ def test_kill_9_then_resume_equals_uninterrupted(synth64, tmp_path):
     t0 = time.time()
     while _checkpoint_iteration(tmp_path / "b.pt") < 6:
         assert victim.poll() is None, victim.communicate()
-        assert time.time() - t0 < 120, "no checkpoint"
+        # only a hang ends this wait: a live victim on a loaded machine may take minutes to its 6th step
+        assert time.time() - t0 < 600, "no checkpoint in 600 s from a live training"
         time.sleep(0.05)
     victim.send_signal(signal.SIGKILL)
     assert victim.wait(30) == -signal.SIGKILL
