@@ -16,6 +16,17 @@ rays of the environment proxy (``shading.proxy``) are cast against:
 - each cell with something in it is a block from its bottom to its top, with walls where a neighbour does
   not cover that span: a building is a box, a tree's crown a lump that rays can pass under.
 
+Photogrammetry triangulates the features of the reflections too: a plane mirror's image of a point is a
+consistent 3D point as far behind the glass as the point stands in front of it (a virtual point), so a
+survey's point cloud (a user's COLMAP sparse model, gcw_dev's triangulated points, demo's ghost points)
+holds the surroundings' mirror images behind a glass facade. ``unmirror`` moves them back across the glass
+plane before the binning, where they are the real surroundings (reflected rays never go behind the facade,
+so left there they would be lost). A point counts as virtual where every photo that has it in view sees it
+through the glass (the ray crosses the glass plane inside the glass's extent): roofs and walls behind the
+facade that photos see over or beside it stay. What stands behind the glass and is seen through it (a room,
+a shelf) is mirrored as well: its points cannot be told from a reflection's, and its image stands as close
+in front of the glass as it stands behind it. A curved glass is no plane mirror: its points are kept.
+
 A reflected ray from X_r along w_r ends at its first hit on the blocks or on the ground plane; meeting
 neither, it goes to the sky. On the proxy's wall maps a block hit is read at its azimuth and elevation as
 seen from the eye, the facade's centre on the ground (the lower half of the maps, elevations 0 to the
@@ -49,6 +60,9 @@ GROUND_SNAP_CELLS = 1.5
 RAY_OFFSET_CELLS = 0.05
 #: The elevation of the highest point is at most this (rad).
 MAX_ELEVATION = math.radians(60.0)
+#: The glass is one plane where its triangles' corners lie within this fraction of their extent of their
+#: plane (RMS); a curved or folded facade is not a plane mirror, and its points are kept as they are.
+PLANE_TOLERANCE = 0.01
 #: At most this many cells across the surface model (a 4096 x 4096 grid of two heights is 128 MiB).
 MAX_CELLS = 4096
 #: Below this, a ray's vertical component counts as zero: it never meets the ground.
@@ -97,6 +111,108 @@ def surface_heights(
     bottom = np.where(np.isfinite(bottom) & (bottom > GROUND_SNAP_CELLS * cell_m), bottom, 0.0)
     bottom = np.where(top > 0, np.minimum(bottom, top), 0.0)
     return np.stack([bottom, top])
+
+
+@dataclass(frozen=True)
+class GlassPlane:
+    """The plane of a facade's glass: a point on it, its unit normal towards the cameras, two in-plane unit
+    axes (along the facade and up it) and the glass's extent along them (m)."""
+
+    origin: np.ndarray  # [3]
+    normal: np.ndarray  # [3]
+    axes: np.ndarray  # [2, 3]
+    lo: np.ndarray  # [2]
+    hi: np.ndarray  # [2]
+
+    def signed_distance(self, points: np.ndarray) -> np.ndarray:
+        """[N] distance of ``points`` [N, 3] from the plane, positive on the cameras' side (m)."""
+        return (np.asarray(points, np.float64) - self.origin) @ self.normal
+
+
+def glass_plane(vertices: np.ndarray, triangles: np.ndarray, glass: np.ndarray | None,
+                eyes: np.ndarray) -> GlassPlane | None:
+    """The plane of the glass triangles (``glass`` [T] bool) of a mesh ``vertices`` [V, 3], ``triangles``
+    [T, 3], its normal towards the mean of ``eyes`` [E, 3] (the cameras' centres): fitted to the triangles'
+    corners weighted by area. None where no triangle is glass or the glass is not one plane
+    (``PLANE_TOLERANCE``)."""
+    if glass is None or not np.any(glass):
+        return None
+    v = np.asarray(vertices, np.float64)
+    tri = v[np.asarray(triangles)[np.asarray(glass, bool)]]  # [G, 3, 3]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not area.sum() > 0:
+        return None
+    # each triangle's corners weighted by its area (its centroids alone: a pane of two triangles gives a line)
+    weight = np.repeat(area / (3.0 * area.sum()), 3)
+    origin = weight @ tri.reshape(-1, 3)
+    corners = tri.reshape(-1, 3) - origin
+    _, _, vt = np.linalg.svd(corners * np.sqrt(weight)[:, None], full_matrices=False)
+    normal = vt[2]
+    if normal @ (np.mean(eyes, axis=0) - origin) < 0:
+        normal = -normal
+    size = float(np.linalg.norm(corners.max(0) - corners.min(0)))
+    if np.sqrt(np.mean((corners @ normal) ** 2)) > PLANE_TOLERANCE * size:
+        return None
+    # the extent along the facade and up it (the world's z is up), not along the fit's other two singular
+    # vectors, which turn freely where the glass is as wide as it is high
+    along = np.cross([0.0, 0.0, 1.0], normal)
+    if np.linalg.norm(along) < 0.1:  # glass facing up or down: any axes in its plane
+        along = vt[0]
+    along = along / np.linalg.norm(along)
+    axes = np.stack([along, np.cross(normal, along)])
+    uv = corners @ axes.T
+    return GlassPlane(origin, normal, axes, uv.min(0), uv.max(0))
+
+
+def unmirror(points: np.ndarray, plane: GlassPlane | None, cameras, margin_m: float) -> np.ndarray:
+    """[N] bool: the ``points`` [N, 3] (m) that are virtual, the mirror images of the surroundings in the
+    glass (module docstring): more than ``margin_m`` behind ``plane``, in view of at least one of
+    ``cameras`` (``PinholeCamera``s: in front of it and inside its image) and seen through the glass (the
+    ray from the camera's centre crosses the plane within the glass's extent, ``margin_m`` wider) by every
+    camera that has it in view. ``mirrored(points, plane)`` moves them to the surroundings."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if plane is None or len(p) == 0:
+        return np.zeros(len(p), bool)
+    dist = plane.signed_distance(p)
+    behind = np.isfinite(dist) & (dist < -margin_m)
+    seen = np.zeros(len(p), bool)
+    through = behind.copy()
+    q = p[behind]
+    for cam in cameras:
+        uv, z = cam.project(q)
+        with np.errstate(invalid="ignore"):
+            in_view = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= cam.width) & (
+                uv[:, 1] <= cam.height)
+        c = np.asarray(cam.center, np.float64)
+        dc = float((c - plane.origin) @ plane.normal)
+        # where the ray from the camera to the point crosses the plane (the camera is in front of it)
+        t = dc / np.maximum(dc - dist[behind], 1e-300) if dc > 0 else np.zeros(len(q))
+        x = c + t[:, None] * (q - c)
+        uv_plane = (x - plane.origin) @ plane.axes.T
+        inside = (dc > 0) & np.all((uv_plane >= plane.lo - margin_m) & (uv_plane <= plane.hi + margin_m), 1)
+        seen[behind] |= in_view
+        through[behind] &= inside | ~in_view
+    return through & seen
+
+
+def mirrored(points: np.ndarray, plane: GlassPlane) -> np.ndarray:
+    """``points`` [N, 3] reflected across ``plane`` (m)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    return p - 2.0 * plane.signed_distance(p)[:, None] * plane.normal
+
+
+def surroundings_points(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
+                        glass: np.ndarray | None, cameras, margin_m: float) -> tuple[np.ndarray, int]:
+    """The coarse ``points`` [N, 3] (m) with the virtual ones (``unmirror``) moved across the plane of the
+    mesh's glass (``glass_plane``; the cameras' centres give its front): what the surface model is binned
+    from, and how many were moved."""
+    plane = glass_plane(vertices, triangles, glass, np.array([c.center for c in cameras]).reshape(-1, 3))
+    virtual = unmirror(points, plane, cameras, margin_m)
+    if not virtual.any():
+        return points, 0
+    out = np.array(points, np.float64).reshape(-1, 3)
+    out[virtual] = mirrored(out[virtual], plane)
+    return out, int(virtual.sum())
 
 
 def surface_mesh(heights: np.ndarray, cell_m: float, centre_xy: np.ndarray, ground_z: float):

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.shading.reflection import build_reflection_module
+from facade_pipeline.shading.surroundings import surroundings_points
 from facade_pipeline.training.batches import (
     ViewTensors,
     camera,
@@ -170,13 +171,18 @@ def _assemble(
         p.reflection_normal_grad,
         p.supersample,
     )
+    init = data.init
+    # the proxy's surroundings from the coarse points, the reflections' virtual points mirrored back
+    margin = INIT_BOUNDS_MARGIN * facade_size(data.bounds)
+    points, _ = surroundings_points(init.points, init.mesh_vertices, init.mesh_triangles, init.mesh_glass,
+                                    [v.camera for v in data.views], margin)
     with torch.random.fork_rng(devices=[]):  # the module's initial weights come from the seed alone
         torch.manual_seed(p.seed)
         reflection = build_reflection_module(
             p.reflection_strategy(data.bounds),
             device,
             (shading.bounds_lo, shading.bounds_hi),
-            data.init.points,
+            points,
         )
     opt = gaussian_optimizer(model, p, data.extent)
     opt_refl = None if reflection is None else reflection_optimizer(p, reflection)
