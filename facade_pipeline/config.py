@@ -282,10 +282,13 @@ def _read_toml(path: Path) -> dict[str, Any]:
 # replacement named (one mechanism for every old key).
 RENAMED = {
     "rectify.warp.planar_shift_px": "none: every view is rectified (rectify.metres_per_px sets the scale)",
-    "segment_panels.min_partial_px": "segment_panels.min_partial_m (metres on the facade)",
-    "segment_panels.grid.min_pitch_px": "segment_panels.grid.min_pitch_m and max_pitch_m (metres)",
-    "segment_panels.grid.min_bar_px": "segment_panels.grid.min_bar_m (metres on the facade)",
-    "segment_panels.grid.max_bar_px": "segment_panels.grid.max_bar_m (metres on the facade)",
+    **{f"segment_panels.{old}": f"segment_panels.{new} (a fraction of the building's pitch, which the "
+       "survey measures)" for old, new in (
+           ("min_partial_px", "min_partial"), ("min_partial_m", "min_partial"),
+           ("surface_tolerance_m", "surface_tolerance"), ("grid.min_pitch_px", "grid.min_pitch"),
+           ("grid.min_pitch_m", "grid.min_pitch"), ("grid.max_pitch_m", "grid.max_pitch"),
+           ("grid.min_bar_px", "grid.min_bar"), ("grid.min_bar_m", "grid.min_bar"),
+           ("grid.max_bar_px", "grid.max_bar"), ("grid.max_bar_m", "grid.max_bar"))},
     "train_gs.reflection_model": "train_gs.reflection.model",
     "train_gs.fourier_levels": "train_gs.reflection.mlp.fourier_levels",
     "train_gs.mlp_depth": "train_gs.reflection.mlp.depth",

@@ -131,8 +131,8 @@ BAD_VALUES = [
     ("train_gs", "sh_degree = 4", "train_gs.sh_degree", "<= 3"),
     ("evaluate.align", "steps = -1", "evaluate.align.steps", ">= 0"),
     # a min above its max
-    ("segment_panels.grid", "min_pitch_m = 7.0", "segment_panels.grid.min_pitch_m", "max_pitch_m"),
-    ("segment_panels.grid", "min_bar_m = 0.5", "segment_panels.grid.min_bar_m", "max_bar_m"),
+    ("segment_panels.grid", "min_pitch = 7.0", "segment_panels.grid.min_pitch", "max_pitch"),
+    ("segment_panels.grid", "min_bar = 0.5", "segment_panels.grid.min_bar", "max_bar"),
     ("synthesize.environment", "building_width_m = [28.0, 14.0]", "synthesize.environment.building_width_m",
      "low <= high"),
     ("synthesize.environment", "tree_height_m = [9.0, 5.0]", "synthesize.environment.tree_height_m",

@@ -59,6 +59,20 @@ def building_pitch_m(found: list[FrameBars | None]) -> dict[str, float]:
     return {name: float(np.median(p)) for name, p in sorted(pitches.items())}
 
 
+def survey_unit_m(pitches: list[dict[str, float]]) -> float | None:
+    """The building's panel pitch (m), the unit of segment_panels' lengths: the geometric mean of the
+    mullions' ("x") and the transoms' ("y") pitch, each the median over the views' surveys
+    (``frames.survey_frames``; ``FrameBars.pitches_m`` per view); the one family's where the other was
+    found nowhere, None where neither was. A facade's pitch is the one length its views all show, whatever
+    its scale and whatever they frame of it."""
+    by_family: dict[str, list[float]] = {}
+    for p in pitches:
+        for name, v in p.items():
+            by_family.setdefault(name, []).append(v)
+    medians = [float(np.median(v)) for v in by_family.values()]
+    return float(np.exp(np.mean(np.log(medians)))) if medians else None
+
+
 def pitch_range_m(pitch_m: dict[str, float], grid: GridParams) -> dict[str, tuple[float, float]]:
     """The pitches (m, per family) that are the building's grid (``PITCH_REACH_SIGMAS``)."""
     reach = PITCH_REACH_SIGMAS * grid.sigma_frac
