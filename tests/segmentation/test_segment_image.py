@@ -497,3 +497,16 @@ def test_a_view_off_the_building_grid_is_named_with_its_reason():
     assert why[2].keys() == {"pitch"} and why[2]["pitch"].startswith("pitch y 2.4 m")
     assert why[3].keys() == {"width"} and "bar width x 0.6 m" in why[3]["width"]
     assert why[5] == {"grid": "no grid found"}
+
+
+def test_the_survey_finds_the_drawn_pitch_at_any_scale():
+    """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
+    (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
+    times the size in the same pixels) the same grid, its pitches 25 times as long."""
+    from facade_pipeline.segmentation.frames import survey_frames
+
+    img = Drawing().render()
+    small = survey_frames(img, PARAMS, M_PER_PX).pitches_m()
+    big = survey_frames(img, PARAMS, 25 * M_PER_PX).pitches_m()
+    assert small["x"] == pytest.approx(2.74, abs=0.05) and small["y"] == pytest.approx(2.33, abs=0.05)
+    assert big == pytest.approx({name: 25 * p for name, p in small.items()}, rel=1e-9)
