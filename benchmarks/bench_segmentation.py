@@ -155,7 +155,8 @@ def main() -> None:
         "## rectify and segment_panels\n",
         "### Synthetic scenes\n",
         "Every frontal view rectified to a metric, fronto-parallel image of its fitted surface (a plane by "
-        "its homography, a cylinder unrolled, both exact maps) and segmented with sizes in metres, against "
+        "its homography, a cylinder unrolled, both exact maps) and segmented with lengths relative to the "
+        "building's panel pitch (which a survey of the views measures first), against "
         "gt/ with reflections on. *Warp residual*: the residual of the degree-7 polynomial recorded beside "
         "the exact map of a cylinder (the paper's warp; it cannot follow the unrolling of curved12's and "
         "oblique's views). *Straightness*: largest deviation of a true edge from a straight line after "

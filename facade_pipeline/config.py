@@ -282,10 +282,21 @@ def _read_toml(path: Path) -> dict[str, Any]:
 # replacement named (one mechanism for every old key).
 RENAMED = {
     "rectify.warp.planar_shift_px": "none: every view is rectified (rectify.metres_per_px sets the scale)",
-    "segment_panels.min_partial_px": "segment_panels.min_partial_m (metres on the facade)",
-    "segment_panels.grid.min_pitch_px": "segment_panels.grid.min_pitch_m and max_pitch_m (metres)",
-    "segment_panels.grid.min_bar_px": "segment_panels.grid.min_bar_m (metres on the facade)",
-    "segment_panels.grid.max_bar_px": "segment_panels.grid.max_bar_m (metres on the facade)",
+    **{f"segment_panels.{old}": f"segment_panels.{new} (a fraction of the building's pitch, which the "
+       "survey measures)" for old, new in (
+           ("min_partial_px", "min_partial"), ("min_partial_m", "min_partial"),
+           ("surface_tolerance_m", "surface_tolerance"), ("grid.min_pitch_px", "grid.min_pitch"),
+           ("grid.min_pitch_m", "grid.min_pitch"), ("grid.max_pitch_m", "grid.max_pitch"),
+           ("grid.min_bar_px", "grid.min_bar"), ("grid.min_bar_m", "grid.min_bar"),
+           ("grid.max_bar_px", "grid.max_bar"), ("grid.max_bar_m", "grid.max_bar"))},
+    **{f"rectify.{old}_m": f"rectify.{old} (a fraction of the frontal views' footprint, which the coarse "
+       "mesh gives)" for old in ("occlusion_margin", "fit.min_spread", "fit.ransac_threshold",
+                                 "fit.inlier_scale")},
+    **{f"{old}_m": f"{old} (a fraction of the building's panel pitch, which segment_panels' survey "
+       "measures)" for old in ("regularize_corners.ghost_max", "regularize_corners.planar_max_sagitta",
+                               "regularize_corners.outlier_floor", "regularize_corners.depth_window",
+                               "regularize_corners.depth_bandwidth", "correct_mesh.cuboid_half_depth",
+                               "correct_mesh.frame_half_depth")},
     "train_gs.reflection_model": "train_gs.reflection.model",
     "train_gs.fourier_levels": "train_gs.reflection.mlp.fourier_levels",
     "train_gs.mlp_depth": "train_gs.reflection.mlp.depth",

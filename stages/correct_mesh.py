@@ -41,15 +41,16 @@ class Params:
     insert_factor: Scale
     """The panel put in the cuboid's place is the 3D panel scaled about its centre by this factor (0-1):
     1 puts the whole glass back, running on under the kept frames, so no gap is left around it."""
-    cuboid_half_depth_m: Positive
-    """The coarse mesh within this distance (m) of a shrunk panel along its normal is removed."""
+    cuboid_half_depth: Positive
+    """The coarse mesh within this distance (of the building's panel pitch, as segment_panels' survey
+    measured it) of a shrunk panel along its normal is removed."""
     max_facet_deg: Annotated[float, Range(0.0, 180.0, low_open=True)]
     """Panels on cylindrical parts are split into flat facets spanning at most this angle (deg)."""
     panel_color: tuple[Fraction, Fraction, Fraction]
     """Vertex colour of the inserted glass (0-1)."""
-    frame_half_depth_m: NonNeg
-    """Kept coarse triangles inside a part's facade outline and within this distance (m) of the glass
-    surface are labelled frame (the rest: other)."""
+    frame_half_depth: NonNeg
+    """Kept coarse triangles inside a part's facade outline and within this distance (of the building's
+    panel pitch) of the glass surface are labelled frame (the rest: other)."""
     metric_samples: PosInt | None = None
     """Points sampled on a mesh for the metrics against gt/ (-). Synthetic buildings only (configs/
     synthetic.toml); None: no truth to measure against."""
@@ -112,21 +113,24 @@ NO_PANELS = "no panels: no mesh correction (the coarse mesh is the facade)"
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.meshes import make_mesh, read_mesh, write_mesh
+    from facade_pipeline.segmentation.building import surveyed_pitch_m
 
     coarse = read_mesh(layout.import_coarse_mesh)
     panels = PanelSet.load(layout.path("regularize_panels"))
+    # the lengths' unit is needed only where there are panels to put in
+    pitch = surveyed_pitch_m(layout, needed=bool(panels.panels))
     v, f = np.asarray(coarse.vertices), np.asarray(coarse.triangles)
     fixed = correct_mesh(
         v,
         f,
         panels,
         params.shrink_factor,
-        params.cuboid_half_depth_m,
+        params.cuboid_half_depth * pitch,
         params.max_facet_deg,
         params.insert_factor,
     )
     labels = label_triangles(
-        fixed.vertices, fixed.triangles, fixed.is_panel, panels, params.frame_half_depth_m
+        fixed.vertices, fixed.triangles, fixed.is_panel, panels, params.frame_half_depth * pitch
     )
     if not panels.panels:
         # nothing says where the facade is: the coarse mesh is taken for it, opaque, so that training has the

@@ -50,10 +50,10 @@ class Params(RectifyParams):
     """``auto`` fits a plane or a cylinder per view; ``planar`` declares the facade flat: planes only."""
     fit: SurfaceFitParams
     """The robust surface fit (``[rectify.fit]``)."""
-    occlusion_margin_m: Annotated[float, Range(0.0, infinite=True)]
-    """A coarse point whose line of sight meets the coarse mesh more than this (m) before it is hidden and
-    left out of the fit (the ground and surroundings behind the facade); inf: every point is kept. Scales
-    with the facade: about a third of a panel's width."""
+    occlusion_margin: Annotated[float, Range(0.0, infinite=True)]
+    """A coarse point whose line of sight meets the coarse mesh more than this (of the frontal views'
+    footprint, ``surface_map.frontal_footprint_m``) before it is hidden and left out of the fit (the ground
+    and surroundings behind the facade); inf: every point is kept."""
 
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
@@ -78,9 +78,11 @@ def rectify_one(
     params: Params,
     mesh: MeshRaycaster,
     overlay_scale: float,
+    unit_m: float,
 ) -> tuple[list[Path], dict]:
     """Fit, rectify and write one view (``mesh``: the coarse mesh, which hides points and gives the scale
-    of a view without a surface); returns its outputs and its metrics."""
+    of a view without a surface; ``unit_m``: the frontal views' footprint, the unit of the params'
+    lengths); returns its outputs and its metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image, write_image
     from facade_pipeline.rectification.cylinder import implausible_displacement
@@ -95,8 +97,13 @@ def rectify_one(
 
     t0 = time.perf_counter()
     source = layout.import_coarse_points
-    margin = params.occlusion_margin_m
-    fit, status = fit_view(points, view.camera, params.fit, params.surface, margin, mesh, source)
+    margin = params.occlusion_margin * unit_m
+    fit, status = (
+        fit_view(points, view.camera, params.fit, params.surface, margin, unit_m, mesh, source)
+        if np.isfinite(unit_m)
+        else (None, "no surface: no frontal view's principal ray meets the coarse mesh (no footprint to "
+              "measure the fit's lengths by)")
+    )
     cam = view.camera
     rect, displacement = None, None
     if fit is not None:
@@ -158,19 +165,23 @@ def _coarse_geometry(points_path: Path, mesh_path: Path) -> tuple[np.ndarray, Me
 
 
 def _rectify_view(
-    layout: BuildingLayout, params: Params, overlay_scale: float, view: View
+    layout: BuildingLayout, params: Params, overlay_scale: float, unit_m: float, view: View
 ) -> tuple[list[Path], dict]:
     """``rectify_one`` in whichever process ``map_views`` runs it, the coarse geometry loaded once there."""
     points, mesh = shared(_coarse_geometry, layout.import_coarse_points, layout.import_coarse_mesh)
-    return rectify_one(layout, view, points, params, mesh, overlay_scale)
+    return rectify_one(layout, view, points, params, mesh, overlay_scale, unit_m)
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
     scene = ImportedScene.load(layout)
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
+    from facade_pipeline.rectification.surface_map import frontal_footprint_m
+
     views = scene.frontal_views
-    one = functools.partial(_rectify_view, layout, params, settings.overlay_scale)
+    _, mesh = shared(_coarse_geometry, layout.import_coarse_points, layout.import_coarse_mesh)
+    unit = frontal_footprint_m([v.camera for v in views], lambda o, d: mesh.cast(o, d).t)
+    one = functools.partial(_rectify_view, layout, params, settings.overlay_scale, unit)
     with tqdm(total=len(views), desc="rectify: frontal views", unit="img", file=sys.stderr) as bar:
         results = map_views(one, views, settings.view_workers, lambda _: bar.update())
     for view, (outs, metrics) in zip(views, results, strict=True):
@@ -181,6 +192,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         outputs,
         {
             "n_views": len(views),
+            "footprint_unit_m": _finite(unit),
             **{f"n_{k}": kinds.count(k) for k in ("plane", "cylinder", "unrectified", "skipped")},
             "views_unrectified": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "unrectified"},
             "views_skipped": {s: m["reason"] for s, m in per_view.items() if m["kind"] == "skipped"},

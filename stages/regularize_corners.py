@@ -11,6 +11,7 @@ buildings the 3D corner error against gt/panels.json is added (gt is read for th
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -143,12 +144,16 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.io.meshes import read_mesh, read_points
     from facade_pipeline.panels3d.grid import build_panel_set
+    from facade_pipeline.segmentation.building import surveyed_pitch_m
 
     scene = ImportedScene.load(layout)
     mesh = read_mesh(layout.import_coarse_mesh)
     rc = MeshRaycaster(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
     points = np.asarray(read_points(layout.import_coarse_points).points)
     quads, complete, view, counts = _observations(layout, scene, params)
+    # the lengths' unit is needed only where there are panels to place
+    pitch = surveyed_pitch_m(layout, needed=bool(quads))
+    params = dataclasses.replace(params, unit_m=pitch if np.isfinite(pitch) else None)
     cameras = [v.camera for v in scene.frontal_views]
     panels, metrics = build_panel_set(quads, complete, view, cameras, rc, points, params)
     if cameras and not panels.panels and params.require_panels:
@@ -156,8 +161,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             layout.stage_dir("segment_panels"),
             f"glass panels in the {len(cameras)} frontal views",
             f"none ({len(quads)} quads segmented: {_why_none(layout, scene)}): check the frontal views' "
-            "poses and [segment_panels.grid] sizes (metres on the facade), paint the masks by hand, or set "
-            "[regularize_corners] require_panels = false to go on without mesh correction",
+            "poses and [segment_panels.grid] sizes (fractions of the building's pitch), paint the masks by "
+            "hand, or set [regularize_corners] require_panels = false to go on without mesh correction",
         )
     out = layout.path("regularize_panels")
     panels.save(out)

@@ -145,13 +145,34 @@ def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
     return field if np.isfinite(field.p).all() else None
 
 
+def survey_one(layout: BuildingLayout, view: View, params: Params) -> tuple[dict[str, float], float]:
+    """The pitch (m) per family of the grid the survey finds in one view (``frames.survey_frames``: sizes
+    relative to the view, before the building's pitch is known; none for a view rectify skipped) and the
+    seconds it took."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image
+    from facade_pipeline.rectification.surface_map import ViewRectification, valid_region
+    from facade_pipeline.segmentation.frames import survey_frames
+
+    t0 = time.perf_counter()
+    rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
+    if rect.kind == "skipped":
+        return {}, time.perf_counter() - t0
+    image = read_image(layout.path("rectify_image", stem=view.stem))
+    planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
+    found = survey_frames(image, params, rect.metres_per_px, valid_region(rect), parallax_field(rect, view),
+                          None, planar)
+    return found.pitches_m(), time.perf_counter() - t0
+
+
 def find_one(
-    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster,
+    layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster, unit_m: float,
     pitch_m: dict[str, tuple[float, float]] | None = None,
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """The rectification of one view and the frame bars in it (None for a view rectify skipped), and the
-    seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is; ``pitch_m``: the
-    pitches sought, per family, ``frames.find_frames``)."""
+    seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is; ``unit_m``: the
+    building's pitch, ``building.survey_unit_m``; ``pitch_m``: the pitches sought, per family,
+    ``frames.find_frames``)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
@@ -164,15 +185,15 @@ def find_one(
     valid = valid_region(rect)
     parallax = parallax_field(rect, view)
     image = read_image(layout.path("rectify_image", stem=view.stem))
-    support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance_m)
+    support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance * unit_m)
     planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
-    found = find_frames(image, params, rect.metres_per_px, valid, parallax, support, planar, pitch_m)
+    found = find_frames(image, params, rect.metres_per_px, unit_m, valid, parallax, support, planar, pitch_m)
     return rect, found, time.perf_counter() - t0
 
 
 def with_building_grid(
     layout: BuildingLayout, views: list[View], found: list[tuple[ViewRectification, FrameBars | None, float]],
-    params: Params, mesh: MeshRaycaster, width_m: dict[str, float],
+    params: Params, mesh: MeshRaycaster, width_m: dict[str, float], unit_m: float,
 ) -> tuple[list[tuple[ViewRectification, FrameBars | None, float]], dict[str, str]]:
     """``found`` with the building's grid tried on every view whose own grid is not it (none, or a pitch
     or bar width beyond the building's: ``building.disagreement``): sought again at the building's pitches
@@ -193,7 +214,7 @@ def with_building_grid(
         outcome = ""
         # a bar width of its own alone is the bars' business (``frames.widen_narrow_bars``), not the grid's
         if ("grid" in reason or "pitch" in reason) and len(wanted) == 2:
-            _, again, more = find_one(layout, view, params, mesh, wanted)
+            _, again, more = find_one(layout, view, params, mesh, unit_m, wanted)
             taken = again is not None and within(again.pitches_m(), wanted, STEP_PX * again.metres_per_px)
             if taken:
                 out[i] = (rect, again, seconds + more)
@@ -265,30 +286,52 @@ def _coarse_raycaster(mesh_path: Path) -> MeshRaycaster:
 
 
 def _find_view(
-    layout: BuildingLayout, params: Params, view: View
+    layout: BuildingLayout, params: Params, unit_m: float, view: View
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """``find_one`` in whichever process ``map_views`` runs it, the coarse mesh loaded once there."""
-    return find_one(layout, view, params, shared(_coarse_raycaster, layout.import_coarse_mesh))
+    return find_one(layout, view, params, shared(_coarse_raycaster, layout.import_coarse_mesh), unit_m)
+
+
+def _survey_view(layout: BuildingLayout, params: Params, view: View) -> tuple[dict[str, float], float]:
+    """``survey_one`` in whichever process ``map_views`` runs it."""
+    return survey_one(layout, view, params)
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
-    from facade_pipeline.segmentation.building import building_bar_width_m, building_frame_depth_m
+    from facade_pipeline.rectification.surface_map import ViewRectification
+    from facade_pipeline.segmentation.building import (
+        building_bar_width_m,
+        building_frame_depth_m,
+        survey_unit_m,
+    )
 
     views = ImportedScene.load(layout).frontal_views
     outputs: list[Path] = []
     per_view: dict[str, dict] = {}
-    with tqdm(total=len(views), desc="segment_panels: frame bars", unit="img", file=sys.stderr) as bar:
-        found = map_views(functools.partial(_find_view, layout, params), views, settings.view_workers,
-                          lambda _: bar.update())
+    with tqdm(total=len(views), desc="segment_panels: survey", unit="img", file=sys.stderr) as bar:
+        surveyed = map_views(functools.partial(_survey_view, layout, params), views, settings.view_workers,
+                             lambda _: bar.update())
+    unit = survey_unit_m([p for p, _ in surveyed])
+    if unit is None:  # no view shows a grid at any pitch: each is written without panels, saying so
+        found = [(ViewRectification.load(layout.path("rectify_mapping", stem=v.stem)), None, s)
+                 for v, (_, s) in zip(views, surveyed, strict=True)]
+    else:
+        with tqdm(total=len(views), desc="segment_panels: frame bars", unit="img", file=sys.stderr) as bar:
+            found = map_views(functools.partial(_find_view, layout, params, unit), views,
+                              settings.view_workers, lambda _: bar.update())
+        found = [(r, f, s + t) for (r, f, s), (_, t) in zip(found, surveyed, strict=True)]
     depth = building_frame_depth_m([f for _, f, _ in found])
     width = building_bar_width_m([f for _, f, _ in found])
     # the views off the building's grid are sought again here, one after another (few, and they need the
     # building's figures, known only now)
     mesh = shared(_coarse_raycaster, layout.import_coarse_mesh)
-    found, disagreeing = with_building_grid(layout, views, found, params, mesh, width)
+    found, disagreeing = ((found, {}) if unit is None
+                          else with_building_grid(layout, views, found, params, mesh, width, unit))
     for view, (rect, frames, seconds) in zip(views, found, strict=True):
         outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
                                                 settings.overlay_scale)
+        if unit is None and rect.kind != "skipped":
+            per_view[view.stem]["reason"] = "the survey found no regular frame grid in any view at any pitch"
         per_view[view.stem]["seconds"] = round(per_view[view.stem]["seconds"] + seconds, 3)
         outputs += outs
     return StageReport(
@@ -299,6 +342,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "views_without_facade": {s: m["reason"] for s, m in per_view.items() if not m["facade_found"]},
             "n_panels": sum(m["n_panels"] for m in per_view.values()),
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
+            "pitch_unit_m": unit,
             "frame_depth_m": {name: round(d, 4) for name, d in depth.items()},
             "bar_width_m": {name: round(w, 4) for name, w in width.items()},
             "views_off_the_building_grid": disagreeing,

@@ -152,8 +152,9 @@ def test_a_nested_section_by_its_dotted_name(cfg_dir):
 
 
 @pytest.mark.parametrize(("section", "key", "replacement"), [
-    ("segment_panels.grid", "max_bar_px", "segment_panels.grid.max_bar_m"),
-    ("segment_panels", "min_partial_px", "segment_panels.min_partial_m"),
+    ("segment_panels.grid", "max_bar_px", "segment_panels.grid.max_bar"),
+    ("segment_panels.grid", "min_bar_m", "segment_panels.grid.min_bar"),
+    ("segment_panels", "min_partial_px", "segment_panels.min_partial"),
     ("rectify.warp", "planar_shift_px", "rectify.metres_per_px"),
     ("train_gs", "device", "run.device"),
     ("train_gs", "raster_backend", "run.raster_backend"),

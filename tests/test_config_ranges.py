@@ -124,15 +124,15 @@ BAD_VALUES = [
     ("segment_panels.grid", "sigma_frac = nan", "segment_panels.grid.sigma_frac", "found nan"),
     ("train_gs", "lowpass_sigma_px = inf", "train_gs.lowpass_sigma_px", "> 0, found inf"),
     ("train_gs.lr", "position_init = -inf", "train_gs.lr.position_init", "found -inf"),
-    ("rectify", "occlusion_margin_m = -inf", "rectify.occlusion_margin_m", ">= 0 (or inf)"),
+    ("rectify", "occlusion_margin = -inf", "rectify.occlusion_margin", ">= 0 (or inf)"),
     ("rectify", "max_view_angle_deg = 90.0", "rectify.max_view_angle_deg", "< 90"),
     ("rectify", "metres_per_px = -0.01", "rectify.metres_per_px", "> 0"),
     ("correct_mesh", "panel_color = [0.3, 1.5, 0.8]", "correct_mesh.panel_color[1]", "<= 1"),
     ("train_gs", "sh_degree = 4", "train_gs.sh_degree", "<= 3"),
     ("evaluate.align", "steps = -1", "evaluate.align.steps", ">= 0"),
     # a min above its max
-    ("segment_panels.grid", "min_pitch_m = 7.0", "segment_panels.grid.min_pitch_m", "max_pitch_m"),
-    ("segment_panels.grid", "min_bar_m = 0.5", "segment_panels.grid.min_bar_m", "max_bar_m"),
+    ("segment_panels.grid", "min_pitch = 7.0", "segment_panels.grid.min_pitch", "max_pitch"),
+    ("segment_panels.grid", "min_bar = 0.5", "segment_panels.grid.min_bar", "max_bar"),
     ("synthesize.environment", "building_width_m = [28.0, 14.0]", "synthesize.environment.building_width_m",
      "low <= high"),
     ("synthesize.environment", "tree_height_m = [9.0, 5.0]", "synthesize.environment.tree_height_m",
@@ -159,6 +159,6 @@ def test_the_bounds_themselves_are_allowed(write_building):
     cfg = load_building_config("bad", path.parents[1])
     p = cfg.section("train_gs", load_stage("train_gs").Params)
     assert (p.init_reflectivity, p.init_reflectivity_glass, p.mlp_max_pixels) == (1.0, 0.0, 0)
-    path = write_building("rectify", "occlusion_margin_m = inf")
+    path = write_building("rectify", "occlusion_margin = inf")
     cfg = load_building_config("bad", path.parents[1])
-    assert cfg.section("rectify", load_stage("rectify").Params).occlusion_margin_m == float("inf")
+    assert cfg.section("rectify", load_stage("rectify").Params).occlusion_margin == float("inf")

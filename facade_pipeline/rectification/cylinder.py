@@ -164,25 +164,28 @@ def _stable_distance(t: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
     return (k * (w * w + t * t) + 2.0 * w) / (np.sqrt((k * w + 1.0) ** 2 + (k * t) ** 2) + 1.0)
 
 
-def check_points(points: np.ndarray, params: SurfaceFitParams, source: str | Path | None = None) -> None:
-    """Raise ``SurfaceFitError`` for too few points or points on one line (second spread below min)."""
+def check_points(points: np.ndarray, params: SurfaceFitParams, unit_m: float,
+                 source: str | Path | None = None) -> None:
+    """Raise ``SurfaceFitError`` for too few points or points on one line (second spread below
+    ``min_spread`` of ``unit_m``, the frontal views' footprint)."""
     n = len(points)
     if n < params.min_points:
         raise SurfaceFitError(source, f"at least {params.min_points} coarse points in the view", f"{n}")
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(points.T)), 0.0))  # ascending
-    if spread[1] < params.min_spread_m:
-        raise SurfaceFitError(source, f"points spread over a surface (2nd spread >= {params.min_spread_m} m)",
+    if spread[1] < params.min_spread * unit_m:
+        raise SurfaceFitError(source, "points spread over a surface (2nd spread >= "
+                              f"{params.min_spread * unit_m:.3g} m, min_spread of the views' footprint)",
                               f"points along one line (spreads {spread[2]:.3g} m and {spread[1]:.3g} m)")
 
 
-def ransac_plane(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams,
+def ransac_plane(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
                  rng: np.random.Generator) -> np.ndarray:
     """Inlier mask [N] of the facade plane among 3-point RANSAC hypotheses.
 
     Priors of a frontal view: the facade faces the camera (normal within ``max_normal_angle_deg`` of the
     direction to ``viewpoint``) and it is the first surface seen (points well in front of a plane count
     against it; ghost points mirrored behind the glass lie behind the facade). Score = inliers - in front."""
-    n, thr = len(points), params.ransac_threshold_m
+    n, thr = len(points), params.ransac_threshold * unit_m
     idx = rng.integers(0, n, size=(RANSAC_ITERATIONS, 3))
     p = points[idx]  # [I, 3, 3]
     normals = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
@@ -285,7 +288,7 @@ def sagitta_m(surface: Surface, points: np.ndarray) -> float:
     return abs(surface.curvature_per_m) * float(np.ptp(t)) ** 2 / 8.0 if len(t) else 0.0
 
 
-def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams,
+def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
                 source: str | Path | None = None, toward_camera: np.ndarray | None = None,
                 curved: bool = True) -> SurfaceFit:
     """Fit a cylinder (or plane) to world points [N, 3] seen from ``viewpoint`` [3] (the normal faces it).
@@ -295,7 +298,9 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     ``curved = False`` fits a plane only; a cylinder whose sagitta over its inliers is under
     ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well.
 
-    Raises ``SurfaceFitError`` naming ``source`` for too few points or points on one line."""
+    The params' lengths are fractions of ``unit_m``, the frontal views' footprint
+    (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
+    or points on one line."""
     points = np.asarray(points, dtype=np.float64)
     n_given = len(points)
     if toward_camera is not None:
@@ -305,20 +310,21 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
             raise SurfaceFitError(source, f"at least {params.min_points} coarse points whose surface faces "
                                   f"the camera (normal within {angle:g} deg of the optical axis)",
                                   f"{len(points)} of {n_given}")
-    check_points(points, params, source)
+    check_points(points, params, unit_m, source)
     rng = np.random.default_rng(RANSAC_SEED)
-    keep = ransac_plane(points, np.asarray(viewpoint, float), params, rng)
-    check_points(points[keep], params, source)
+    keep = ransac_plane(points, np.asarray(viewpoint, float), params, unit_m, rng)
+    check_points(points[keep], params, unit_m, source)
     viewpoint = np.asarray(viewpoint, float)
-    surface = quadric_init(points[keep], viewpoint, params.inlier_scale_m)
+    scale = params.inlier_scale * unit_m
+    surface = quadric_init(points[keep], viewpoint, scale)
     for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
-        surface = refine_surface(surface, points[keep], params.inlier_scale_m)
-        keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
-        check_points(points[keep], params, source)
+        surface = refine_surface(surface, points[keep], scale)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
+        check_points(points[keep], params, unit_m, source)
     rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
     if not curved or sagitta_m(surface, points[keep]) < MIN_SAGITTA_RMS * rms:
-        surface = fit_plane(points[keep], viewpoint, params.inlier_scale_m)
-        keep = np.abs(surface.signed_distance(points)) < 3.0 * params.inlier_scale_m
-        check_points(points[keep], params, source)
+        surface = fit_plane(points[keep], viewpoint, scale)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
+        check_points(points[keep], params, unit_m, source)
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))

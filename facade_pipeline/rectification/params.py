@@ -32,17 +32,24 @@ class RectifyParams:
 
 @dataclass(frozen=True)
 class SurfaceFitParams:
+    """The robust surface fit. Its lengths are fractions of the frontal views' footprint (the median width
+    a frontal view frames where its principal ray meets the coarse mesh, ``surface_map.frontal_footprint_m``),
+    a length the data gives at any scale before any surface is fitted."""
+
     min_points: PosInt
     """Fewest points a fit accepts (-)."""
-    min_spread_m: NonNeg
-    """Points must spread at least this much (m, standard deviation) in two directions: else on one line."""
-    ransac_threshold_m: Positive
-    """Distance (m) within which a point supports a RANSAC plane: generous, it only drops far outliers."""
+    min_spread: NonNeg
+    """Points must spread at least this much (standard deviation, of the frontal views' footprint) in two
+    directions: else on one line."""
+    ransac_threshold: Positive
+    """Distance (of the frontal views' footprint) within which a point supports a RANSAC plane: generous,
+    it only drops far outliers."""
     max_normal_angle_deg: Annotated[float, Range(0.0, 90.0)]
     """A facade plane faces the camera: its normal within this angle (deg) of the direction to the camera
     (and, with ``normal_knn``, each fitted point's normal within it of the optical axis)."""
-    inlier_scale_m: Positive
-    """Scale (m) of the soft-L1 loss; points within 3x this of the surface are inliers (m)."""
+    inlier_scale: Positive
+    """Scale of the soft-L1 loss (of the frontal views' footprint); points within 3x this of the surface
+    are inliers."""
     normal_knn: Count
     """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
     viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out

@@ -344,6 +344,17 @@ def mesh_scale_m(camera: PinholeCamera, first_hit_m) -> float:
     return t * float(d[0] @ camera.forward) / float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
 
 
+def frontal_footprint_m(cameras: list[PinholeCamera], first_hit_m) -> float:
+    """The frontal views' footprint (m): the median over ``cameras`` of the width a view frames where its
+    principal ray meets the coarse mesh (``mesh_scale_m`` times its width), views whose ray misses it left
+    out; NaN where every one does. The unit of rectify's lengths: it follows the facade's scale (a model
+    at 1:25 and the building it models, photographed alike, give 1:25), and within a building it is one
+    length for every view."""
+    widths = [mesh_scale_m(c, first_hit_m) * c.width for c in cameras]
+    widths = [w for w in widths if np.isfinite(w)]
+    return float(np.median(widths)) if widths else float("nan")
+
+
 def remap_maps(rect: ViewRectification) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps [height, width] float32 (OpenCV's integer pixel centres) of the rectified canvas."""
     ys, xs = np.mgrid[0 : rect.height, 0 : rect.width]

@@ -50,16 +50,18 @@ def fit_view(
     params: SurfaceFitParams,
     surface: str,
     occlusion_margin_m: float,
+    unit_m: float,
     mesh: MeshRaycaster,
     source: Path,
 ) -> tuple[SurfaceFit | None, str]:
     """The surface a frontal view sees: a plane, or a plane or a cylinder when ``surface`` is "auto",
     fitted to the coarse ``points`` [N, 3] (file ``source``) that the view sees and ``mesh`` does not hide,
     and refused when it cannot be a facade (tilted, tight against the view's footprint, loose). Returns the
-    fit, or None, and a status line that says why."""
+    fit, or None, and a status line that says why (``unit_m``: the frontal views' footprint, the unit of
+    the fit's lengths)."""
     try:
         seen = view_points(points, cam, mesh, occlusion_margin_m)
-        fit = fit_surface(seen, cam.center, params, source, -cam.forward, curved=surface == "auto")
+        fit = fit_surface(seen, cam.center, params, unit_m, source, -cam.forward, curved=surface == "auto")
         depth = abs(float((fit.surface.origin - cam.center) @ cam.forward))
         why = implausible(fit, depth * cam.width / cam.K[0, 0], params)
         if why is not None:

@@ -7,6 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from facade_pipeline.errors import InputError
+from facade_pipeline.layout import BuildingLayout
+from facade_pipeline.manifest import read_manifest
 from facade_pipeline.segmentation.frames import FrameBars
 from facade_pipeline.segmentation.grid import GridParams
 from facade_pipeline.segmentation.parallax import agreeing
@@ -57,6 +60,34 @@ def building_pitch_m(found: list[FrameBars | None]) -> dict[str, float]:
         for name, p in ({} if f is None else f.pitches_m()).items():
             pitches.setdefault(name, []).append(p)
     return {name: float(np.median(p)) for name, p in sorted(pitches.items())}
+
+
+def survey_unit_m(pitches: list[dict[str, float]]) -> float | None:
+    """The building's panel pitch (m), the unit of segment_panels' lengths: the geometric mean of the
+    mullions' ("x") and the transoms' ("y") pitch, each the median over the views' surveys
+    (``frames.survey_frames``; ``FrameBars.pitches_m`` per view); the one family's where the other was
+    found nowhere, None where neither was. A facade's pitch is the one length its views all show, whatever
+    its scale and whatever they frame of it."""
+    by_family: dict[str, list[float]] = {}
+    for p in pitches:
+        for name, v in p.items():
+            by_family.setdefault(name, []).append(v)
+    medians = [float(np.median(v)) for v in by_family.values()]
+    return float(np.exp(np.mean(np.log(medians)))) if medians else None
+
+
+def surveyed_pitch_m(layout: BuildingLayout, needed: bool = True) -> float:
+    """The building's panel pitch (m) that segment_panels' survey measured (``survey_unit_m``, in its
+    manifest): the unit of regularize_corners' and correct_mesh's lengths. Where it holds none (no view
+    showed a grid, or no frontal view), NaN if not ``needed``, else ``InputError`` naming the manifest."""
+    pitch = read_manifest(layout, "segment_panels").metrics.get("pitch_unit_m")
+    if pitch is not None and np.isfinite(pitch) and pitch > 0:
+        return float(pitch)
+    if needed:
+        raise InputError(layout.manifest("segment_panels"), "the building's panel pitch "
+                         "(metrics.pitch_unit_m) that segment_panels' survey measured",
+                         f"{pitch!r} (rerun segment_panels: `doit segment_panels`)")
+    return float("nan")
 
 
 def pitch_range_m(pitch_m: dict[str, float], grid: GridParams) -> dict[str, tuple[float, float]]:

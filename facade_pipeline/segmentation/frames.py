@@ -188,9 +188,10 @@ def find_bars(
     return bars_v, bars_h, metrics, fits, (gv, gh)
 
 
-def working_scale(params: SegmentParams, metres_per_px: float) -> float:
-    """Ratio (<= 1) of the working image's size to the given image's (``work_bar_px``)."""
-    return min(1.0, metres_per_px * params.work_bar_px / params.grid.min_bar_m)
+def working_scale(params: SegmentParams, metres_per_px: float, unit_m: float) -> float:
+    """Ratio (<= 1) of the working image's size to the given image's (``work_bar_px``; ``unit_m``: the
+    building's pitch, the unit of the params' lengths)."""
+    return min(1.0, metres_per_px * params.work_bar_px / (params.grid.min_bar * unit_m))
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,6 +209,8 @@ class FrameBars:
     support: np.ndarray | None
     metrics: dict
     grads: tuple[Gradients, Gradients]
+    unit_m: float = 1.0
+    """The building's pitch (m) the bars were sought at: the unit of the params' lengths."""
 
     def bar_widths_m(self) -> dict[str, list[float]]:
         """The widths (m) of the bars found, per family ("x": mullions, "y": transoms)."""
@@ -234,6 +237,7 @@ def find_frames(
     image: np.ndarray,
     params: SegmentParams,
     metres_per_px: float,
+    unit_m: float,
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
     support: np.ndarray | None = None,
@@ -241,14 +245,15 @@ def find_frames(
     pitch_m: dict[str, tuple[float, float]] | None = None,
 ) -> FrameBars:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
-    found at the working scale (``work_bar_px``); ``support`` [H, W] marks where the facade surface is
+    found at the working scale (``work_bar_px``); ``unit_m`` is the building's panel pitch (m), the unit of
+    the params' lengths (``building.survey_unit_m``); ``support`` [H, W] marks where the facade surface is
     (``rectification.facade_support``; None: all); ``valid`` [H, W] marks the pixels that show the view (a
     rectified image has none outside the original); ``parallax`` is the image's parallax coordinate, in
     which the frames' parallax is fitted (None: not); ``planar``: the surface is a plane (``find_bars``);
     ``pitch_m`` narrows the pitches (m) sought across the mullions ("x") or the transoms ("y") to a range
     (the building's grid, ``building.pitch_range_m``; the grid model's range where None)."""
     H, W = image.shape[:2]
-    q = working_scale(params, metres_per_px)
+    q = working_scale(params, metres_per_px, unit_m)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
     qx, qy = Ww / W, Hw / H
     if (Ww, Hw) != (W, H):
@@ -260,7 +265,7 @@ def find_frames(
         if parallax is not None:
             parallax = parallax.scaled(qx, qy)
     m = metres_per_px / np.sqrt(qx * qy)
-    sizes = PixelSizes.of(params.grid, m)
+    sizes = PixelSizes.of(params.grid, m, unit_m)
     family_sizes = tuple(
         sizes if name not in (pitch_m or {}) else dataclasses.replace(
             sizes, min_pitch=max(sizes.min_pitch, pitch_m[name][0] / m),
@@ -270,7 +275,45 @@ def find_frames(
     image = normalise_exposure(image, valid)
     bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
-    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
+    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m)
+
+
+#: the survey, which measures the building's pitch before any length is known, seeks each family's pitch
+#: between the view's extent across it divided by this and that extent: a frontal view frames one to ten
+#: panels across (gcw_dev's about two, demo's about five)
+SURVEY_PITCHES = 10.0
+#: ... and bars between the view's size (the geometric mean of its extents) divided by the first and by the
+#: second (gcw_dev's and demo's bars are a 27th and a 44th of it); the first sets the survey's working scale
+#: with ``work_bar_px`` (about 225 working px across the view's size)
+SURVEY_BARS = (75.0, 15.0)
+
+
+def survey_frames(
+    image: np.ndarray,
+    params: SegmentParams,
+    metres_per_px: float,
+    valid: np.ndarray | None = None,
+    parallax: ParallaxField | None = None,
+    support: np.ndarray | None = None,
+    planar: bool = True,
+) -> FrameBars:
+    """The frame bars of an image (as ``find_frames``) sought before the building's pitch is known, at
+    sizes relative to the view alone: each family's pitch between the image's extent across it over
+    ``SURVEY_PITCHES`` and that extent, the bars' widths and the working scale relative to the image's size
+    (the geometric mean of its extents, ``SURVEY_BARS``). Every size is then a number of the image's
+    pixels, whatever its metres per pixel: a facade at another scale, seen in the same pixels, gives the
+    same bars, and their pitches (``FrameBars.pitches_m``) scale with it."""
+    H, W = image.shape[:2]
+    size_m = float(np.sqrt(W * H)) * metres_per_px
+    n = SURVEY_PITCHES
+    grid = dataclasses.replace(
+        params.grid, min_pitch=min(W, H) * metres_per_px / n / size_m,
+        max_pitch=max(W, H) * metres_per_px / size_m,
+        min_bar=1.0 / SURVEY_BARS[0], max_bar=1.0 / SURVEY_BARS[1])
+    ranges = {"x": (W * metres_per_px / n, W * metres_per_px),
+              "y": (H * metres_per_px / n, H * metres_per_px)}
+    return find_frames(image, dataclasses.replace(params, grid=grid), metres_per_px, size_m, valid, parallax,
+                       support, planar, ranges)
 
 
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,

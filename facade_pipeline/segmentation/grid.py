@@ -7,8 +7,8 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
 - prior (structural regularities of curtain walls): repeated spacing, ``c_k = c_0 + k p + delta_k`` with
   one pitch ``p`` (panels of equal size) and small deviations ``delta_k ~ N(0, sigma^2)``,
   ``sigma = max(SIGMA_MIN_PX, sigma_frac p)``; the lines of the family run across the whole grid (corners
-  aligned in rows and columns); ``p`` uniform in [min_pitch_m, max_pitch_m] (in pixels of the image at its
-  scale, at most the image size); the bars form one contiguous
+  aligned in rows and columns); ``p`` uniform in [min_pitch, max_pitch] (fractions of the building's panel
+  pitch, in pixels of the image at its scale, at most the image size); the bars form one contiguous
   run of indices ``k`` (no holes in a facade); each line costs ``line_cost`` nats (prior odds against a
   line, which also picks the number of lines);
 - likelihood (line and edge evidence): a frame bar has two parallel edges ``w`` apart along its whole
@@ -21,7 +21,8 @@ is a set of bar centres ``c_1 < ... < c_K``, each bar of width ``w`` (px), with
   A frame is also uniform along its length: v(c), the median colour deviation along the bar's centre line,
   is small (glass reflects a varying scene). The log-likelihood ratio of a bar at c is
   ``l(c) = log(1 + E_g(c) / median(E_g)) + lsd_weight log(1 + E_l(c) / LSD_SCALE) - v(c) / uniformity_scale``,
-  ``w`` the best width in [min_bar_m, max_bar_m] (in pixels at the image's scale).
+  ``w`` the best width in [min_bar, max_bar] (fractions of the building's pitch, in pixels at the image's
+  scale).
 
 MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) - line_cost]`` over ``p``,
 ``c_0`` and the contiguous run (exhaustive on a 0.5 px lattice; the run by Kadane's algorithm). Outer
@@ -67,18 +68,22 @@ EDGE_SEARCH_PX = 1.5
 
 @dataclass(frozen=True)
 class GridParams:
-    min_pitch_m: Positive
-    """Smallest panel pitch (m on the facade) considered."""
-    max_pitch_m: Positive
-    """Largest panel pitch (m on the facade) considered."""
+    """The grid model's parameters. Its lengths are fractions of the building's panel pitch (``unit_m`` of
+    ``PixelSizes.of``: the geometric mean of the mullions' and the transoms' pitch that the survey of every
+    view measures, ``building.survey_unit_m``), so that one config holds at any scale."""
+
+    min_pitch: Positive
+    """Smallest panel pitch considered (-, of the building's pitch)."""
+    max_pitch: Positive
+    """Largest panel pitch considered (-, of the building's pitch)."""
     sigma_frac: NonNeg
     """Std of a bar's deviation from the regular grid, as a fraction of the pitch (-)."""
     line_cost: NonNeg
     """Prior cost of one grid line (nats): the evidence a bar must bring to be accepted."""
-    min_bar_m: Positive
-    """Narrowest frame bar (m on the facade; at least 2 px in the image segmented)."""
-    max_bar_m: Positive
-    """Widest frame bar (m on the facade)."""
+    min_bar: Positive
+    """Narrowest frame bar (-, of the building's pitch; at least 2 px in the image segmented)."""
+    max_bar: Positive
+    """Widest frame bar (-, of the building's pitch)."""
     lsd_weight: NonNeg
     """Weight of the LSD line-support term against the gradient term (-)."""
     outer_edge_floor: Fraction
@@ -92,7 +97,7 @@ class GridParams:
     only, where every bar faces one way and is shaded alike)."""
 
     def __post_init__(self) -> None:
-        for low, high in (("min_pitch_m", "max_pitch_m"), ("min_bar_m", "max_bar_m")):
+        for low, high in (("min_pitch", "max_pitch"), ("min_bar", "max_bar")):
             if getattr(self, low) > getattr(self, high):
                 raise ConfigError(
                     None,
@@ -111,11 +116,13 @@ class PixelSizes:
     max_bar: int
 
     @classmethod
-    def of(cls, params: GridParams, metres_per_px: float) -> PixelSizes:
-        """Sizes at ``metres_per_px``; a bar spans at least 2 px (two distinct edges)."""
-        lo = max(2, int(round(params.min_bar_m / metres_per_px)))
-        hi = max(lo, int(round(params.max_bar_m / metres_per_px)))
-        return cls(params.min_pitch_m / metres_per_px, params.max_pitch_m / metres_per_px, lo, hi)
+    def of(cls, params: GridParams, metres_per_px: float, unit_m: float) -> PixelSizes:
+        """Sizes at ``metres_per_px`` of a facade whose lengths' unit is ``unit_m`` (the building's pitch,
+        m); a bar spans at least 2 px (two distinct edges)."""
+        px = unit_m / metres_per_px
+        lo = max(2, int(round(params.min_bar * px)))
+        hi = max(lo, int(round(params.max_bar * px)))
+        return cls(params.min_pitch * px, params.max_pitch * px, lo, hi)
 
 
 

@@ -6,10 +6,11 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 (as seen from outside, which is the image's left and right). Rows count from the lowest visible row.
 
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
-(``complete = False``) when it is at least ``min_partial_m`` wide and the bars of the other family continue
-into it (by their frame colour or their edges, where the facade surface is there: ``_continues``); otherwise
-the facade ends at that bar, except beside the bars that continue on their own (a stepped facade, an empty
-or offset unit): there the opening between two such bars, or one and the border, is a partial panel.
+(``complete = False``) when it is at least ``min_partial`` (of the building's pitch) wide and the bars of the
+other family continue into it (by their frame colour or their edges, where the facade surface is there:
+``_continues``); otherwise the facade ends at that bar, except beside the bars that continue on their own
+(a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the
+border, is a partial panel.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any

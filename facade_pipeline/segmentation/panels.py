@@ -41,15 +41,16 @@ def segment_frames(
     metrics = dict(found.metrics)
     bars_v, bars_h, m = found.bars_v, found.bars_h, found.metres_per_px
     if bars_v is None or bars_h is None:
-        g = params.grid
+        g, u = params.grid, found.unit_m
         missing = " nor ".join(
             name for name, key in (("vertical (mullions)", "mullions_found"),
                                    ("horizontal (transoms)", "transoms_found"))
             if not metrics.get(key)
         )  # fmt: skip
         return Segmentation(False, [], metrics, (
-            f"no regular {missing} frame bars {g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of "
-            f"{g.min_pitch_m:g}-{g.max_pitch_m:g} m (the image at {1000 * m:.3g} mm per working pixel)"
+            f"no regular {missing} frame bars {g.min_bar * u:.3g}-{g.max_bar * u:.3g} m wide at a pitch of "
+            f"{g.min_pitch * u:.3g}-{g.max_pitch * u:.3g} m (the image at {1000 * m:.3g} mm per working "
+            "pixel)"
         ))  # fmt: skip
     (Ww, Hw), (qx, qy) = found.size, found.scale
     for name, width in (bar_width_m or {}).items():
@@ -67,7 +68,8 @@ def segment_frames(
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
         bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
-    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial_m / m, found.support)
+    panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
+                           found.support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
     for k in ("pitch_x_px", "pitch_y_px"):
@@ -81,6 +83,7 @@ def segment_image(
     image: np.ndarray,
     params: SegmentParams,
     metres_per_px: float,
+    unit_m: float,
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
     support: np.ndarray | None = None,
@@ -88,6 +91,7 @@ def segment_image(
     bar_width_m: dict[str, float] | None = None,
     planar: bool = True,
 ) -> Segmentation:
-    """The panels of one image (``find_frames`` then ``segment_frames``, same arguments)."""
-    return segment_frames(find_frames(image, params, metres_per_px, valid, parallax, support, planar), params,
-                          frame_depth_m, bar_width_m)
+    """The panels of one image (``find_frames`` then ``segment_frames``, same arguments; ``unit_m``: the
+    facade's panel pitch, m, the unit of the params' lengths)."""
+    found = find_frames(image, params, metres_per_px, unit_m, valid, parallax, support, planar)
+    return segment_frames(found, params, frame_depth_m, bar_width_m)

@@ -47,13 +47,23 @@ def write_segment_from_gt(
         mask = truth.mask("glass", v.stem)
         ViewSegmentation(v.stem, cam.width, cam.height, False, bool(found), "", seen, mask).save(layout)
         stems.append(v.stem)
-    _stand_in_manifest(layout, stems)
+    _stand_in_manifest(layout, stems, true_pitch_m(panels))
     return stems
 
 
-def _stand_in_manifest(layout: BuildingLayout, stems: list[str]) -> None:
-    """A manifest for 03_segment listing these files, so that downstream stages accept them as the
-    completed segment_panels stage they stand in for (a test fixture, never a pipeline output)."""
+def true_pitch_m(panels: list[dict]) -> float:
+    """The building's true panel pitch (m), what segment_panels' survey measures: the geometric mean of
+    the median distance between the centres of neighbouring panels along a row and along a column."""
+    centre = {(p["part"], p["row"], p["col"]): np.mean(p["corners"], axis=0) for p in panels}
+    along = [[np.linalg.norm(c - centre[k[0], k[1] + dr, k[2] + dc]) for k, c in centre.items()
+              if (k[0], k[1] + dr, k[2] + dc) in centre] for dr, dc in ((0, 1), (1, 0))]
+    return float(np.sqrt(np.median(along[0]) * np.median(along[1])))
+
+
+def _stand_in_manifest(layout: BuildingLayout, stems: list[str], pitch_m: float) -> None:
+    """A manifest for 03_segment listing these files, with the building's pitch (``pitch_m``) that the
+    survey would have measured, so that downstream stages accept them as the completed segment_panels
+    stage they stand in for (a test fixture, never a pipeline output)."""
     outputs = [layout.path(k, stem=s) for s in stems for k in ("segment_corners", "segment_mask")]
     write_json(
         layout.manifest("segment_panels"),
@@ -63,7 +73,7 @@ def _stand_in_manifest(layout: BuildingLayout, stems: list[str]) -> None:
             {"stand_in": "tests/meshing/segment_from_gt.py"},
             [],
             outputs,
-            {},
+            {"pitch_unit_m": pitch_m},
             {},
             0.0,
             0.0,

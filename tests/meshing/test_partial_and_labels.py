@@ -22,7 +22,7 @@ from facade_pipeline.meshing.correct import (
 from facade_pipeline.meshing.overlay import panels_over_view, scaled_camera, shaded_render, upscale_factor
 from facade_pipeline.panels3d.grid import build_panel_set, true_corners
 from tests.meshing.conftest import params_of
-from tests.panels3d.test_panels_geometry import DEPTH, FW, cfg, facade
+from tests.panels3d.test_panels_geometry import DEPTH, FW, PITCH_M, cfg, facade
 
 W, H = 200, 150
 
@@ -94,8 +94,8 @@ def corrected():
     pts = surf.points(np.c_[np.random.default_rng(1).uniform([-3, 1.3], [3, 4.6], (400, 2)), np.zeros(400)])
     ps, _ = build_panel_set(quads, complete, view, cams, MeshRaycaster(v, f), pts, cfg())
     p = params_of("correct_mesh")
-    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg, 1.0)
-    labels = label_triangles(out.vertices, out.triangles, out.is_panel, ps, p.frame_half_depth_m)
+    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth * PITCH_M, p.max_facet_deg, 1.0)
+    labels = label_triangles(out.vertices, out.triangles, out.is_panel, ps, p.frame_half_depth * PITCH_M)
     return surf, ps, out, labels
 
 
@@ -189,8 +189,8 @@ def test_frames_finer_than_the_coarse_cells_are_backed_not_holes(corrected):
     a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
     f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     p = params_of("correct_mesh")
-    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg, 1.0)
-    labels = label_triangles(out.vertices, out.triangles, out.is_panel, ps, p.frame_half_depth_m)
+    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth * PITCH_M, p.max_facet_deg, 1.0)
+    labels = label_triangles(out.vertices, out.triangles, out.is_panel, ps, p.frame_half_depth * PITCH_M)
     assert out.n_backing > 0
     cam = narrow_camera(surf, 0.0, 2.9)
     baked = bake_view(MeshRaycaster(out.vertices, out.triangles), cam, 1000, labels=labels)

@@ -92,8 +92,13 @@ def observe(surf, corners, cams, noise_px=0.2, seed=0):
     return quads, view
 
 
+#: the building's panel pitch these scenes stand for, the unit of the lengths (the stage reads it from
+#: segment_panels' survey): gcw_dev's surveyed pitch at full size, where the defaults are its lengths x 25
+PITCH_M = 3.128
+
+
 def cfg(**changes):
-    return params_of("regularize_corners", **changes)
+    return params_of("regularize_corners", **{"unit_m": PITCH_M, **changes})
 
 
 def test_a_mask_with_its_frames_painted_over_is_reported_not_ignored():
@@ -193,7 +198,7 @@ def test_correction_replaces_the_cuboid_keeps_frames_and_faces_outward(kind):
     pts = surf.points(np.c_[np.random.default_rng(2).uniform([-3, 1.3], [3, 4.6], (300, 2)), np.zeros(300)])
     ps, _ = build_panel_set(quads, [True] * len(quads), view, cams, MeshRaycaster(v, f), pts, cfg())
     p = params_of("correct_mesh")
-    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth_m, p.max_facet_deg)
+    out = correct_mesh(v, f, ps, p.shrink_factor, p.cuboid_half_depth * PITCH_M, p.max_facet_deg)
     tri = out.vertices[out.triangles]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     c = tri.mean(axis=1)

@@ -20,6 +20,9 @@ from facade_pipeline.rectification.cylinder import (
 from stages import rectify
 
 FIT = default_params("rectify", rectify.Params).fit
+# the frontal views' footprint these surfaces stand in, the unit of the fit's lengths: 6 m puts them at
+# about 0.2 m of spread, a 0.5 m RANSAC threshold and a 5 cm loss scale
+FOOTPRINT_M = 6.0
 
 
 def cylinder_points(radius: float, rotvec=(0.0, 0.0, 0.0), n=800, width=7.0, height=6.0, noise=0.01, seed=1):
@@ -35,7 +38,7 @@ def cylinder_points(radius: float, rotvec=(0.0, 0.0, 0.0), n=800, width=7.0, hei
 def test_fits_radius_and_axis_despite_ghost_points():
     pts, _ = cylinder_points(15.0)
     ghosts = np.random.default_rng(2).uniform([-3, -30, 0], [3, -5, 6], (400, 3))  # mirrored behind glass
-    fit = fit_surface(np.vstack([pts, ghosts]), np.array([0.0, 10.0, 3.0]), FIT)
+    fit = fit_surface(np.vstack([pts, ghosts]), np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M)
     assert fit.surface.radius_m == pytest.approx(15.0, rel=0.02)
     assert abs(fit.surface.axis @ [0, 0, 1]) > np.cos(np.radians(1.0))
     assert fit.rms_m < 0.02 and fit.n_inliers >= 780
@@ -43,7 +46,7 @@ def test_fits_radius_and_axis_despite_ghost_points():
 
 def test_non_vertical_axis():
     pts, R = cylinder_points(12.0, rotvec=(0.4, 0.0, 0.2))
-    fit = fit_surface(pts, R @ np.array([0.0, 10.0, 3.0]), FIT)
+    fit = fit_surface(pts, R @ np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M)
     assert fit.surface.radius_m == pytest.approx(12.0, rel=0.02)
     assert abs(fit.surface.axis @ R[:, 2]) > np.cos(np.radians(1.0))
 
@@ -51,7 +54,7 @@ def test_non_vertical_axis():
 @pytest.mark.parametrize("radius", [1e3, 1e6, 1e12, 1e300])
 def test_nearly_planar_points_stay_finite(radius):
     pts, _ = cylinder_points(radius)
-    fit = fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT)
+    fit = fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M)
     s = fit.surface
     assert np.isfinite(s.curvature_per_m) and abs(s.curvature_per_m) < 1e-2  # radius > 100 m
     assert np.all(np.isfinite(s.signed_distance(pts)))
@@ -62,11 +65,11 @@ def test_nearly_planar_points_stay_finite(radius):
 def test_too_few_points_and_points_on_a_line_are_typed_errors():
     pts, _ = cylinder_points(15.0, n=10)
     with pytest.raises(SurfaceFitError, match="at least 30 coarse points.*found 10") as e:
-        fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT, source="coarse_points.ply")
+        fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M, source="coarse_points.ply")
     assert e.value.path.name == "coarse_points.ply"
     line = np.stack([np.linspace(0, 5, 100), np.zeros(100), np.zeros(100)], 1) + 1e-4
     with pytest.raises(SurfaceFitError, match="one line"):
-        fit_surface(line, np.array([0.0, 10.0, 3.0]), FIT)
+        fit_surface(line, np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M)
 
 
 def test_stable_distance_matches_the_exact_formula_and_the_plane_limit():
@@ -84,21 +87,21 @@ def test_fits_that_cannot_be_a_facade_are_named():
     """An upright facade passes; a cylinder lying down (axis 26 deg off up), one tight against the width the
     view frames (a column or a chair before the camera) and a loose fit to clutter do not, with reasons."""
     pts, _ = cylinder_points(12.0)
-    fit = fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT)
+    fit = fit_surface(pts, np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M)
     assert implausible(fit, 8.0, FIT) is None
     pts, R = cylinder_points(12.0, rotvec=(np.radians(26.0), 0.0, 0.0))
-    fit = fit_surface(pts, R @ np.array([0.0, 10.0, 3.0]), FIT)
+    fit = fit_surface(pts, R @ np.array([0.0, 10.0, 3.0]), FIT, FOOTPRINT_M)
     assert "cylinder axis 26 deg from up" in implausible(fit, 8.0, FIT)
     pts, _ = cylinder_points(1.0, width=2.5, noise=0.002)  # 2.5 m of arc on a 1 m radius
-    fit = fit_surface(pts, np.array([0.0, 10.0, 1.0]), FIT)
+    fit = fit_surface(pts, np.array([0.0, 10.0, 1.0]), FIT, FOOTPRINT_M)
     assert fit.surface.radius_m == pytest.approx(1.0, rel=0.05)
     assert implausible(fit, 1.5, FIT) is None  # a column framed closely is a plausible (narrow) facade
     assert "an object, not a facade" in implausible(fit, 6.0, FIT)  # framed in a 6 m wide view
     floor, _ = cylinder_points(1e9, rotvec=(np.pi / 2, 0.0, 0.0), noise=0.0)  # a horizontal plane
-    fit = fit_surface(floor, np.array([0.0, 3.0, 10.0]), FIT, curved=False)
+    fit = fit_surface(floor, np.array([0.0, 3.0, 10.0]), FIT, FOOTPRINT_M, curved=False)
     assert "plane normal 90 deg from horizontal" in implausible(fit, 8.0, FIT)
     rng = np.random.default_rng(3)
     clutter = np.stack([rng.uniform(-3, 3, 500), rng.normal(0, 0.6, 500), rng.uniform(0, 6, 500)], 1)
-    fit = fit_surface(clutter, np.array([0.0, 10.0, 3.0]), dataclasses.replace(FIT, ransac_threshold_m=5.0,
-                      inlier_scale_m=1.0), curved=False)  # fmt: skip
+    loose = dataclasses.replace(FIT, ransac_threshold=5.0 / FOOTPRINT_M, inlier_scale=1.0 / FOOTPRINT_M)
+    fit = fit_surface(clutter, np.array([0.0, 10.0, 3.0]), loose, FOOTPRINT_M, curved=False)  # fmt: skip
     assert "clutter" in implausible(fit, 6.0, FIT)

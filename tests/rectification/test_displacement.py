@@ -15,7 +15,7 @@ from facade_pipeline.geometry.camera import PinholeCamera, intrinsics, look_at
 from facade_pipeline.geometry.raycast import MeshRaycaster
 from facade_pipeline.io.images import write_image
 from facade_pipeline.rectification.cylinder import Surface, implausible_displacement
-from facade_pipeline.rectification.surface_map import warp_displacement_px
+from facade_pipeline.rectification.surface_map import frontal_footprint_m, warp_displacement_px
 from facade_pipeline.scene import View
 from stages import rectify
 
@@ -88,7 +88,8 @@ def test_a_fit_whose_map_moves_pixels_too_far_gets_no_surface_with_the_reason(la
         PARAMS, metres_per_px=0.5, fit=dataclasses.replace(PARAMS.fit, max_displacement_size=limit)
     )
     view, pts, mesh = _scene(layout, camera(yaw_deg))
-    _, metrics = rectify.rectify_one(layout, view, pts, params, mesh, overlay_scale=1.0)
+    unit = frontal_footprint_m([view.camera], lambda o, d: mesh.cast(o, d).t)  # as the stage measures it
+    _, metrics = rectify.rectify_one(layout, view, pts, params, mesh, 1.0, unit)
     assert metrics["kind"] == kind, metrics
     shift = metrics["displacement_px"]
     assert shift is not None and shift > 5.0

@@ -17,6 +17,10 @@ from facade_pipeline.rectification.views import view_points
 from stages import rectify
 
 PARAMS = default_params("rectify", rectify.Params)
+# the frontal views' footprint the fits below are measured at, the unit of the params' lengths: 6 m puts
+# the occlusion margin at about 1 m and the loss scale at 5 cm
+FOOTPRINT_M = 6.0
+MARGIN_M = PARAMS.occlusion_margin * FOOTPRINT_M
 
 
 def looking_at_facade(centre) -> PinholeCamera:
@@ -45,7 +49,7 @@ def test_points_hidden_by_the_coarse_mesh_are_left_out():
     mesh = MeshRaycaster(v, f)
     pts = np.vstack([facade, ground])
     everything = view_points(pts, cam)
-    seen = view_points(pts, cam, mesh, PARAMS.occlusion_margin_m)
+    seen = view_points(pts, cam, mesh, MARGIN_M)
     assert (everything[:, 1] < -1).sum() > 5000  # the ground behind the facade projects into the view
     assert len(seen) > 1000 and np.all(seen[:, 1] > -1.0)  # none of it is kept, the facade's points are
     assert len(seen) == int((np.abs(everything[:, 1]) < 1).sum())
@@ -58,8 +62,8 @@ def test_the_facade_is_fitted_with_the_hidden_ground_left_out(height):
     v, f, facade, ground = scene()
     cam = looking_at_facade([-7.0, 12.0, height])
     mesh = MeshRaycaster(v, f)
-    pts = view_points(np.vstack([facade, ground]), cam, mesh, PARAMS.occlusion_margin_m)
-    fit = fit_surface(pts, cam.center, PARAMS.fit)
+    pts = view_points(np.vstack([facade, ground]), cam, mesh, MARGIN_M)
+    fit = fit_surface(pts, cam.center, PARAMS.fit, FOOTPRINT_M)
     assert abs(fit.surface.normal @ [0.0, 1.0, 0.0]) > np.cos(np.radians(1.0))  # the facade's plane
     assert abs(fit.surface.radius_m) > 500 and fit.rms_m < 0.05
 
@@ -80,14 +84,13 @@ def test_the_ground_before_the_facade_is_left_out_of_the_fit_from_a_low_camera(h
     cam = looking_at_facade([0.0, 12.0, height])
     pts = view_points(np.vstack([facade, ground]), cam)
     assert (pts[:, 2] < 0.01).sum() > len(pts) / 3  # the ground takes a third of the view's points or more
-    fit = fit_surface(pts, cam.center, PARAMS.fit, toward_camera=-cam.forward)
+    fit = fit_surface(pts, cam.center, PARAMS.fit, FOOTPRINT_M, toward_camera=-cam.forward)
     assert fit.surface.radius_m == pytest.approx(15.0, rel=0.01) and fit.rms_m < 0.03
     assert abs(fit.surface.axis[2]) > np.cos(np.radians(1.0))  # the cylinder's axis is vertical
     assert fit.n_points == len(pts) and fit.n_inliers <= int((pts[:, 2] > 0.01).sum())
     # without the normals' test, ground and facade mix or the ground wins
-    unfiltered = fit_surface(
-        pts, cam.center, dataclasses.replace(PARAMS.fit, normal_knn=0), toward_camera=-cam.forward
-    )
+    unfiltered = fit_surface(pts, cam.center, dataclasses.replace(PARAMS.fit, normal_knn=0), FOOTPRINT_M,
+                             toward_camera=-cam.forward)
     assert abs(unfiltered.surface.radius_m - 15.0) > 5.0
 
 
@@ -105,4 +108,22 @@ def test_a_view_of_level_ground_alone_is_refused_with_what_was_found():
     cam = looking_at_facade([0.0, 12.0, 1.5])
     pts = view_points(ground, cam)
     with pytest.raises(SurfaceFitError, match=r"faces the camera.*found 0 of"):
-        fit_surface(pts, cam.center, PARAMS.fit, "coarse_points.ply", toward_camera=-cam.forward)
+        fit_surface(pts, cam.center, PARAMS.fit, FOOTPRINT_M, "coarse_points.ply", toward_camera=-cam.forward)
+
+
+def test_the_frontal_views_footprint_is_the_width_each_frames_on_the_mesh():
+    """The unit of rectify's lengths: the median over the views of the width a view frames where its
+    principal ray meets the coarse mesh (a camera 12 m from the facade, 160 px at f = 80 px, frames 24 m;
+    one 6 m away, 12 m), views that miss the mesh left out; the same views of a facade 25 times the size
+    give 25 times the footprint."""
+    from facade_pipeline.rectification.surface_map import frontal_footprint_m
+
+    v, f, _, _ = scene()
+    cams = [looking_at_facade([0.0, 12.0, 9.0]), looking_at_facade([3.0, 6.0, 9.0]),
+            looking_at_facade([5.0, 12.0, 9.0]), looking_at_facade([200.0, 12.0, 9.0])]  # the last misses
+    mesh = MeshRaycaster(v, f)
+    assert frontal_footprint_m(cams, lambda o, d: mesh.cast(o, d).t) == pytest.approx(24.0)
+    big = MeshRaycaster(25 * v, f)
+    far = [looking_at_facade(25 * c.center) for c in cams]
+    assert frontal_footprint_m(far, lambda o, d: big.cast(o, d).t) == pytest.approx(25 * 24.0)
+    assert np.isnan(frontal_footprint_m(cams[3:], lambda o, d: mesh.cast(o, d).t))

@@ -182,8 +182,8 @@ def test_map_family_is_the_search_with_the_relaxation_in_full(seed):
                 ll += rng.uniform(2.0, 5.0) * np.exp(-0.5 * ((x - c - rng.normal(0, 0.4)) / 0.8) ** 2)
     ll = np.round(ll, 2 if seed % 2 else 8)  # rounded: equal gains and scores occur
     widths = rng.integers(2, 6, M).astype(float)
-    params = GridParams(min_pitch_m=0.5, max_pitch_m=5.0, sigma_frac=0.04, line_cost=1.2, min_bar_m=0.02,
-                        max_bar_m=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+    params = GridParams(min_pitch=0.5, max_pitch=5.0, sigma_frac=0.04, line_cost=1.2, min_bar=0.02,
+                        max_bar=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
                         frame_colour_scale=0.1)  # map_family reads sigma_frac, line_cost; the sizes the rest
     sizes = PixelSizes(min_pitch=6.3, max_pitch=45.0, min_bar=2, max_bar=5)
     fit = map_family(ll, widths, size, params, sizes)
@@ -230,8 +230,8 @@ def test_bar_evidence_is_the_loop_over_rows_positions_and_widths(seed):
     valid = np.ones(image.shape[:2], bool)
     valid[:, -2:] = seed % 2 == 0  # a rectified image's edge outside the view
     grad = Gradients.of(image, 0, valid)
-    params = GridParams(min_pitch_m=0.5, max_pitch_m=5.0, sigma_frac=0.1, line_cost=1.0, min_bar_m=0.02,
-                        max_bar_m=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+    params = GridParams(min_pitch=0.5, max_pitch=5.0, sigma_frac=0.1, line_cost=1.0, min_bar=0.02,
+                        max_bar=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
                         frame_colour_scale=0.1)  # bar_evidence reads none of them: the sizes hold its widths
     sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=5)
     rows = slice(1, 5)
@@ -280,8 +280,8 @@ def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
     valid = np.ones(image.shape[:2], bool)
     valid[:, :5] = False
     grad = Gradients.of(image, axis, valid)
-    params = GridParams(min_pitch_m=0.5, max_pitch_m=5.0, sigma_frac=0.1, line_cost=1.0, min_bar_m=0.02,
-                        max_bar_m=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+    params = GridParams(min_pitch=0.5, max_pitch=5.0, sigma_frac=0.1, line_cost=1.0, min_bar=0.02,
+                        max_bar=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
                         frame_colour_scale=0.1)
     sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=9)
     floors = (0.0, 0.4, 1.5)

@@ -26,11 +26,14 @@ def CAMERA(W: int, H: int) -> PinholeCamera:  # noqa: N802
 PARAMS = default_params("segment_panels", SegmentParams)
 # the drawings' scale: bars of 3.2 px are 0.32 m, pitches of 23-27 px 2.3-2.7 m, as on a building
 M_PER_PX = 0.1
+# the building's panel pitch the drawings stand for, the unit of the params' lengths: at 3 m the defaults
+# seek bars of 0.08-0.38 m at pitches of 0.77-5.8 m, about the drawings' own pitches of 2.3-2.7 m
+PITCH_M = 3.0
 
 
 def run(d: Drawing, metres_per_px: float = M_PER_PX):
     img = d.render()
-    seg = segment_image(img, PARAMS, metres_per_px)
+    seg = segment_image(img, PARAMS, metres_per_px, PITCH_M)
     truth = d.corners()
     return img, seg, truth
 
@@ -181,14 +184,13 @@ def test_image_without_facade():
     img[:40] = (140, 180, 240)
     img[40:] = (60, 110, 50)
     img = np.clip(img + rng.normal(0, 3, img.shape), 0, 255).astype(np.uint8)
-    seg = segment_image(img, PARAMS, M_PER_PX)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
     assert not seg.facade_found and seg.panels == []
     # the view says which evidence was missing, in the facade's units
     assert "no regular vertical (mullions) nor horizontal (transoms) frame bars" in seg.reason
-    g = PARAMS.grid
-    assert f"{g.min_bar_m:g}-{g.max_bar_m:g} m wide at a pitch of {g.min_pitch_m:g}-{g.max_pitch_m:g} m" in (
-        seg.reason
-    )
+    g, u = PARAMS.grid, PITCH_M
+    assert (f"{g.min_bar * u:.3g}-{g.max_bar * u:.3g} m wide at a pitch of {g.min_pitch * u:.3g}-"
+            f"{g.max_pitch * u:.3g} m") in seg.reason
 
 
 def test_only_one_family_of_bars_is_named():
@@ -196,7 +198,7 @@ def test_only_one_family_of_bars_is_named():
     img = np.full((80, 96, 3), 200, np.uint8)
     for x in range(10, 96, 25):
         img[:, x : x + 3] = 40
-    seg = segment_image(img, PARAMS, M_PER_PX)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
     assert not seg.facade_found
     assert "no regular horizontal (transoms) frame bars" in seg.reason and "mullions" not in seg.reason
 
@@ -334,12 +336,12 @@ def test_border_strips_need_the_facade_surface_and_the_frame_colour():
     still carries the bars into it."""
     d = Drawing(x0=-14.0, y0=-10.0, cols=4, rows=4)
     img = d.render()
-    full = segment_image(img, PARAMS, M_PER_PX)
+    full = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
     left = [p for p in full.panels if p.corners[:, 0].min() < 1.0]
     assert left and all(not p.complete for p in left)
     support = np.ones(img.shape[:2], bool)
     support[:, :14] = False  # left of the first whole mullion
-    cut = segment_image(img, PARAMS, M_PER_PX, support=support)
+    cut = segment_image(img, PARAMS, M_PER_PX, PITCH_M, support=support)
     assert not [p for p in cut.panels if p.corners[:, 0].min() < 1.0]
     assert len(cut.panels) == len(full.panels) - len({p.row for p in left})
     # the glass right of the last whole mullion washed out to the frames' own grey: no bar edges are left
@@ -348,7 +350,7 @@ def test_border_strips_need_the_facade_surface_and_the_frame_colour():
     x_last = int(np.ceil(d.x0 + 3 * d.pitch[0] + d.bar + 1))
     frame_grey = np.median(img[int(d.y0 + 2 * d.pitch[1]) + 1, x_last:], axis=0)  # along a transom
     bright[:, x_last:] = frame_grey.astype(np.uint8)
-    washed = segment_image(bright, PARAMS, M_PER_PX)
+    washed = segment_image(bright, PARAMS, M_PER_PX, PITCH_M)
     assert [p for p in washed.panels if p.corners[:, 0].max() > d.W - 1.0]
 
 
@@ -360,7 +362,7 @@ def test_a_border_strip_where_the_facade_goes_on_over_part_of_it():
     img = d.render()
     first_transom = int(d.y0 + d.pitch[1])  # the first transom whole in the image starts here
     img[:first_transom, : int(d.x0 + 3 * d.pitch[0])] = (140, 178, 242)  # sky above the first three columns
-    seg = segment_image(img, PARAMS, M_PER_PX)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
     top = [p for p in seg.panels if p.corners[:, 1].min() < 1.0]
     assert len(top) == 1 and not top[0].complete
     assert top[0].corners[:, 0].min() > d.x0 + 3 * d.pitch[0] and top[0].corners[:, 0].max() > d.W - 1.0
@@ -375,7 +377,7 @@ def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     23.3 px: their far bars are found, and every pane, regular or not, is one complete panel within a
     pixel of the truth (not a partial panel running to the border)."""
     d = Drawing(W=145, H=125, cols=4, rows=4, last_pitch=last_pitch)
-    seg = segment_image(d.render(), PARAMS, M_PER_PX)
+    seg = segment_image(d.render(), PARAMS, M_PER_PX, PITCH_M)
     truth = d.corners()
     pred = np.array([p.corners for p in seg.panels])
     assert len(pred) == len(truth) and all(p.complete for p in seg.panels)
@@ -447,10 +449,10 @@ def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
 
     d = Drawing(transom_colour=(0.95, 0.95, 0.95))
     img = d.render()
-    curved = find_frames(img, PARAMS, M_PER_PX, planar=False)
+    curved = find_frames(img, PARAMS, M_PER_PX, PITCH_M, planar=False)
     true_centres = d.y0 + d.bar / 2 + d.pitch[1] * np.arange(d.rows + 1)
     assert curved.bars_h is not None and np.abs(curved.bars_h.fit.centres - true_centres).max() <= 1.0
-    plane = find_frames(img, PARAMS, M_PER_PX, planar=True)
+    plane = find_frames(img, PARAMS, M_PER_PX, PITCH_M, planar=True)
     assert plane.metrics["map_score_y"] < curved.metrics["map_score_y"] - (d.rows + 1)
 
 
@@ -464,7 +466,7 @@ def test_a_bar_showing_its_side_face_does_not_mark_the_pane_beside_it_occluded()
     x0 = d.x0 + d.pitch[0]  # the second mullion's left edge
     rows = slice(int(np.ceil(d.y0)), int(d.y0 + d.pitch[1] + d.bar))
     img[rows, int(np.ceil(x0)) : int(x0 + d.bar)] = (215, 215, 215)  # a lit side face, not the frames' grey
-    seg = segment_image(img, PARAMS, M_PER_PX)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
     assert len(seg.panels) == 9 and all(p.complete for p in seg.panels)
 
 
@@ -495,3 +497,16 @@ def test_a_view_off_the_building_grid_is_named_with_its_reason():
     assert why[2].keys() == {"pitch"} and why[2]["pitch"].startswith("pitch y 2.4 m")
     assert why[3].keys() == {"width"} and "bar width x 0.6 m" in why[3]["width"]
     assert why[5] == {"grid": "no grid found"}
+
+
+def test_the_survey_finds_the_drawn_pitch_at_any_scale():
+    """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
+    (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
+    times the size in the same pixels) the same grid, its pitches 25 times as long."""
+    from facade_pipeline.segmentation.frames import survey_frames
+
+    img = Drawing().render()
+    small = survey_frames(img, PARAMS, M_PER_PX).pitches_m()
+    big = survey_frames(img, PARAMS, 25 * M_PER_PX).pitches_m()
+    assert small["x"] == pytest.approx(2.74, abs=0.05) and small["y"] == pytest.approx(2.33, abs=0.05)
+    assert big == pytest.approx({name: 25 * p for name, p in small.items()}, rel=1e-9)
