@@ -38,13 +38,14 @@ def monitor_indices(train_idx: tuple[int, ...], n: int = MONITOR_VIEWS) -> tuple
 
 
 @torch.no_grad()
-def whole_view_psnr(tr: Trainer) -> float:
-    """PSNR (dB) over the monitored training views rendered whole, all their loss pixels pooled."""
+def whole_view_psnr(tr: Trainer, views: tuple[int, ...] | None = None) -> float:
+    """PSNR (dB) over training views rendered whole, all their loss pixels pooled: the monitored ones
+    (``monitor_indices``), or ``views`` (indices of training views)."""
     from facade_pipeline.training.trainer import render_window  # the trainer imports this module
 
     se = 0.0
     n = 0.0
-    for i in monitor_indices(tr.data.train_idx):
+    for i in monitor_indices(tr.data.train_idx) if views is None else views:
         cam = tr.cameras[i]
         r, vt = render_window(tr, i, (0, 0, cam.width, cam.height))
         seen = recorded(r.rgb, vt.image, vt.clipped).clamp(0, 1)
