@@ -17,13 +17,6 @@ from facade_pipeline.segmentation.grid import STEP_PX, GridParams, PixelSizes
 # pixels (``SegmentParams.work_bar_px``)
 #: LSD line support (fraction of the grid's length covered by segments) that counts as strong (-)
 LSD_SCALE = 0.25
-#: a pixel whose brightest channel is at or above this (0-1, after the view's exposure is taken out:
-#: ``photometry``) is clipped: what it showed lies somewhere above full scale, so an edge between two such
-#: pixels is unknown, not absent (a frame and the sky reflected beside it may both clip)
-CLIPPED_LEVEL = 250 / 255
-#: a bar's edge evidence is the mean over the rows where both of its edges are known, counted over at least
-#: this fraction of the rows: a bar seen over a short stretch only is not trusted as one seen whole
-MIN_KNOWN_FRACTION = 0.25
 
 def nanmedian0(a: np.ndarray) -> np.ndarray:
     """The median over axis 0 of ``a`` [L, ...] leaving out NaNs (NaN where all are): ``np.nanmedian(a,
@@ -61,9 +54,6 @@ class Gradients:
     img: np.ndarray
     d: np.ndarray
     valid: np.ndarray  # [L, N] bool
-    known: np.ndarray | None = None
-    """[L, N - 1] float, 1 where the boundary's edge is known, 0 where both of its pixels clip
-    (``CLIPPED_LEVEL``); None where no pixel of the view clips."""
     # line colours by row span: a MAP pass's uniformity and colour prior and the bars' colour take the same
     _line_colours: dict[tuple[int, int, int], np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -76,11 +66,7 @@ class Gradients:
             img, ok = img.transpose(1, 0, 2), ok.T
         d = np.diff(img, axis=1)
         d[~(ok[:, 1:] & ok[:, :-1])] = 0.0
-        clipped = img.max(axis=2) >= CLIPPED_LEVEL
-        known = None
-        if clipped.any():
-            known = (~(clipped[:, 1:] & clipped[:, :-1])).astype(np.float32)
-        return cls(img, d, ok, known)
+        return cls(img, d, ok)
 
     @property
     def size(self) -> int:
@@ -104,11 +90,6 @@ class Gradients:
         return self._interp(self.d, 1.0)
 
     @cached_property
-    def known_on_lattice(self) -> np.ndarray | None:
-        """[L, M] ``known`` at the lattice positions (``on_lattice``'s), None where nothing clips."""
-        return None if self.known is None else self._interp(self.known, 1.0)
-
-    @cached_property
     def _samples(self) -> np.ndarray:
         """[L, M, 3] the image at each lattice position (interpolated between pixel centres), NaN outside
         the view."""
@@ -117,7 +98,7 @@ class Gradients:
     def prepare(self) -> Gradients:
         """Make the lattice arrays the MAP passes read (kept once made), so that they may be made ahead,
         beside other work."""
-        _ = self.on_lattice, self._samples, self.known_on_lattice
+        _ = self.on_lattice, self._samples
         return self
 
     def _line_samples(self, rows: slice) -> np.ndarray:
@@ -151,9 +132,7 @@ def bar_evidence(
 
     Per row, edges gL, gR (colour vectors) at the two sides of the bar give sqrt((|gL||gR| - gL.gR) / 2):
     |gL||gR| for opposite polarity (frame brighter or darker than both sides), less as the colour changes
-    agree, 0 for equal changes (a ramp, not a bar). Rows where either edge is unknown (both of its pixels
-    clip: ``Gradients.known``) are left out of the mean, which counts at least ``MIN_KNOWN_FRACTION`` of
-    the rows: a clipped stretch of a bar carries no evidence either way. The weaker edge counts at least its floor's fraction
+    agree, 0 for equal changes (a ramp, not a bar). The weaker edge counts at least its floor's fraction
     of the stronger: 0 inside the grid, where both edges must be seen; ``outer_edge_floor`` for the outer
     frame bars.
 
@@ -163,8 +142,6 @@ def bar_evidence(
     With a ``pool``, the wider half of the widths is evaluated on it while the caller takes the narrower
     (numpy lets go of the GIL); the best width is then taken over the widths in order as without it."""
     g = grad.on_lattice[rows]
-    known = grad.known_on_lattice
-    known = None if known is None else known[rows]
     mag = norm_last(g)
     channels = []  # [rows, M] each, laid out as the magnitudes (the lattice runs along the rows)
     for c in range(g.shape[2]):
@@ -177,7 +154,7 @@ def bar_evidence(
     widths = [w for w in range(sizes.min_bar, sizes.max_bar + 1) if 2 * w < M]  # w: half width in steps
 
     def evidence(ws: list[int]) -> list[list[np.ndarray]]:
-        return [_width_evidence(mag, channels, floored, w, known) for w in ws]
+        return [_width_evidence(mag, channels, floored, w) for w in ws]
 
     half = (len(widths) + 1) // 2
     wide = pool.submit(evidence, widths[half:]) if pool is not None else None
@@ -193,13 +170,10 @@ def bar_evidence(
 
 
 def _width_evidence(mag: np.ndarray, channels: list[np.ndarray], floored: list[np.ndarray | None],
-                    h: int, known: np.ndarray | None = None) -> list[np.ndarray]:
-    """E_g [M] at one width of ``bar_evidence`` (h: its half width in lattice steps), per floor; ``known``
-    [rows, M] weighs the rows at each edge (None: all known)."""
+                    h: int) -> list[np.ndarray]:
+    """E_g [M] at one width of ``bar_evidence`` (h: its half width in lattice steps), per floor."""
     M = mag.shape[1]
     left, right = slice(0, M - 2 * h), slice(2 * h, M)
-    weight = None if known is None else known[:, left] * known[:, right]
-    count = None if weight is None else np.maximum(weight.sum(axis=0), MIN_KNOWN_FRACTION * len(mag))
     product = mag[:, left] * mag[:, right]
     # done in place, channel by channel, as the sum of the products over the channels would add them, so
     # that the values are those of the plain expressions
@@ -219,8 +193,7 @@ def _width_evidence(mag: np.ndarray, channels: list[np.ndarray], floored: list[n
             np.maximum(product, np.maximum(q[:, left], q[:, right]), out=e2)
             e2 *= disagree
         e2 /= 2
-        e = np.sqrt(e2, out=e2)
-        out.append(np.pad(e.mean(axis=0) if weight is None else (e * weight).sum(axis=0) / count, (h, h)))
+        out.append(np.pad(np.sqrt(e2, out=e2).mean(axis=0), (h, h)))
     return out
 
 

@@ -11,13 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from facade_pipeline.segmentation.evidence import (
-    MIN_KNOWN_FRACTION,
-    Gradients,
-    bar_evidence,
-    nanmedian0,
-    norm_last,
-)
+from facade_pipeline.segmentation.evidence import Gradients, bar_evidence, nanmedian0, norm_last
 from facade_pipeline.segmentation.grid import (
     SIGMA_MIN_PX,
     STEP_PX,
@@ -204,31 +198,26 @@ def test_map_family_is_the_search_with_the_relaxation_in_full(seed):
         assert len(fit.centres) >= 3
 
 
-def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int, floor: float,
-                       known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int,
+                       floor: float) -> tuple[np.ndarray, np.ndarray]:
     """The reference: at each lattice position and width in turn, the mean over the rows of
-    sqrt(max(|gL|, |gR|) * max(min(|gL|, |gR|), floor * max(|gL|, |gR|)) * (1 - cos) / 2), each row weighed
-    by how known its two edges are (``known`` [L, M]; all where None) and the weights counted over at least
-    ``MIN_KNOWN_FRACTION`` of the rows, the first best width kept."""
+    sqrt(max(|gL|, |gR|) * max(min(|gL|, |gR|), floor * max(|gL|, |gR|)) * (1 - cos) / 2), the first best
+    width kept."""
     L, M, _ = g.shape
-    known = np.ones((L, M)) if known is None else known
     best, width = np.zeros(M), np.zeros(M)
     for w in range(min_bar, max_bar + 1):
         if 2 * w >= M:
             break
         for c in range(w, M - w):
-            total, count = 0.0, 0.0
+            total = 0.0
             for row in range(L):
                 gl, gr = g[row, c - w], g[row, c + w]
                 ml, mr = np.linalg.norm(gl), np.linalg.norm(gr)
                 cos = float(gl @ gr) / max(ml * mr, 1e-12)
                 weak = max(min(ml, mr), floor * max(ml, mr))
-                weight = known[row, c - w] * known[row, c + w]
-                total += weight * np.sqrt(max(ml, mr) * weak * min(max(1 - cos, 0.0), 2.0) / 2)
-                count += weight
-            e = total / max(count, MIN_KNOWN_FRACTION * L)
-            if e > best[c]:
-                best[c], width[c] = e, w
+                total += np.sqrt(max(ml, mr) * weak * min(max(1 - cos, 0.0), 2.0) / 2)
+            if total / L > best[c]:
+                best[c], width[c] = total / L, w
     return best, width
 
 
@@ -250,16 +239,16 @@ def test_bar_evidence_is_the_loop_over_rows_positions_and_widths(seed):
     got = bar_evidence(grad, rows, params, sizes, floors)
     assert len(got) == len(floors)
     for floor, (e, w) in zip(floors, got, strict=True):
-        ref_e, ref_w = _bar_evidence_loop(grad.on_lattice[rows], 2, 5, floor, grad.known_on_lattice[rows])
+        ref_e, ref_w = _bar_evidence_loop(grad.on_lattice[rows], 2, 5, floor)
         assert np.allclose(e, ref_e, rtol=1e-12, atol=1e-15) and np.array_equal(w, ref_w)
     assert got[0][0].max() > 0 and np.any(got[1][0] > got[0][0])  # the floor counts the one-sided edges
 
 
-def _bar_evidence_plain(g: np.ndarray, min_bar: int, max_bar: int, floor: float,
-                        known: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _bar_evidence_plain(g: np.ndarray, min_bar: int, max_bar: int,
+                        floor: float) -> tuple[np.ndarray, np.ndarray]:
     """The reference to the bit: the plain expressions over arrays of rows, sqrt(s max(w, f s) (1 - cos)
-    / 2) with s, w the stronger and weaker edge, averaged over the rows at each width (weighed by ``known``
-    at both edges where given, ``_bar_evidence_loop``), the first best width kept."""
+    / 2) with s, w the stronger and weaker edge, averaged over the rows at each width, the first best width
+    kept."""
     L, M, _ = g.shape
     mag = np.linalg.norm(g, axis=2)
     best, width = np.zeros(M), np.zeros(M)
@@ -270,12 +259,7 @@ def _bar_evidence_plain(g: np.ndarray, min_bar: int, max_bar: int, floor: float,
         dot = gl[..., 0] * gr[..., 0] + gl[..., 1] * gr[..., 1] + gl[..., 2] * gr[..., 2]
         cos = dot / np.maximum(ml * mr, 1e-12)
         strong, weak = np.maximum(ml, mr), np.minimum(ml, mr)
-        e = np.sqrt(strong * np.maximum(weak, floor * strong) * np.clip(1 - cos, 0.0, 2.0) / 2)
-        if known is None:
-            e = e.mean(axis=0)
-        else:
-            weight = known[:, : M - 2 * w] * known[:, 2 * w :]
-            e = (e * weight).sum(axis=0) / np.maximum(weight.sum(axis=0), MIN_KNOWN_FRACTION * L)
+        e = np.sqrt(strong * np.maximum(weak, floor * strong) * np.clip(1 - cos, 0.0, 2.0) / 2).mean(axis=0)
         e = np.pad(e, (w, w))
         better = e > best
         best[better], width[better] = e[better], w
@@ -306,34 +290,7 @@ def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
             alone = bar_evidence(grad, rows, params, sizes, floors)
             shared = bar_evidence(grad, rows, params, sizes, floors, pool)  # half the widths on the pool
             for floor, (e, w), (e_pool, w_pool) in zip(floors, alone, shared, strict=True):
-                known = None if grad.known_on_lattice is None else grad.known_on_lattice[rows]
-                ref_e, ref_w = _bar_evidence_plain(grad.on_lattice[rows], 2, 9, floor, known)
+                ref_e, ref_w = _bar_evidence_plain(grad.on_lattice[rows], 2, 9, floor)
                 assert np.array_equal(e, ref_e) and np.array_equal(w, ref_w)
                 assert np.array_equal(e_pool, ref_e) and np.array_equal(w_pool, ref_w)
 
-
-
-def test_rows_where_frame_and_glass_both_clip_carry_no_bar_evidence():
-    """A bar whose frame and the glass beside it clip white over half its length (the sky reflected at
-    full scale) has the evidence of the half where its edges are seen, not half of it; a view with nothing
-    clipped keeps every row."""
-    rng = np.random.default_rng(3)
-    seen = rng.integers(20, 120, (40, 60, 3)).astype(np.uint8)
-    seen[:, 27:33] = 200  # a frame bar, lighter than the glass
-    clipped = seen.copy()
-    clipped[20:] = 255  # frame and glass clip together over the lower half
-    params = GridParams(min_pitch_m=0.5, max_pitch_m=5.0, sigma_frac=0.1, line_cost=1.0, min_bar_m=0.02,
-                        max_bar_m=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
-                        frame_colour_scale=0.1)
-    sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=8)
-    assert Gradients.of(seen, 0).known is None
-    half = bar_evidence(Gradients.of(seen, 0), slice(0, 20), params, sizes)[0]
-    whole = bar_evidence(Gradients.of(clipped, 0), slice(0, 40), params, sizes)[0]
-    centre = int(30 / STEP_PX)
-    assert whole[0][centre] > 0.1
-    assert np.allclose(whole[0], half[0], rtol=1e-6) and np.array_equal(whole[1], half[1])
-    # over less than MIN_KNOWN_FRACTION of the rows seen, the evidence is counted over that fraction
-    assert 5 < MIN_KNOWN_FRACTION * 25
-    few = bar_evidence(Gradients.of(clipped, 0), slice(15, 40), params, sizes)[0]
-    five = bar_evidence(Gradients.of(seen, 0), slice(15, 20), params, sizes)[0]
-    assert np.allclose(few[0], five[0] * 5 / (MIN_KNOWN_FRACTION * 25), rtol=1e-6)
