@@ -495,3 +495,21 @@ def test_a_view_off_the_building_grid_is_named_with_its_reason():
     assert why[2].keys() == {"pitch"} and why[2]["pitch"].startswith("pitch y 2.4 m")
     assert why[3].keys() == {"width"} and "bar width x 0.6 m" in why[3]["width"]
     assert why[5] == {"grid": "no grid found"}
+
+
+def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
+    """A highlight that clips the last mullion and what lies on both sides of it to white over the whole
+    height leaves no edge to find there: the bar is placed one pitch beyond the run the rest of the view
+    found, at its width, and the panels beside it are whole; a view without the highlight places none."""
+    d = Drawing(**{**FINE, "W": 240}, cols=4)
+    plain = d.render()
+    clipped = plain.copy()
+    right = 12.6 + 4 * 54.8  # the last mullion's left edge (px)
+    clipped[:, int(right - 12) :] = 255
+    seg = segment_image(clipped, PARAMS, FINE_M_PER_PX)
+    assert seg.metrics["bars_placed_x"] == 1 and seg.metrics["n_mullions"] == 5
+    assert sum(p.complete for p in seg.panels) == 12
+    err = corner_errors(seg, d.corners(), d.W, d.H)
+    assert np.median(err) < 0.5 and err.max() < 1.5
+    alone = segment_image(plain, PARAMS, FINE_M_PER_PX)
+    assert alone.metrics["bars_placed_x"] == 0
