@@ -175,7 +175,8 @@ def find_bars(
     mullions' colour, ``frame_colour_scale``), a mullion clipped white with the glass beside it one pitch
     beyond either end placed by the grid (``with_clipped_ends``), then sub-pixel edges, with their frames'
     parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a
-    field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the mullions and the transoms."""
+    field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the
+    mullions and the transoms."""
     sizes_v, sizes_h = sizes
     H, W = image.shape[:2]
     # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
