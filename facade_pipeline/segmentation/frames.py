@@ -91,11 +91,13 @@ def _family(
     return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out))
 
 
-def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice) -> tuple[FamilyFit, frozenset[int]]:
+def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
+                      support: np.ndarray | None = None) -> tuple[FamilyFit, frozenset[int]]:
     """``fit`` extended by one bar at either end, one pitch beyond it at the run's median width, where
-    that bar lies whole in the view and its edges are known over at most ``CLIPPED_BAR_KNOWN`` of ``span``
-    (clipped with the glass beside it: no evidence either way, and the grid places it), and the indices of
-    the bars so placed."""
+    that bar lies whole in the view, on the facade surface over at least half of ``span`` (``support``
+    [L, N] in the family's layout, None: everywhere; the sky beyond a facade's end clips too) and its edges
+    are known over at most ``CLIPPED_BAR_KNOWN`` of ``span`` (clipped with the glass beside it: no evidence
+    either way, and the grid places it), and the indices of the bars so placed."""
     known = grad.known_on_lattice
     if known is None:
         return fit, frozenset()
@@ -112,6 +114,8 @@ def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice) -> tuple[Fam
         col = int(np.clip(np.floor(c), 0, grad.size - 1))
         seen = grad.valid[span, col]
         if not seen.any() or float((known[:, i] * known[:, j])[seen].mean()) > CLIPPED_BAR_KNOWN:
+            continue
+        if support is not None and float(support[span, col].mean()) < 0.5:
             continue
         if sign > 0:
             centres.append(c)
@@ -169,6 +173,7 @@ def find_bars(
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
     planar: bool = True,
+    support: np.ndarray | None = None,
 ) -> tuple[Bars | None, Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
@@ -176,7 +181,7 @@ def find_bars(
     beyond either end placed by the grid (``with_clipped_ends``), then sub-pixel edges, with their frames'
     parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a
     field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the
-    mullions and the transoms."""
+    mullions and the transoms; ``support`` [H, W]: where the facade surface is (None: everywhere)."""
     sizes_v, sizes_h = sizes
     H, W = image.shape[:2]
     # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
@@ -223,7 +228,7 @@ def find_bars(
             return None, None, metrics, {}, (gv, gh)
         # mullions only: a clipped horizontal stretch beyond the transoms is as often the lit ceiling or
         # shelf of an empty unit seen through its open frame as a transom
-        v, placed_v = with_clipped_ends(v, gv, extent(h, H))
+        v, placed_v = with_clipped_ends(v, gv, extent(h, H), support)
         metrics["bars_placed_x"] = len(placed_v)
         edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
         bars_v = _edges(v, gv, extent(h, H), params, placed_v)
@@ -320,7 +325,8 @@ def find_frames(
         for name in ("x", "y")
     )
     image = normalise_exposure(image, valid)
-    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar,
+                                                     support)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads)
 

@@ -500,7 +500,8 @@ def test_a_view_off_the_building_grid_is_named_with_its_reason():
 def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
     """A highlight that clips the last mullion and what lies on both sides of it to white over the whole
     height leaves no edge to find there: the bar is placed one pitch beyond the run the rest of the view
-    found, at its width, and the panels beside it are whole; a view without the highlight places none."""
+    found, at its width, and the panels beside it are whole; a view without the highlight places none, nor
+    one whose clipped stretch lies beyond the facade surface."""
     d = Drawing(**{**FINE, "W": 240}, cols=4)
     plain = d.render()
     clipped = plain.copy()
@@ -513,3 +514,8 @@ def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
     assert np.median(err) < 0.5 and err.max() < 1.5
     alone = segment_image(plain, PARAMS, FINE_M_PER_PX)
     assert alone.metrics["bars_placed_x"] == 0
+    # beyond the facade surface (the coarse mesh's), a clipped stretch is the sky, not a frame
+    surface = np.ones(clipped.shape[:2], bool)
+    surface[:, int(right - 12) :] = False
+    beyond = segment_image(clipped, PARAMS, FINE_M_PER_PX, support=surface)
+    assert beyond.metrics["bars_placed_x"] == 0 and beyond.metrics["n_mullions"] == 4
