@@ -17,6 +17,10 @@ from facade_pipeline.segmentation.grid import STEP_PX, GridParams, PixelSizes
 # pixels (``SegmentParams.work_bar_px``)
 #: LSD line support (fraction of the grid's length covered by segments) that counts as strong (-)
 LSD_SCALE = 0.25
+#: a pixel whose brightest channel is at or above this (0-1, after the view's exposure is taken out:
+#: ``photometry``) is clipped: what it showed lies somewhere above full scale, so an edge between two such
+#: pixels is unknown, not absent (a frame and the sky reflected beside it may both clip)
+CLIPPED_LEVEL = 250 / 255
 
 def nanmedian0(a: np.ndarray) -> np.ndarray:
     """The median over axis 0 of ``a`` [L, ...] leaving out NaNs (NaN where all are): ``np.nanmedian(a,
@@ -54,6 +58,9 @@ class Gradients:
     img: np.ndarray
     d: np.ndarray
     valid: np.ndarray  # [L, N] bool
+    known: np.ndarray | None = None
+    """[L, N - 1] float, 1 where the boundary's edge is known, 0 where both of its pixels clip
+    (``CLIPPED_LEVEL``); None where no pixel of the view clips."""
     # line colours by row span: a MAP pass's uniformity and colour prior and the bars' colour take the same
     _line_colours: dict[tuple[int, int, int], np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -66,7 +73,11 @@ class Gradients:
             img, ok = img.transpose(1, 0, 2), ok.T
         d = np.diff(img, axis=1)
         d[~(ok[:, 1:] & ok[:, :-1])] = 0.0
-        return cls(img, d, ok)
+        clipped = img.max(axis=2) >= CLIPPED_LEVEL
+        known = None
+        if clipped.any():
+            known = (~(clipped[:, 1:] & clipped[:, :-1])).astype(np.float32)
+        return cls(img, d, ok, known)
 
     @property
     def size(self) -> int:
@@ -90,6 +101,11 @@ class Gradients:
         return self._interp(self.d, 1.0)
 
     @cached_property
+    def known_on_lattice(self) -> np.ndarray | None:
+        """[L, M] ``known`` at the lattice positions (``on_lattice``'s), None where nothing clips."""
+        return None if self.known is None else self._interp(self.known, 1.0)
+
+    @cached_property
     def _samples(self) -> np.ndarray:
         """[L, M, 3] the image at each lattice position (interpolated between pixel centres), NaN outside
         the view."""
@@ -98,7 +114,7 @@ class Gradients:
     def prepare(self) -> Gradients:
         """Make the lattice arrays the MAP passes read (kept once made), so that they may be made ahead,
         beside other work."""
-        _ = self.on_lattice, self._samples
+        _ = self.on_lattice, self._samples, self.known_on_lattice
         return self
 
     def _line_samples(self, rows: slice) -> np.ndarray:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from facade_pipeline.segmentation.edges import Bars, bar_edges, frame_presence
+from facade_pipeline.segmentation.edges import Bars, EdgeLine, bar_edges, frame_presence
 from facade_pipeline.segmentation.evidence import (
     Gradients,
     bar_evidence,
@@ -47,6 +47,10 @@ ORIENTATION_SEARCH_DEG = 10.0
 ORIENTATION_TOLERANCE_DEG = 3.0
 #: smoothing of the LSD line-support profile (px)
 LSD_SIGMA_PX = 0.75
+#: a bar one pitch beyond either end of a family's run is placed by the grid where its two edges are known
+#: (``Gradients.known``) over at most this fraction of its length: the frame and the glass beside it clip
+#: together there, which leaves no edge to find, while the frames are regular across a curtain wall
+CLIPPED_BAR_KNOWN = 0.5
 
 
 def _family(
@@ -87,6 +91,45 @@ def _family(
     return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out))
 
 
+def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
+                      support: np.ndarray | None = None) -> tuple[FamilyFit, frozenset[int]]:
+    """``fit`` extended by one bar at either end, one pitch beyond it at the run's median width, where
+    that bar lies whole in the view, on the facade surface over at least half of ``span`` (``support``
+    [L, N] in the family's layout, None: everywhere; the sky beyond a facade's end clips too) and its edges
+    are known over at most ``CLIPPED_BAR_KNOWN`` of ``span`` (clipped with the glass beside it: no evidence
+    either way, and the grid places it), and the indices of the bars so placed."""
+    known = grad.known_on_lattice
+    if known is None:
+        return fit, frozenset()
+    known = known[span]
+    M = known.shape[1]
+    width = float(np.median(fit.widths))
+    centres, widths, placed = list(fit.centres), list(fit.widths), []
+    for sign in (1.0, -1.0):
+        c = (centres[-1] if sign > 0 else centres[0]) + sign * fit.pitch
+        lo, hi = c - width / 2, c + width / 2
+        if lo < 1.0 or hi > grad.size - 1.0:
+            continue
+        i, j = (int(np.clip(np.rint(x / STEP_PX), 0, M - 1)) for x in (lo, hi))
+        col = int(np.clip(np.floor(c), 0, grad.size - 1))
+        seen = grad.valid[span, col]
+        if not seen.any() or float((known[:, i] * known[:, j])[seen].mean()) > CLIPPED_BAR_KNOWN:
+            continue
+        if support is not None and float(support[span, col].mean()) < 0.5:
+            continue
+        if sign > 0:
+            centres.append(c)
+            widths.append(width)
+            placed.append(len(centres) - 1)
+        else:
+            centres.insert(0, c)
+            widths.insert(0, width)
+            placed = [k + 1 for k in placed] + [0]
+    if not placed:
+        return fit, frozenset()
+    return FamilyFit(np.array(centres), np.array(widths), fit.pitch, fit.score), frozenset(placed)
+
+
 def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
     """[3] median colour (0-1) of one family's bars (``grad`` of that family): along their centre lines
     over ``span``."""
@@ -102,13 +145,20 @@ def extent(fit: FamilyFit | None, size: int) -> slice:
     return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
 
 
-def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> Bars | None:
+def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams,
+           placed: frozenset[int] = frozenset()) -> Bars | None:
+    """The edges of each bar of ``fit``; a bar ``placed`` by the grid (``with_clipped_ends``) whose edges
+    are not found keeps the straight edges of its place."""
     found = [
         bar_edges(grad, c, w, span, EDGE_SEARCH_PX)
         for c, w in zip(fit.centres, fit.widths, strict=True)
     ]
     edges = []
-    for e in found:
+    mid = 0.5 * (span.indices(grad.img.shape[0])[0] + span.indices(grad.img.shape[0])[1])
+    for k, e in enumerate(found):
+        if e is None and k in placed:
+            c, w, L = fit.centres[k], fit.widths[k], grad.img.shape[0]
+            e = (EdgeLine(c - w / 2, 0.0, mid, np.zeros(L)), EdgeLine(c + w / 2, 0.0, mid, np.zeros(L)))
         if e is None:
             continue
         present = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
@@ -123,12 +173,15 @@ def find_bars(
     valid: np.ndarray | None = None,
     parallax: ParallaxField | None = None,
     planar: bool = True,
+    support: np.ndarray | None = None,
 ) -> tuple[Bars | None, Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
-    mullions' colour, ``frame_colour_scale``), then sub-pixel edges, with their frames' parallax fitted in the
-    image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a field), not yet corrected,
-    and the two families' gradients. ``sizes``: the grid model's sizes of the mullions and the transoms."""
+    mullions' colour, ``frame_colour_scale``), a mullion clipped white with the glass beside it one pitch
+    beyond either end placed by the grid (``with_clipped_ends``), then sub-pixel edges, with their frames'
+    parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a
+    field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the
+    mullions and the transoms; ``support`` [H, W]: where the facade surface is (None: everywhere)."""
     sizes_v, sizes_h = sizes
     H, W = image.shape[:2]
     # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
@@ -173,8 +226,12 @@ def find_bars(
         }
         if v is None or h is None:
             return None, None, metrics, {}, (gv, gh)
+        # mullions only: a clipped horizontal stretch beyond the transoms is as often the lit ceiling or
+        # shelf of an empty unit seen through its open frame as a transom
+        v, placed_v = with_clipped_ends(v, gv, extent(h, H), support)
+        metrics["bars_placed_x"] = len(placed_v)
         edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
-        bars_v = _edges(v, gv, extent(h, H), params)
+        bars_v = _edges(v, gv, extent(h, H), params, placed_v)
         bars_h = edges_h.result()
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
@@ -273,7 +330,8 @@ def find_frames(
         for name in ("x", "y")
     )
     image = normalise_exposure(image, valid)
-    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar)
+    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar,
+                                                     support)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m)
 

@@ -510,3 +510,27 @@ def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     big = survey_frames(img, PARAMS, 25 * M_PER_PX).pitches_m()
     assert small["x"] == pytest.approx(2.74, abs=0.05) and small["y"] == pytest.approx(2.33, abs=0.05)
     assert big == pytest.approx({name: 25 * p for name, p in small.items()}, rel=1e-9)
+
+
+def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
+    """A highlight that clips the last mullion and what lies on both sides of it to white over the whole
+    height leaves no edge to find there: the bar is placed one pitch beyond the run the rest of the view
+    found, at its width, and the panels beside it are whole; a view without the highlight places none, nor
+    one whose clipped stretch lies beyond the facade surface."""
+    d = Drawing(**{**FINE, "W": 240}, cols=4)
+    plain = d.render()
+    clipped = plain.copy()
+    right = 12.6 + 4 * 54.8  # the last mullion's left edge (px)
+    clipped[:, int(right - 12) :] = 255
+    seg = segment_image(clipped, PARAMS, FINE_M_PER_PX)
+    assert seg.metrics["bars_placed_x"] == 1 and seg.metrics["n_mullions"] == 5
+    assert sum(p.complete for p in seg.panels) == 12
+    err = corner_errors(seg, d.corners(), d.W, d.H)
+    assert np.median(err) < 0.5 and err.max() < 1.5
+    alone = segment_image(plain, PARAMS, FINE_M_PER_PX)
+    assert alone.metrics["bars_placed_x"] == 0
+    # beyond the facade surface (the coarse mesh's), a clipped stretch is the sky, not a frame
+    surface = np.ones(clipped.shape[:2], bool)
+    surface[:, int(right - 12) :] = False
+    beyond = segment_image(clipped, PARAMS, FINE_M_PER_PX, support=surface)
+    assert beyond.metrics["bars_placed_x"] == 0 and beyond.metrics["n_mullions"] == 4
