@@ -522,15 +522,15 @@ def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
     clipped = plain.copy()
     right = 12.6 + 4 * 54.8  # the last mullion's left edge (px)
     clipped[:, int(right - 12) :] = 255
-    seg = segment_image(clipped, PARAMS, FINE_M_PER_PX)
+    seg = segment_image(clipped, PARAMS, FINE_M_PER_PX, PITCH_M)
     assert seg.metrics["bars_placed_x"] == 1 and seg.metrics["n_mullions"] == 5
     assert sum(p.complete for p in seg.panels) == 12
     err = corner_errors(seg, d.corners(), d.W, d.H)
     assert np.median(err) < 0.5 and err.max() < 1.5
-    alone = segment_image(plain, PARAMS, FINE_M_PER_PX)
+    alone = segment_image(plain, PARAMS, FINE_M_PER_PX, PITCH_M)
     assert alone.metrics["bars_placed_x"] == 0
     # beyond the facade surface (the coarse mesh's), a clipped stretch is the sky, not a frame
     surface = np.ones(clipped.shape[:2], bool)
     surface[:, int(right - 12) :] = False
-    beyond = segment_image(clipped, PARAMS, FINE_M_PER_PX, support=surface)
+    beyond = segment_image(clipped, PARAMS, FINE_M_PER_PX, PITCH_M, support=surface)
     assert beyond.metrics["bars_placed_x"] == 0 and beyond.metrics["n_mullions"] == 4
