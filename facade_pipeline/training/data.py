@@ -7,6 +7,7 @@ built, so that a bundle of it (``save_bundle``) trains on a machine without them
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -79,13 +80,14 @@ class TrainData:
     """the views' exposure gains estimated from the photos (``training.exposure.with_exposure_estimate``);
     None: not estimated"""
 
-    @property
+    @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """The facade's axis-aligned bounds (m): those of the corrected mesh."""
+        """The facade's axis-aligned bounds (m): those of the corrected mesh (kept once made: every training
+        step reads them, through the near plane and the rates' extent, and the mesh has 10^5 vertices)."""
         v = self.init.mesh_vertices
         return v.min(axis=0), v.max(axis=0)
 
-    @property
+    @cached_property
     def extent(self) -> float:
         """The scene extent 2DGS scales its rates and sizes by: 1.1 x the largest distance of a camera
         centre from their mean (m), at least ``EXTENT_MIN_FRACTION`` of the facade's size (the diagonal of
