@@ -31,6 +31,19 @@ def synth64(tmp_path_factory) -> BuildingLayout:
     return layout
 
 
+@pytest.fixture(scope="session")
+def gcw_train_data(gcw_dev):
+    """The test run's gcw_dev (tests/conftest.py) run on through bake_normals, with gcw_dev.toml's training
+    parameters and the training data train_gs loads: (layout, params, data)."""
+    from stages.train_gs import load_train_data
+    from tests.segmentation.conftest import doit
+
+    layout, env = gcw_dev
+    doit(["bake_normals", "building=gcw_dev"], env, layout.data_root)
+    p = load_building_config("gcw_dev").section("train_gs", TrainParams)
+    return layout, p, load_train_data(layout, p)
+
+
 def gt_view(truth, view) -> TrainView:
     """A training view whose normal prior and masks are the ground truth (what bake_normals approximates),
     from ``truth`` (a ``SyntheticTruth``: local frame)."""

@@ -12,31 +12,19 @@ import sys
 import numpy as np
 import pytest
 
-from facade_pipeline.config import load_building_config
 from facade_pipeline.io.colmap import read_reconstruction
 from facade_pipeline.io.meshes import read_points
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.shading.surroundings import glass_plane, surroundings_points
-from facade_pipeline.training.params import INIT_BOUNDS_MARGIN, TrainParams, facade_size
+from facade_pipeline.training.params import INIT_BOUNDS_MARGIN, facade_size
 from facade_pipeline.training.render import splatting_rasterizer
 from facade_pipeline.training.trainer import build_trainer
 from scripts.make_gcw_building import WORLD_FROM_WALL
 from tests.conftest import GCW_SRC, REPO
-from tests.segmentation.conftest import doit
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not (GCW_SRC / "cameras.json").is_file(),
                                                    reason=f"no real photos at {GCW_SRC}")]
 
-
-@pytest.fixture(scope="module")
-def gcw_data(gcw_dev):
-    """The test run's gcw_dev (tests/conftest.py) run on through bake_normals, and its training data."""
-    from stages.train_gs import load_train_data
-
-    layout, env = gcw_dev
-    doit(["bake_normals", "building=gcw_dev"], env, layout.data_root)
-    p = load_building_config("gcw_dev").section("train_gs", TrainParams)
-    return layout, p, load_train_data(layout, p)
 
 
 def _triangulated(layout: BuildingLayout) -> np.ndarray:
@@ -63,8 +51,8 @@ def test_the_converter_triangulates_the_reflections_behind_the_wall(gcw_dev):
     assert np.quantile(z, 0.9) > 0.5
 
 
-def test_the_proxy_has_the_surroundings_in_front_of_the_wall(gcw_data):
-    layout, p, data = gcw_data
+def test_the_proxy_has_the_surroundings_in_front_of_the_wall(gcw_train_data):
+    layout, p, data = gcw_train_data
     tr = build_trainer(p, data, splatting_rasterizer("auto", p.lowpass_sigma_px))
     surroundings = tr.state.reflection.proxy.surroundings
     top = surroundings.heights[1].numpy()

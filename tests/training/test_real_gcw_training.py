@@ -9,31 +9,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facade_pipeline.config import load_building_config
 from facade_pipeline.training.data import CLIP_LEVEL
-from facade_pipeline.training.params import TrainParams, replace_keys
+from facade_pipeline.training.params import replace_keys
 from facade_pipeline.training.render import splatting_rasterizer
 from facade_pipeline.training.trainer import build_trainer, train
 from tests.conftest import GCW_SRC
-from tests.segmentation.conftest import doit
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not (GCW_SRC / "cameras.json").is_file(),
                                                    reason=f"no real photos at {GCW_SRC}")]
 
 
-@pytest.fixture(scope="module")
-def gcw_data(gcw_dev):
-    """The test run's gcw_dev (tests/conftest.py) run on through bake_normals, and its training data."""
-    from stages.train_gs import load_train_data
-
-    layout, env = gcw_dev
-    doit(["bake_normals", "building=gcw_dev"], env, layout.data_root)
-    p = load_building_config("gcw_dev").section("train_gs", TrainParams)
-    return p, load_train_data(layout, p)
-
-
-def test_views_are_loaded_at_the_pixel_budget_with_their_clipping(gcw_data):
-    p, data = gcw_data
+def test_views_are_loaded_at_the_pixel_budget_with_their_clipping(gcw_train_data):
+    _, p, data = gcw_train_data
     for v in data.views:
         assert v.camera.width * v.camera.height <= p.max_view_pixels
         assert v.clipped is not None and v.clipped.shape == v.image.shape
@@ -43,8 +30,8 @@ def test_views_are_loaded_at_the_pixel_budget_with_their_clipping(gcw_data):
     assert 0.1 < frac < 0.6  # the README's 21-34 % of the pixels clipped white, more after the blocks
 
 
-def test_whole_view_psnr_rises_on_real_photos(gcw_data):
-    p, data = gcw_data
+def test_whole_view_psnr_rises_on_real_photos(gcw_train_data):
+    _, p, data = gcw_train_data
     p = replace_keys(p, {"iterations": 60})
     tr = build_trainer(p, data, splatting_rasterizer("auto", p.lowpass_sigma_px))
     train(tr, log_every=10)
