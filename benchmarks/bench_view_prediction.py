@@ -8,14 +8,16 @@ The plane is the corrected mesh's glass (a plane fitted to its glass triangles) 
 itself, away from the cameras. At d = 0 the warp carries what lies on the glass (the frames, dirt, the
 glass's own colour); at d > 0 what stands d behind it: an interior, or a reflection, since a plane
 mirror's image of a point d in front of the glass behaves as a point d behind it; d = inf carries the
-directions alone (a distant scene seen through, or mirrored in, the glass). Each held-out view is predicted
+directions alone (a distant scene seen through, or mirrored in, the glass). The last rows take two layers:
+the pixels off the view's glass mask from d = 0, those on it from d = inf. Each held-out view is predicted
 from its nearest training photo (camera centres), from the best single training photo (an oracle: the one
 with the highest glass PSNR at that d) and from the mean of every training photo that sees the pixel (what
 a layer at that depth, one colour per point, learns at best from these views). A training photo is brought
 to the model's exposure by its estimated gain (the bundle's), as training does; pixels the warp leaves
 uncovered take the photo's mean facade colour. *Aligned*: the held-out view's pose and a gain per colour
-channel fitted to the prediction first (``training.corrections.align_view`` with the building's
-``[evaluate.align]``, as the evaluate stage aligns a view to a model).
+channel fitted to the nearest photo's prediction at that d first (``training.corrections.align_view`` with
+the building's ``[evaluate.align]``, as the evaluate stage aligns a view to a model), then every source's
+prediction made from that pose with that gain.
 """
 
 from __future__ import annotations
@@ -48,7 +50,13 @@ from facade_pipeline.training.params import AlignParams  # noqa: E402
 #: float32, as the evaluation renders
 DTYPE = torch.float32
 #: depths behind the glass (m); inf: directions only
-DEPTHS = (0.0, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, math.inf)
+DEPTHS = (0.0, 0.03, 0.3, 3.0, math.inf)
+#: two layers: the frames (off the glass mask) from the glass plane, the glass from directions alone
+TWO_LAYERS = (0.0, math.inf)
+
+
+def _depth(depth) -> str:
+    return f"{depth[0]:g} off the glass, {depth[1]:g} on it" if isinstance(depth, tuple) else f"{depth:g}"
 
 
 def glass_plane(data: TrainData) -> tuple[np.ndarray, float]:
@@ -130,29 +138,50 @@ def score(rgb: np.ndarray, view) -> tuple[float, float]:
     return psnr(rgb, view.image, m["facade"]), psnr(rgb, view.image, m["glass"])
 
 
-def measure(data: TrainData, tgt: int, sources: list[int], plane, depth: float, align: AlignParams | None):
-    """(facade, glass) PSNR of the held-out view ``tgt`` predicted from ``sources`` at ``depth``, as
-    imported or, with ``align``, after its pose and gain are fitted to the prediction."""
+def predictor(data: TrainData, sources: list[int], plane, depth, glass: np.ndarray):
+    """A prediction from ``sources`` at ``depth`` (m; a pair: the first for the pixels off ``glass`` [H, W],
+    the second for those on it, two layers), as a function of the camera (K, cam_from_world, (H, W))."""
+    near, far = depth if isinstance(depth, tuple) else (depth, depth)
+    layers = [[Warp(data, s, plane, d) for s in sources] for d in dict.fromkeys((near, far))]
+    on_glass = torch.as_tensor(glass)[..., None]
+
+    def run(K: torch.Tensor, cam_from_world: torch.Tensor, hw) -> torch.Tensor:
+        rgb = [predict(w, K, cam_from_world, hw) for w in layers]
+        return rgb[0] if len(rgb) == 1 else torch.where(on_glass, rgb[1], rgb[0])
+
+    return run
+
+
+def measure(data: TrainData, tgt: int, sources: list[int], plane, depth, fitted=None):
+    """(facade, glass) PSNR of the held-out view ``tgt`` predicted from ``sources`` at ``depth``
+    (``predictor``), from its imported camera or, with ``fitted`` (``align``'s pose and gain), from that."""
     v = data.views[tgt]
-    warps = [Warp(data, s, plane, depth) for s in sources]
+    run = predictor(data, sources, plane, depth, v.glass_mask)
     K = torch.as_tensor(v.camera.K, dtype=DTYPE)
-    T = torch.as_tensor(v.camera.cam_from_world, dtype=DTYPE)
     hw = (v.camera.height, v.camera.width)
-    if align is None:
-        rgb = predict(warps, K, T, hw)
+    if fitted is None:
+        rgb = run(K, torch.as_tensor(v.camera.cam_from_world, dtype=DTYPE), hw)
     else:
-        # fitted on the view reduced to the align's pixel budget, measured at its size, as evaluate does
-        fit = downscale_view(v, pixel_budget_factor(v.camera.width, v.camera.height, align.max_pixels))
-        Kf = torch.as_tensor(fit.camera.K, dtype=DTYPE)
+        rgb = run(K, fitted[0], hw) * fitted[1]
+    return score(rgb.clamp(0, 1).detach().numpy(), v)
+
+
+def align(data: TrainData, tgt: int, source: int, plane, depth, params: AlignParams):
+    """The held-out view's pose and gain per channel fitted to its prediction from ``source`` at ``depth``
+    (``align_view``, on the view reduced to ``params.max_pixels`` as evaluate fits it)."""
+    v = data.views[tgt]
+    fit = downscale_view(v, pixel_budget_factor(v.camera.width, v.camera.height, params.max_pixels))
+    run = predictor(data, [source], plane, depth, fit.glass_mask)
+    Kf = torch.as_tensor(fit.camera.K, dtype=DTYPE)
+    with torch.enable_grad():
         a = align_view(
-            lambda cfw: predict(warps, Kf, cfw, (fit.camera.height, fit.camera.width)),
-            T,
+            lambda cfw: run(Kf, cfw, (fit.camera.height, fit.camera.width)),
+            torch.as_tensor(v.camera.cam_from_world, dtype=DTYPE),
             torch.as_tensor(fit.image, dtype=DTYPE),
             torch.as_tensor(fit.facade_mask),
-            align,
+            params,
         )
-        rgb = predict(warps, K, a.cam_from_world.to(DTYPE), hw) * a.gain
-    return score(rgb.clamp(0, 1).detach().numpy(), v)
+    return a.cam_from_world.to(DTYPE), a.gain
 
 
 def main() -> None:
@@ -163,27 +192,28 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_grad_enabled(False)
     data = load_bundle(a.bundle)
-    align = load_building_config(a.building).section("evaluate.align", AlignParams)
+    align_params = load_building_config(a.building).section("evaluate.align", AlignParams)
     plane = glass_plane(data)
     centres = np.array([v.camera.center for v in data.views])
     dist = [float(abs(centres[i] @ plane[0] - plane[1])) for i in data.test_idx]
     rows = []
-    for depth in DEPTHS:
+    for depth in (*DEPTHS, TWO_LAYERS):
         res: dict[str, list] = {}
         for t in data.test_idx:
             near = min(data.train_idx, key=lambda s: float(np.linalg.norm(centres[s] - centres[t])))
-            singles = {s: measure(data, t, [s], plane, depth, None) for s in data.train_idx}
+            singles = {s: measure(data, t, [s], plane, depth) for s in data.train_idx}
             best = max(singles, key=lambda s: singles[s][1])
+            # one fit of the view's pose and gain (to the nearest photo's prediction) serves every source:
+            # the pose error is the view's, whatever predicts it
+            fitted = align(data, t, near, plane, depth, align_params)
             for name, srcs in (("nearest", [near]), ("best", [best]), ("mean", list(data.train_idx))):
-                imported = singles[srcs[0]] if len(srcs) == 1 else measure(data, t, srcs, plane, depth, None)
-                with torch.enable_grad():
-                    aligned = measure(data, t, srcs, plane, depth, align)
-                res.setdefault(name, []).append((*imported, *aligned))
+                imported = singles[srcs[0]] if len(srcs) == 1 else measure(data, t, srcs, plane, depth)
+                res.setdefault(name, []).append((*imported, *measure(data, t, srcs, plane, depth, fitted)))
         for name, vals in res.items():
             f = np.mean(vals, axis=0)
             rows.append((depth, name, f))
-            print(f"d = {depth:g} m, {name}: facade {f[0]:.2f} / {f[2]:.2f}, glass {f[1]:.2f} / {f[3]:.2f}",
-                  flush=True)  # fmt: skip
+            said = f"facade {f[0]:.2f} / {f[2]:.2f}, glass {f[1]:.2f} / {f[3]:.2f}"
+            print(f"d = {_depth(depth)} m, {name}: {said}", flush=True)
     stems = ", ".join(data.views[i].stem for i in data.test_idx)
     lines = [
         "\n## What a held-out view can be predicted from (no training)\n",
@@ -194,7 +224,8 @@ def main() -> None:
         f"{data.views[data.test_idx[0]].camera.height} px) from the {len(data.train_idx)} training photos "
         f"warped through the glass plane moved d behind itself (the cameras stand "
         f"{', '.join(f'{x:.3f}' for x in dist)} m in front of it). PSNR dB over the facade and the glass "
-        "masks, as imported / aligned (pose and gain fitted to the prediction, `[evaluate.align]`), mean "
+        "masks, as imported / aligned (pose and gain fitted to the nearest photo's prediction at that d, "
+        "`[evaluate.align]`, and used for every source), mean "
         "over the held-out views. *nearest*: the nearest training photo; *best*: the training photo "
         "with the highest glass PSNR at that d (an oracle); *mean*: the mean of the training photos that see "
         "the pixel.\n",
@@ -202,7 +233,7 @@ def main() -> None:
         "| --- | --- | --- | --- |",
     ]
     for depth, name, f in rows:
-        lines.append(f"| {depth:g} | {name} | {f[0]:.2f} / {f[2]:.2f} | {f[1]:.2f} / {f[3]:.2f} |")
+        lines.append(f"| {_depth(depth)} | {name} | {f[0]:.2f} / {f[2]:.2f} | {f[1]:.2f} / {f[3]:.2f} |")
     text = "\n".join(lines) + "\n"
     print(text)
     if not a.no_write:
