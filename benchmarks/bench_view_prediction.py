@@ -60,16 +60,13 @@ def _depth(depth) -> str:
 
 
 def glass_plane(data: TrainData) -> tuple[np.ndarray, float]:
-    """The plane n . x = c fitted to the corrected mesh's glass triangles (area-weighted centroids), n
+    """The plane n . x = c fitted to the vertices of the corrected mesh's glass triangles (least squares), n
     pointing away from the cameras."""
     init = data.init
     tri = init.mesh_triangles if init.mesh_glass is None else init.mesh_triangles[init.mesh_glass]
-    p = init.mesh_vertices[tri]  # [T, 3, 3]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    cen = p.mean(axis=1)
-    mean = (area[:, None] * cen).sum(0) / area.sum()
-    q = (cen - mean) * np.sqrt(area)[:, None]
-    n = np.linalg.svd(q, full_matrices=False)[2][-1]
+    p = init.mesh_vertices[np.unique(tri)]
+    mean = p.mean(axis=0)
+    n = np.linalg.svd(p - mean, full_matrices=False)[2][-1]
     cams = np.array([v.camera.center for v in data.views])
     if float(((cams - mean) @ n).mean()) > 0:
         n = -n
