@@ -185,6 +185,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", required=True, help="training data from bench_train.py --save-bundle")
     ap.add_argument("--building", default="gcw_dev", help="whose [evaluate.align] aligns the views")
+    ap.add_argument(
+        "--depths",
+        default=",".join(f"{d:g}" for d in DEPTHS),
+        help="comma-separated depths behind the glass (m; inf: directions only); the two layers always",
+    )
     ap.add_argument("--no-write", action="store_true")
     a = ap.parse_args()
     torch.set_grad_enabled(False)
@@ -194,7 +199,7 @@ def main() -> None:
     centres = np.array([v.camera.center for v in data.views])
     dist = [float(abs(centres[i] @ plane[0] - plane[1])) for i in data.test_idx]
     rows = []
-    for depth in (*DEPTHS, TWO_LAYERS):
+    for depth in (*(float(x) for x in a.depths.split(",")), TWO_LAYERS):
         res: dict[str, list] = {}
         for t in data.test_idx:
             near = min(data.train_idx, key=lambda s: float(np.linalg.norm(centres[s] - centres[t])))
@@ -216,7 +221,7 @@ def main() -> None:
         "\n## What a held-out view can be predicted from (no training)\n",
         f"{machine()}\n",
         f"`python benchmarks/bench_view_prediction.py --bundle {Path(a.bundle).name} "
-        f"--building {a.building}`: "
+        f"--building {a.building} --depths {a.depths}`: "
         f"held-out {stems} ({data.views[data.test_idx[0]].camera.width} x "
         f"{data.views[data.test_idx[0]].camera.height} px) from the {len(data.train_idx)} training photos "
         f"warped through the glass plane moved d behind itself (the cameras stand "
