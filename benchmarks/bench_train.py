@@ -168,6 +168,14 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
     ap.add_argument("--bundle", default="", help="train on this .npz (from --save-bundle) instead")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a [train_gs] key set for every variant, dotted for a nested table (lr.reflection_init=1e-3), "
+        "the value read as TOML; repeatable",
+    )
     a = ap.parse_args()
     cfg = load_building_config(a.building)
     base = cfg.section("train_gs", TrainParams)
@@ -188,6 +196,11 @@ def main() -> None:
             "lowpass_sigma_px": a.lowpass_sigma_px or base.lowpass_sigma_px,
         },
     )
+    if a.set:
+        import tomllib
+
+        pairs = (x.split("=", 1) for x in a.set)
+        base = replace_keys(base, {k: tomllib.loads(f"v = {v}")["v"] for k, v in pairs})
     data, prior = building_data(a, base)
     if a.train_views:
         chosen = tuple(int(i) for i in a.train_views.split(","))
