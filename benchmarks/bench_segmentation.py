@@ -1,21 +1,25 @@
 """Accuracy and time per image of rectify + segment_panels on the shipped synthetic scenes against gt/,
 and on real photos with truth (``--real DIR``: a folder laid out as shared/real/gcw_dev, made into the
 building ``--real-building`` by scripts/make_gcw_building.py and run through regularize_corners); appends a
-section to benchmarks/RESULTS.md.
+section to benchmarks/RESULTS.md. ``--losses``: what the glass masks lose against the truth, per class of
+wrong pixel (``real_truth.mask_losses``), on the real photos and on ``real_like`` scored as they are
+(``accuracy.truth_as_real``).
 
     .venv/bin/python benchmarks/bench_segmentation.py [--data-root /tmp/bench] \
-        [--real ../shared/real/gcw_dev [--exposures]] [buildings...]
+        [--real ../shared/real/gcw_dev [--exposures]] [--losses] [buildings...]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
@@ -27,14 +31,18 @@ from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
 from facade_pipeline.panels3d.model import PanelSet  # noqa: E402
 from facade_pipeline.scene import ImportedScene  # noqa: E402
-from facade_pipeline.segmentation.accuracy import evaluate_view  # noqa: E402
+from facade_pipeline.segmentation.accuracy import evaluate_view, truth_as_real  # noqa: E402
 from facade_pipeline.segmentation.real_truth import (  # noqa: E402
     EXPOSURES,
+    LOSS_CLASSES,
     evaluate_building,
+    evaluate_photo,
     exposed_copy,
     grid_corner_errors_m,
+    mask_losses,
     summary,
 )
+from facade_pipeline.segmentation.result import ViewSegmentation  # noqa: E402
 from facade_pipeline.synthetic.truth import SyntheticTruth  # noqa: E402
 from scripts.make_gcw_building import WORLD_FROM_WALL  # noqa: E402
 
@@ -101,6 +109,59 @@ def real_row(src: Path, building: str, data_root: Path, env: dict, label: str | 
             f"{np.median(e3):.1f} / {e3.max():.1f} | {t_rect:.2f} + {t_seg:.2f} |")
 
 
+def truth_views(layout: BuildingLayout, src: Path | None = None):
+    """(stem, segmentation, truth mask [H, W] bool, pane outlines, photo [H, W, 3] 8-bit) of every frontal
+    view with truth: real photos' from ``src`` (gcw_dev's layout), a synthetic building's from its gt/
+    (``accuracy.truth_as_real``) where ``src`` is None."""
+    scene = ImportedScene.load(layout)
+    truth = None if src is not None else SyntheticTruth.load(layout, scene.georef_from_local)
+    panes = None if src is None else json.loads((src / "panes.json").read_text())
+    for v in scene.frontal_views:
+        if truth is not None:
+            mask, outlines = truth_as_real(truth, v.stem)
+        else:
+            m = cv2.imread(str(src / "masks" / f"{v.stem}.png"), cv2.IMREAD_GRAYSCALE)
+            if m is None or v.stem not in panes:
+                continue
+            mask, outlines = m > 127, panes[v.stem]
+        seg = ViewSegmentation.load(layout, v.stem, v.camera.width, v.camera.height)
+        yield v.stem, seg, mask, outlines, cv2.imread(str(layout.import_frontal_image(v.stem)))
+
+
+def synthetic_real_row(building: str, layout: BuildingLayout) -> str:
+    """A synthetic building's row of the real photos' table (``truth_as_real``: its gt/ as their truth),
+    without the 3D columns (the synthetic table has them against the true corners)."""
+    per_photo = {stem: evaluate_photo(seg, mask.astype(np.uint8) * 255, outlines)
+                 for stem, seg, mask, outlines, _ in truth_views(layout)}
+    s = summary(per_photo)
+    found = f"{s['found']}/{s['whole_panes']} ({100 * s['found_fraction']:.0f} %)"
+    return (f"| {building} (gt/ as the photos' truth) | {s['photos']} | {found} | "
+            f"{s['mask_iou_median']:.3f} / {s['mask_iou_min']:.3f} | {s['corner_error_median_px']:.2f} | "
+            f"{s['complete_less_than_half_glass']} of {s['complete_panels']} | - | - | - |")
+
+
+def loss_rows(label: str, layout: BuildingLayout, src: Path | None) -> list[str]:
+    """Rows of the losses table: each photo's mask IoU and the IoU it would gain with each class of wrong
+    pixel right (``real_truth.mask_losses``), the median offset of the found whole panes' sides and the
+    cut panes found, then the mean over the photos."""
+    rows, gains, offsets = [], [], []
+    cut = np.zeros(2, int)
+    for stem, seg, mask, outlines, image in truth_views(layout, src):
+        r = mask_losses(seg.mask, mask, outlines, [p.corners_px for p in seg.panels], image)
+        clipped = r["clipped_px"] / max(1, r["wrong_px"])
+        gains.append([r["iou"]] + [r["gain"][k] for k in LOSS_CLASSES] + [clipped])
+        offsets.append(r["offsets_px"].ravel())
+        cut += r["cut_panes"]
+        off = f"{np.median(r['offsets_px']):+.1f}" if r["offsets_px"].size else "-"
+        rows.append(f"| {label} | {stem} | " + " | ".join(f"{g:.3f}" for g in gains[-1][:-1])
+                    + f" | {gains[-1][-1]:.2f} | {off} | {r['cut_panes'][0]}/{r['cut_panes'][1]} |")
+    g = np.mean(gains, axis=0)
+    off = np.concatenate(offsets)
+    rows.append(f"| **{label}** | **mean** | " + " | ".join(f"{x:.3f}" for x in g[:-1])
+                + f" | {g[-1]:.2f} | {np.median(off):+.1f} ({len(off)} sides) | {cut[0]}/{cut[1]} |")
+    return rows
+
+
 def _doit(task: str, building: str, data_root: Path, env: dict) -> None:
     subprocess.run([sys.executable, "-m", "doit", "-f", str(REPO / "dodo.py"), task, f"building={building}",
                     f"data_root={data_root}"], cwd=REPO, env=env, check=True, capture_output=True)
@@ -115,6 +176,9 @@ def main() -> None:
                     help="also the real photos at each exposure and white balance of real_truth.EXPOSURES")
     ap.add_argument("--task", default="segment_panels", choices=["segment_panels", "regularize_corners"],
                     help="the synthetic buildings' last stage: regularize_corners adds the 3D panels' column")
+    ap.add_argument("--losses", action="store_true",
+                    help="also what the masks lose, per class of wrong pixel: the real photos as taken and "
+                         "real_like (among the buildings)")
     ap.add_argument("buildings", nargs="*",
                     default=["synthetic64", "synthetic64_curved", "demo", "real_like"])
     args = ap.parse_args()
@@ -147,9 +211,19 @@ def main() -> None:
             capture_output=True,
         )
         rows.append(row(b, BuildingLayout(Path(args.data_root), b)))
+    if args.real is not None and "real_like" in args.buildings:
+        real.append(synthetic_real_row("real_like", BuildingLayout(Path(args.data_root), "real_like")))
+    losses = []
+    if args.losses:
+        if args.real is not None:
+            losses += loss_rows(args.real_building, BuildingLayout(Path(args.data_root), args.real_building),
+                                args.real.resolve())
+        if "real_like" in args.buildings:
+            losses += loss_rows("real_like", BuildingLayout(Path(args.data_root), "real_like"), None)
     command = " ".join(["python benchmarks/bench_segmentation.py", "--data-root", args.data_root]
                        + ([] if args.real is None else ["--real", str(args.real)])
                        + (["--exposures"] if args.exposures else [])
+                       + (["--losses"] if args.losses else [])
                        + ([] if args.task == "segment_panels" else ["--task", args.task]) + args.buildings)
     text = "\n".join([
         "## rectify and segment_panels\n",
@@ -195,6 +269,24 @@ def main() -> None:
         "panels under half glass | 3D panels | 3D corner median / max mm | s per MP (rectify + segment) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
         *real,
+        "",
+    ]) + ([] if not losses else [
+        "### What the glass masks lose\n",
+        "Each photo's glass mask (`03_segment/masks`) against its truth, real_like's gt/ taken as the real "
+        "photos' truth (`accuracy.truth_as_real`), every wrong pixel in one class "
+        "(`real_truth.mask_losses`): truth glass in a pane predicted over less than half its glass (*missed "
+        "whole* / *missed cut*: a pane cut by the border), else within 3 px of the truth's outline (*short "
+        "of the edge*) or deeper (*inside*); predicted glass in a panel that is less than half glass (*false "
+        "panel*: an empty unit, a panel over frames), else within 3 px of the truth's glass (*over the "
+        "edge*) or further (*elsewhere*: a panel across a missed bar). Each class's column is the mask IoU "
+        "the photo would have with that class right, minus its IoU. *Clipped*: the share of the wrong "
+        "pixels whose brightest channel is at 250/255 or more. *Side offset*: the median offset of the "
+        "predicted mask's edge from the truth's along the sides of the whole panes found (> 0: beyond "
+        "it). *Cut panes*: panes cut by the border predicted over at least half their glass.\n",
+        "| building | photo | mask IoU | missed whole | missed cut | short of the edge | inside | false "
+        "panel | over the edge | elsewhere | clipped | side offset px | cut panes |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        *losses,
         "",
     ]))
     record_results(text)

@@ -204,3 +204,29 @@ def evaluate_view(layout, view, truth: SyntheticTruth, min_area_px: int) -> dict
         "rectify_residual_px": 0.0 if rect.polynomial is None else max(w.max_px for w in rect.polynomial),
         "kind": rect.kind,
     }
+
+
+def truth_as_real(truth: SyntheticTruth, stem: str, samples: int = 9) -> tuple[np.ndarray, list]:
+    """Frontal view ``stem``'s truth in the layout of real photos with truth (``real_truth``): its glass
+    mask [H, W] bool and, per true panel in front of the camera, its outline along the true surface
+    projected through the true camera, as pixel indices (``panes.json``'s convention: the centre of the
+    top-left pixel is 0). A panel wholly inside the view has its four corners as outline, so that
+    ``real_truth.whole_panes`` takes it; one cut by the border keeps its points along the surface, off the
+    view where it leaves it."""
+    cam, parts = truth.frontal_camera(stem), truth.scene_parts()
+    by_index = {part["index"]: part for part in parts}
+    outlines = []
+    for p in truth.panels():
+        c = np.asarray(p["corners"], dtype=np.float64)
+        uv, z = cam.project(c)
+        if not np.all(z > 0):
+            continue
+        if uv.min() > 0 and (uv[:, 0] < cam.width).all() and (uv[:, 1] < cam.height).all():
+            outlines.append((uv - 0.5).tolist())
+            continue
+        along = surface_interpolator(by_index[p["part_index"]])
+        t = np.linspace(0.0, 1.0, samples)[:-1]
+        uv, z = cam.project(np.concatenate([along(c[i], c[(i + 1) % 4], t) for i in range(4)]))
+        if np.all(z > 0):
+            outlines.append((uv - 0.5).tolist())
+    return truth.mask("glass", stem), outlines

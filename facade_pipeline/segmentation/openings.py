@@ -111,13 +111,20 @@ def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], s
 def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
                    across: tuple[float, float]) -> float:
     """Mean of ``support`` [H, W] over a border strip: [lo, hi) along ``axis`` (0: x), ``across`` on the
-    other axis (the other family's outer bars); 1 without a support mask."""
+    other axis (the other family's outer bars); 1 without a support mask. Along the strip, a gap with the
+    surface on both sides counts as surface: a coarse mesh has holes (glass is hard to reconstruct), and
+    what lies beyond a facade's end (the sky, the ground) leaves no surface on the strip's far side."""
     if support is None:
         return 1.0
     a0, a1 = int(max(0, np.floor(lo))), int(max(0, np.ceil(hi)))
     b0, b1 = int(max(0, np.floor(across[0]))), int(max(0, np.ceil(across[1])))
-    block = support[b0:b1, a0:a1] if axis == 0 else support[a0:a1, b0:b1]
-    return float(block.mean()) if block.size else 0.0
+    block = support[b0:b1, a0:a1] if axis == 0 else support[a0:a1, b0:b1].T
+    if not block.size:
+        return 0.0
+    # block [along the strip, across it]: each line across keeps what lies between its first and last
+    # surface pixel along the strip
+    filled = np.maximum.accumulate(block, axis=0) & np.maximum.accumulate(block[::-1], axis=0)[::-1]
+    return float(filled.mean())
 
 
 @dataclass(frozen=True)

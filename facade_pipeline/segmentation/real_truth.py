@@ -140,3 +140,131 @@ def exposed_copy(src: Path, dst: Path, gains_rgb: tuple[float, float, float]) ->
         linear = _srgb_to_linear(bgr) * np.array(gains_rgb[::-1])
         out = np.rint(_linear_to_srgb(linear) * 255.0).astype(np.uint8)
         cv2.imwrite(str(dst / "images" / p.name), out, [cv2.IMWRITE_JPEG_QUALITY, 95])
+
+
+def _profile_edge(mask: np.ndarray, points: np.ndarray, inward: np.ndarray, reach_px: float,
+                  step_px: float = 0.25) -> np.ndarray:
+    """Where ``mask`` [H, W] begins along each profile through ``points`` [N, 2] (continuous pixel
+    coordinates) in the direction ``inward`` [2], from -``reach_px`` to +``reach_px``: the offset e [N] such
+    that the mask holds over (e, reach] (its share of the profile, counted back from the inner end)."""
+    s = np.arange(-reach_px, reach_px, step_px) + step_px / 2
+    q = points[:, None, :] + s[None, :, None] * inward[None, None, :]
+    H, W = mask.shape
+    xi = np.clip(np.floor(q[..., 0]).astype(int), 0, W - 1)
+    yi = np.clip(np.floor(q[..., 1]).astype(int), 0, H - 1)
+    return reach_px - mask[yi, xi].sum(axis=1) * step_px
+
+
+def side_offsets(pred: np.ndarray, truth: np.ndarray, pane: np.ndarray, reach_px: float,
+                 samples: int = 15) -> np.ndarray:
+    """Offset [4] (px) of the predicted mask's edge from the truth mask's edge along each side of a whole
+    pane ``pane`` [4, 2] (pixel centres at +0.5), the median of ``samples`` profiles across the side's
+    middle 70 % (clear of the corners): > 0 where the prediction reaches beyond the truth (over the bar),
+    < 0 where it stops short of it."""
+    centre = pane.mean(axis=0)
+    out = []
+    for i in range(4):
+        a, b = pane[i], pane[(i + 1) % 4]
+        d = (b - a) / np.linalg.norm(b - a)
+        n = np.array([-d[1], d[0]])
+        mid = 0.5 * (a + b)
+        if n @ (centre - mid) < 0:
+            n = -n
+        t = np.linspace(0.15, 0.85, samples)[:, None]
+        pts = a + t * (b - a)
+        out.append(float(np.median(_profile_edge(truth, pts, n, reach_px)
+                                    - _profile_edge(pred, pts, n, reach_px))))
+    return np.array(out)
+
+
+#: the classes of ``mask_losses``, each a share of the pixels the prediction gets wrong
+LOSS_CLASSES = ("missed whole pane", "missed cut pane", "short of the edge", "glass inside a found pane",
+                "false panel", "over the edge", "false elsewhere")
+
+
+def mask_losses(pred: np.ndarray, truth: np.ndarray, outlines: list, panels: list[np.ndarray] | None = None,
+                image: np.ndarray | None = None, band_px: float = 3.0, found_share: float = 0.5) -> dict:
+    """What a glass mask ``pred`` [H, W] bool loses against ``truth`` [H, W] bool, one photo, with the truth's
+    pane outlines (``panes.json``'s, pixel indices).
+
+    Each wrong pixel is put in one class (``LOSS_CLASSES``): missed glass (truth, not predicted) in a pane
+    whose glass is predicted over less than ``found_share`` ("missed whole pane" for a whole pane,
+    ``whole_panes``, "missed cut pane" for the rest, cut by the border), else within ``band_px`` of the
+    truth's outline ("short of the edge") or deeper ("glass inside a found pane"); false glass (predicted,
+    not truth) in a predicted panel (``panels``' quads [4, 2] in photo pixels; where None or outside every
+    quad, the mask's 4-connected region) that is less than half truth glass ("false panel": an empty unit,
+    a panel over frames), else within ``band_px`` of the truth's glass ("over the edge") or further ("false
+    elsewhere"). ``gain`` per class: the IoU the photo would have with that class right.
+    ``clipped``: the wrong pixels whose brightest channel in ``image`` (8-bit) is at 250 or more. Whole panes:
+    ``offsets_px``, each side's offset of the predicted edge from the truth's (``side_offsets``, of the
+    panes found), and ``cut_panes`` [found, all]: the panes cut by the border predicted over at least
+    ``found_share`` of their glass."""
+    H, W = truth.shape
+    pred, truth = pred.astype(bool), truth.astype(bool)
+    inter, union = int((pred & truth).sum()), int((pred | truth).sum())
+    fn, fp = truth & ~pred, pred & ~truth
+    whole = whole_panes(outlines, W, H)
+    whole_keys = {tuple(np.round(p.ravel(), 3)) for p in whole}
+    missed_whole, missed_cut = np.zeros_like(truth), np.zeros_like(truth)
+    offsets, cut_found, cut_all = [], 0, 0
+    for o in outlines:
+        c = np.asarray(o, float) + 0.5
+        # the outline runs through the centres of its outermost pixels: grown by one pixel, it holds them
+        region = quad_mask(c, W, H) if len(c) == 4 else _polygon_mask(c, W, H)
+        region = cv2.dilate(region.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & truth
+        if not region.any():
+            continue
+        share = float(pred[region].mean())
+        is_whole = tuple(np.round(c.ravel(), 3)) in whole_keys
+        if share < found_share:
+            (missed_whole if is_whole else missed_cut)[region] = True
+        elif is_whole:
+            reach = 0.25 * float(min(np.ptp(c[:, 0]), np.ptp(c[:, 1])))
+            offsets.append(side_offsets(pred, truth, c, min(reach, 12.0)))
+        if not is_whole:
+            cut_all += 1
+            cut_found += share >= found_share
+    inside = cv2.distanceTransform(truth.astype(np.uint8), cv2.DIST_L2, 3)
+    outside = cv2.distanceTransform((~truth).astype(np.uint8), cv2.DIST_L2, 3)
+    classes = {}
+    classes["missed whole pane"] = fn & missed_whole
+    classes["missed cut pane"] = fn & missed_cut & ~missed_whole
+    rest = fn & ~missed_whole & ~missed_cut
+    classes["short of the edge"] = rest & (inside <= band_px)
+    classes["glass inside a found pane"] = rest & (inside > band_px)
+    n, labels = cv2.connectedComponents(pred.astype(np.uint8), connectivity=4)
+    if panels:
+        ys, xs = np.mgrid[0:H, 0:W] + 0.5
+        quad = inside_quads([np.asarray(q, float) for q in panels], xs, ys)
+        labels = np.where(quad >= 0, n + quad, labels)
+        n += len(panels)
+    labels = np.where(pred, labels, 0)
+    share = np.bincount(labels[truth], minlength=n) / np.maximum(np.bincount(labels.ravel(), minlength=n), 1)
+    false_region = (share < 0.5)[labels] & pred
+    classes["false panel"] = fp & false_region
+    classes["over the edge"] = fp & ~false_region & (outside <= band_px)
+    classes["false elsewhere"] = fp & ~false_region & (outside > band_px)
+    iou_now = inter / union if union else 1.0
+    gain, count = {}, {}
+    for name, m in classes.items():
+        k = int(m.sum())
+        count[name] = k
+        if name in ("missed whole pane", "missed cut pane", "short of the edge", "glass inside a found pane"):
+            gain[name] = (inter + k) / union - iou_now if union else 0.0
+        else:
+            gain[name] = inter / (union - k) - iou_now if union > k else 0.0
+    clipped = 0
+    if image is not None:
+        clipped = int(((fn | fp) & (image.max(axis=2) >= 250)).sum())
+    return {"iou": iou_now, "union_px": union, "wrong_px": int((fn | fp).sum()), "count_px": count,
+            "gain": gain, "clipped_px": clipped,
+            "offsets_px": np.array(offsets).reshape(-1, 4), "cut_panes": (cut_found, cut_all)}
+
+
+def _polygon_mask(corners: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[H, W] bool: pixels whose centre lies inside the (possibly non-convex) polygon ``corners`` [K, 2]
+    (pixel centres at +0.5)."""
+    from skimage.measure import points_in_poly
+
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    return points_in_poly(np.stack([xs.ravel(), ys.ravel()], axis=1), corners).reshape(height, width)

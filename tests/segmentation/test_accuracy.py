@@ -8,7 +8,8 @@ import pytest
 
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.segmentation.accuracy import evaluate_view
+from facade_pipeline.segmentation.accuracy import evaluate_view, truth_as_real
+from facade_pipeline.segmentation.real_truth import evaluate_photo, quad_mask, summary, whole_panes
 from facade_pipeline.segmentation.result import ViewSegmentation
 from facade_pipeline.synthetic.truth import SyntheticTruth
 
@@ -66,3 +67,31 @@ def test_panel_count_exact_and_mask_iou(results, building):
     for v in results[building]:
         assert v["n_pred"] == v["n_true"]
         assert (v["iou_complete"] >= 0.95).all()
+
+
+@pytest.mark.parametrize("building", BUILDINGS)
+def test_the_truth_in_the_real_photos_layout(scenes, building):
+    """gt/ as real photos' truth (``truth_as_real``): the glass the mask holds lies inside the panels'
+    outlines, a whole pane's quad is mostly glass (the frames hide a little of it), and the segmentation
+    scored on it as on real photos finds every whole pane."""
+    from skimage.measure import points_in_poly
+
+    layout = scenes[building][0]
+    scene = ImportedScene.load(layout)
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
+    per_photo = {}
+    for v in scene.frontal_views:
+        mask, outlines = truth_as_real(truth, v.stem)
+        W, H = v.camera.width, v.camera.height
+        ys, xs = np.mgrid[0:H, 0:W] + 0.5
+        centres = np.stack([xs.ravel(), ys.ravel()], axis=1)
+        inside = np.zeros(H * W, bool)
+        for o in outlines:
+            inside |= points_in_poly(centres, np.asarray(o, float) + 0.5)
+        assert mask.ravel()[inside].sum() >= 0.95 * mask.sum()
+        for pane in whole_panes(outlines, W, H):
+            assert mask[quad_mask(pane, W, H)].mean() > 0.7
+        seg = ViewSegmentation.load(layout, v.stem, W, H)
+        per_photo[v.stem] = evaluate_photo(seg, mask.astype(np.uint8) * 255, outlines)
+    s = summary(per_photo)
+    assert s["whole_panes"] > 0 and s["found_fraction"] == 1.0

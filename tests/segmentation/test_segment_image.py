@@ -354,6 +354,26 @@ def test_border_strips_need_the_facade_surface_and_the_frame_colour():
     assert [p for p in washed.panels if p.corners[:, 0].max() > d.W - 1.0]
 
 
+def test_a_hole_in_the_coarse_mesh_does_not_end_the_facade():
+    """A border strip where the coarse mesh has a hole (no surface over most of the strip, but the
+    surface on both sides of the gap along the strip: a mesh that missed the glass) keeps its partial
+    panels; the same strip without the surface at one of its ends (the facade ends there) has none."""
+    d = Drawing(x0=-14.0, y0=-10.0, cols=4, rows=4)
+    img = d.render()
+    full = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    left = {p.row for p in full.panels if p.corners[:, 0].min() < 1.0}
+    assert left
+    # the strip runs between the first and last whole transoms' centres, y = 14.9 and 61.5
+    hole = np.ones(img.shape[:2], bool)
+    hole[20:56, :14] = False  # most of the left strip, the surface above and below the gap
+    holed = segment_image(img, PARAMS, M_PER_PX, PITCH_M, support=hole)
+    assert {p.row for p in holed.panels if p.corners[:, 0].min() < 1.0} == left
+    open_end = np.ones(img.shape[:2], bool)
+    open_end[20:, :14] = False  # the same gap, open at the bottom: no surface beyond it
+    ended = segment_image(img, PARAMS, M_PER_PX, PITCH_M, support=open_end)
+    assert not [p for p in ended.panels if p.corners[:, 0].min() < 1.0]
+
+
 def test_a_border_strip_where_the_facade_goes_on_over_part_of_it():
     """A facade that goes on past the top border above its last column only (a stepped facade, or a unit
     installed off its neighbours' line): the strip's bars do not continue in the median, the one that
