@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facade_pipeline.segmentation.evidence import Gradients
+from facade_pipeline.segmentation.evidence import Gradients, local_median
 from facade_pipeline.segmentation.grid import FamilyFit
 
 
@@ -119,7 +119,11 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, 
     ref_rows &= ok
     if not ref_rows.any():
         return np.where(ok, 1.0, np.nan)
-    ref = np.median(colour[ref_rows], axis=0)
+    if grad.block_px is None:
+        ref = np.median(colour[ref_rows], axis=0)
+    else:  # each block's own colour (``Gradients.block_px``)
+        ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px)
+        ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
     return np.where(ok, (np.linalg.norm(colour - ref, axis=1) <= tol).astype(float), np.nan)
 
 

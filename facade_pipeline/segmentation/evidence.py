@@ -37,6 +37,14 @@ def nanmedian0(a: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
+def local_median(a: np.ndarray, block: float) -> np.ndarray:
+    """``a`` [L, ...] replaced by the median (NaNs left out) of its block along axis 0: about ``block``
+    rows each, the L rows split evenly (one block where L is no longer than ``block``)."""
+    cuts = np.linspace(0, len(a), max(1, int(round(len(a) / block))) + 1).astype(int)
+    return np.concatenate([np.broadcast_to(nanmedian0(a[i:j]), (j - i,) + a.shape[1:])
+                           for i, j in zip(cuts[:-1], cuts[1:], strict=True)])
+
+
 def norm_last(x: np.ndarray) -> np.ndarray:
     """``np.linalg.norm(x, axis=-1)`` to the bit for a short last axis (fewer than 8: colour channels):
     numpy sums the squares left to right there, which this does channel by channel, several times faster
@@ -61,11 +69,20 @@ class Gradients:
     known: np.ndarray | None = None
     """[L, N - 1] float, 1 where the boundary's edge is known, 0 where both of its pixels clip
     (``CLIPPED_LEVEL``); None where no pixel of the view clips."""
+    block_px: float | None = None
+    """The length (rows) along the bars over which a frame's own colour is taken as constant, where it is
+    not along the whole bar: a transom following a curved surface turns through the surface's normals, and
+    its shading with them (a 12 m cylinder lit from one side: from 0.29 to 0.55 across a view), which a
+    colour constant along it takes for a reflection or an object in front. Its uniformity
+    (``uniformity``) and presence (``edges.frame_presence``) are then judged against the median of each
+    block (``local_median``), within which the shading hardly turns and a reflection does change. None:
+    against the median along the whole bar."""
     # line colours by row span: a MAP pass's uniformity and colour prior and the bars' colour take the same
     _line_colours: dict[tuple[int, int, int], np.ndarray] = field(default_factory=dict, repr=False)
 
     @classmethod
-    def of(cls, image: np.ndarray, axis: int, valid: np.ndarray | None = None) -> Gradients:
+    def of(cls, image: np.ndarray, axis: int, valid: np.ndarray | None = None,
+           block_px: float | None = None) -> Gradients:
         """axis 0: vertical bars (mullions, positions along x); axis 1: horizontal bars (transoms)."""
         img = np.asarray(image, dtype=np.float32) / 255.0
         ok = np.ones(img.shape[:2], bool) if valid is None else np.asarray(valid, bool)
@@ -77,7 +94,7 @@ class Gradients:
         known = None
         if clipped.any():
             known = (~(clipped[:, 1:] & clipped[:, :-1])).astype(np.float32)
-        return cls(img, d, ok, known)
+        return cls(img, d, ok, known, block_px)
 
     @property
     def size(self) -> int:
@@ -133,9 +150,11 @@ class Gradients:
 
     def uniformity(self, rows: slice) -> np.ndarray:
         """v(c) [M]: median over ``rows`` of the colour distance of the image at position c (interpolated
-        between pixel centres) from its median along the rows; small along a uniform frame bar."""
+        between pixel centres) from its median along the rows (``local_median``: over its block of
+        ``block_px`` rows where set); small along a uniform frame bar."""
         col = self._line_samples(rows)  # [L, M, 3]
-        v = nanmedian0(norm_last(col - self.line_colour(rows)[None]))
+        ref = self.line_colour(rows)[None] if self.block_px is None else local_median(col, self.block_px)
+        v = nanmedian0(norm_last(col - ref))
         return np.where(np.isfinite(v), v, 1.0)  # positions outside the view (rectified images) are all NaN
 
 

@@ -196,7 +196,10 @@ def find_bars(
                 ORIENTATION_SEARCH_DEG,
             )
         )
-        gv, gh = Gradients.of(image, 0, valid), Gradients.of(image, 1, valid)
+        # on a curved surface the transoms' shading turns along them (``Gradients.block_px``): judged over
+        # blocks of the smallest pitch sought, a reflection changes within one and the shading hardly does
+        gv = Gradients.of(image, 0, valid)
+        gh = Gradients.of(image, 1, valid, None if planar else float(sizes_h.min_pitch))
         ahead = [pool.submit(gv.prepare)]
         ahead += [pool.submit(pitch_hypotheses, g.size, z) for g, z in ((gh, sizes_h), (gv, sizes_v))]
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole

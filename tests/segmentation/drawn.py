@@ -30,6 +30,9 @@ class Drawing:
     last_pitch: tuple[float | None, float | None] = (None, None)
     #: the transoms' colour where it differs from the mullions' (a cylinder's transoms face the sky)
     transom_colour: tuple[float, float, float] | None = None
+    #: the transoms' grey level from the left to the right end, where their shading turns along them (a
+    #: cylinder's transoms lit from one side: 0.29 to 0.55 across one of curved12's views)
+    transom_ramp: tuple[float, float] | None = None
 
     def _lines(self, axis: int) -> np.ndarray:
         """[n + 1] left (top) edges of the bars of one family (px), ``axis`` 0: mullions."""
@@ -62,6 +65,12 @@ class Drawing:
         if self.transom_colour is not None:
             for y in yl:
                 img[facade & ~glass & (ys >= y * S) & (ys < (y + self.bar) * S)] = self.transom_colour
+        if self.transom_ramp is not None:
+            lo, hi = self.transom_ramp
+            grey = lo + (hi - lo) * np.clip((xs - gx0) / (gx1 - gx0), 0.0, 1.0)
+            for y in yl:
+                on = facade & ~glass & (ys >= y * S) & (ys < (y + self.bar) * S)
+                img[on] = grey[on][:, None]
         sky = ys < gy0 + 0.45 * (gy1 - gy0)
         img[glass & sky] = (0.35, 0.45, 0.6)
         img[glass & ~sky] = (0.25, 0.35, 0.22)
