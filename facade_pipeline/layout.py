@@ -79,6 +79,7 @@ ENTRIES: dict[str, str] = {
     "segment_overlay": "03_segment/overlays/{stem}.png",
     # 04-06: 3D panels, corrected mesh, baked geometry prior of the training views
     "regularize_panels": "04_regularize/panels.json",
+    "regularize_poses": "04_regularize/poses.json",
     "regularize_overlay": "04_regularize/overlays/{stem}.png",
     "correct_mesh": "05_correct_mesh/corrected_mesh.ply",
     "correct_mesh_labels": "05_correct_mesh/triangle_labels.npy",

@@ -1,6 +1,7 @@
 """Stage ``bake_normals``: the geometry prior of every training (UAV) view (Eq. 11's normal prior).
 
-Reads ``05_correct_mesh/corrected_mesh.ply`` and ``triangle_labels.npy`` and the imported scene; writes
+Reads ``05_correct_mesh/corrected_mesh.ply`` and ``triangle_labels.npy`` and the imported scene at its
+registered poses (``04_regularize/poses.json``); writes
 per view a world-space normal map and a depth map (EXR float32, each with a ``valid`` channel; no NaN) by
 ray casting the corrected mesh, and the facade and glass masks (PNG) from the same rays: a pixel is glass
 when its ray first hits a triangle labelled glass in ``05_correct_mesh/triangle_labels.npy``, facade when
@@ -27,6 +28,7 @@ from facade_pipeline.errors import InputError
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
+from facade_pipeline.panels3d.poses import registered_scene
 from facade_pipeline.scene import ImportedScene, View
 from stages._runner import StageReport, main
 
@@ -36,7 +38,7 @@ if TYPE_CHECKING:  # names for annotations only: the functions that use them imp
 
 NAME = "bake_normals"
 DOC = "bake world-space normal and depth maps (EXR) and facade/glass masks (PNG) for every training view"
-UPSTREAM: tuple[str, ...] = ("correct_mesh", "import_photogrammetry")
+UPSTREAM: tuple[str, ...] = ("correct_mesh", "regularize_corners", "import_photogrammetry")
 
 
 @dataclass(frozen=True)
@@ -47,12 +49,14 @@ class Params:
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     read_manifest(layout, "correct_mesh")
+    read_manifest(layout, "regularize_corners")
     files = [
         layout.import_scene,
+        layout.path("regularize_poses"),
         layout.path("correct_mesh"),
         layout.path("correct_mesh_labels"),
     ]
-    ImportedScene.load(layout)
+    registered_scene(layout)
     return files
 
 
@@ -114,7 +118,9 @@ def bake_one(layout: BuildingLayout, params: Params, v: View) -> dict:
 
 
 def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageReport:
-    scene = ImportedScene.load(layout)
+    # each view at the pose it trains with: a mask cast from the imported pose would miss the frames by
+    # the pose's error
+    scene = registered_scene(layout)
     views = scene.uav_views
     outputs: list[Path] = []
     errs, ious, ious_f, n_rays, n_valid, t_cast = [], {}, [], 0, 0, 0.0

@@ -27,12 +27,14 @@ from facade_pipeline.evaluation.params import EvaluateParams
 from facade_pipeline.evaluation.video import video_path
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
-from facade_pipeline.scene import ImportedScene
+from facade_pipeline.panels3d.poses import registered_scene
 from stages._runner import StageReport, main
 
 NAME = "evaluate"
 DOC = "render held-out views of every trained variant; PSNR/SSIM/LPIPS per region, geometry vs gt; the report"
-UPSTREAM: tuple[str, ...] = ("train_gs", "bake_normals", "correct_mesh", "import_photogrammetry")
+UPSTREAM: tuple[str, ...] = (
+    "train_gs", "bake_normals", "correct_mesh", "regularize_corners", "import_photogrammetry"
+)
 Params = EvaluateParams
 #: the runner deletes the targets (the report, its metrics and video) before the manifest, before anything
 #: else: an earlier run's report must never be readable without the manifest that vouches for it, while
@@ -55,8 +57,8 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
 
     for stage in ("bake_normals", "correct_mesh", "regularize_corners"):
         read_manifest(layout, stage)
-    scene = ImportedScene.load(layout)
-    files = [layout.import_scene]
+    scene = registered_scene(layout)
+    files = [layout.import_scene, layout.path("regularize_poses")]
     for v in trained_models(layout, params):
         files += v.files
         for split in params.splits:
@@ -111,7 +113,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     from facade_pipeline.training.data import pixel_budget_factor, scaled_camera
     from facade_pipeline.training.trainer import resolve_device
 
-    scene = ImportedScene.load(layout)
+    scene = registered_scene(layout)
     device = resolve_device(settings.device)
     truth = (
         load_truth(*truth_files(layout), scene.georef_from_local, body_file(layout))

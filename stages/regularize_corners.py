@@ -2,8 +2,10 @@
 paper, end of section 3.1.2).
 
 Reads the frontal views' panel corners and authoritative panel masks (``03_segment``), the imported
-scene, coarse mesh and coarse points (``01_import``); writes ``04_regularize/panels.json`` (a ``PanelSet``)
-and per frontal view an overlay (the segmented quads and the 3D panels projected over the view).
+scene, coarse mesh and coarse points (``01_import``); writes ``04_regularize/panels.json`` (a ``PanelSet``),
+each frontal view's pose registered to those panels (``04_regularize/poses.json``, ``RegisteredPoses``:
+``facade_pipeline.panels3d.poses``, which later stages read the cameras through) and per frontal view an
+overlay (the segmented quads and the 3D panels projected over the view).
 Quads cut by the image border ("complete": false) count with their corners away from the border.
 Rejected rays (missed, grazing, ghost) and grid outliers are counted in the manifest; on synthetic
 buildings the 3D corner error against gt/panels.json is added (gt is read for that metric only).
@@ -111,16 +113,46 @@ def _observations(layout: BuildingLayout, scene: ImportedScene, params: Params):
     return quads, complete, view, counts
 
 
-def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels) -> dict:
-    """Corner error against gt/panels.json on synthetic buildings (metrics only)."""
+def _registered_poses(scene: ImportedScene, quads: list, complete: list, view: list, panels):
+    """Each frontal view's pose refined against the 3D panels on its matched true corners, or kept."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.panels3d.grid import BORDER_MARGIN_PX, true_corners
+    from facade_pipeline.panels3d.poses import RegisteredPoses, match_corners, refine_pose
+
+    cameras = [v.camera for v in scene.frontal_views]
+    ok = true_corners(quads, np.asarray(complete, bool), view, cameras, BORDER_MARGIN_PX)
+    out = []
+    for i, v in enumerate(scene.frontal_views):
+        mine = [q for q, k in enumerate(view) if k == i]
+        px, world = match_corners([quads[q] for q in mine], ok[mine], panels, v.camera)
+        out.append(refine_pose(v.camera, px, world, v.stem))
+    return RegisteredPoses(tuple(out))
+
+
+def _truth_metrics(layout: BuildingLayout, scene: ImportedScene, panels, poses) -> dict:
+    """Corner error against gt/panels.json, and the frontal views' pose error against gt/frontal/sparse/0
+    as imported and as registered, on synthetic buildings (metrics only)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.meshing.metrics import corner_errors
     from facade_pipeline.synthetic.truth import SyntheticTruth
 
     if not SyntheticTruth.available(layout, "panels"):
         return {}
-    true = SyntheticTruth.load(layout, scene.georef_from_local).panel_corners()
-    return {"truth": {**corner_errors(panels, true), "true_panels": len(true)}}
+    truth = SyntheticTruth.load(layout, scene.georef_from_local)
+    out = {**corner_errors(panels, truth.panel_corners()), "true_panels": len(truth.panel_corners())}
+    if layout.gt("frontal_sparse_dir").is_dir() and poses.views:
+        from facade_pipeline.panels3d.poses import pose_error
+
+        registered = {p.stem: p.cam_from_world for p in poses.views}
+        errs = [
+            (pose_error(v.camera.cam_from_world, t), pose_error(registered[v.stem], t))
+            for v in scene.frontal_views
+            for t in [truth.frontal_camera(v.stem).cam_from_world]
+        ]
+        for k, name in enumerate(("rotation_deg", "centre_m")):
+            out[f"pose_{name}_median_imported"] = round(float(np.median([e[0][k] for e in errs])), 6)
+            out[f"pose_{name}_median"] = round(float(np.median([e[1][k] for e in errs])), 6)
+    return {"truth": out}
 
 
 def _overlays(layout: BuildingLayout, scene: ImportedScene, quads: list, view: list, panels) -> list[Path]:
@@ -166,6 +198,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         )
     out = layout.path("regularize_panels")
     panels.save(out)
+    poses = _registered_poses(scene, quads, complete, view, panels)
+    poses.save(layout.path("regularize_poses"))
     overlays = _overlays(layout, scene, quads, view, panels)
     metrics = {
         "n_frontal_views": len(cameras),
@@ -173,13 +207,14 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         "coarse_triangles_degenerate": rc.n_dropped,
         **{f"mask_panels_{k}": n for k, n in counts.items()},
         **metrics,
-        **_truth_metrics(layout, scene, panels),
+        "poses": poses.summary(),
+        **_truth_metrics(layout, scene, panels, poses),
     }
-    return StageReport([out, *overlays], metrics)
+    return StageReport([out, layout.path("regularize_poses"), *overlays], metrics)
 
 
 def targets(layout: BuildingLayout, params: Params) -> list[Path]:
-    return [layout.path("regularize_panels")]
+    return [layout.path("regularize_panels"), layout.path("regularize_poses")]
 
 
 def _no_panels_note(n_frontal: int) -> str:

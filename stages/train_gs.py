@@ -1,7 +1,8 @@
 """Stage ``train_gs``: reflection-aware 2D Gaussian Splatting (the paper's section 3.2).
 
-Reads the imported views and coarse points (01_import), the corrected mesh and its triangle labels
-(05_correct_mesh) and, per UAV view, the baked normal prior and the facade/glass masks (06_bake_normals).
+Reads the imported views at their registered poses (04_regularize/poses.json) and the coarse points
+(01_import), the corrected mesh and its triangle labels (05_correct_mesh) and, per UAV view, the baked
+normal prior and the facade/glass masks (06_bake_normals).
 Trains on every view but the held-out ones (every ``test_every``-th), checkpointing atomically so that a
 killed run resumes where it stopped, and writes the Gaussians (3DGS-style PLY with reflectivity and F0),
 the reflection module's weights, the train/test split and the training log into 07_train/.
@@ -25,7 +26,8 @@ from facade_pipeline.io.atomic import write_text
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest, sha256_file, sources_digest
 from facade_pipeline.meshing.correct import GLASS, read_labels
-from facade_pipeline.scene import ImportedScene, View
+from facade_pipeline.panels3d.poses import registered_scene
+from facade_pipeline.scene import View
 from facade_pipeline.training.data import (
     InitGeometry,
     TrainData,
@@ -44,7 +46,7 @@ if TYPE_CHECKING:  # names for annotations only: the functions that use them imp
 
 NAME = "train_gs"
 DOC = "train reflection-aware 2D Gaussians (deferred shading, reflection MLP, normal prior) on the UAV views"
-UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "import_photogrammetry")
+UPSTREAM: tuple[str, ...] = ("bake_normals", "correct_mesh", "regularize_corners", "import_photogrammetry")
 Params = TrainParams
 BAKED: tuple[BakedMap, ...] = ("normal_map", "facade_mask", "glass_mask")  # no depth: not trained on
 
@@ -58,11 +60,12 @@ def _baked(layout: BuildingLayout, stem: str) -> dict[str, Path]:
 
 def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     """The imported scene, images and points, the corrected mesh and every view's baked maps (checked)."""
-    for stage in ("bake_normals", "correct_mesh"):
+    for stage in ("bake_normals", "correct_mesh", "regularize_corners"):
         read_manifest(layout, stage)
-    scene = ImportedScene.load(layout)
+    scene = registered_scene(layout)
     files = [
         layout.import_scene,
+        layout.path("regularize_poses"),
         layout.import_coarse_points,
         layout.path("correct_mesh"),
         layout.path("correct_mesh_labels"),
@@ -112,7 +115,7 @@ def load_train_data(layout: BuildingLayout, params: Params) -> TrainData:
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.meshes import read_mesh, read_points
 
-    scene = ImportedScene.load(layout)
+    scene = registered_scene(layout)  # every view, held-out ones too, at its registered pose
     views = tuple(load_view(layout, v, params.max_view_pixels) for v in scene.uav_views)
     mesh = read_mesh(layout.path("correct_mesh"))
     pcd = read_points(layout.import_coarse_points)

@@ -20,6 +20,7 @@ from facade_pipeline.io.meshes import make_mesh, write_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, write_labels
+from facade_pipeline.panels3d.poses import RegisteredPoses
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.synthetic.truth import SyntheticTruth
 from facade_pipeline.training.params import TrainParams, replace_keys
@@ -40,6 +41,9 @@ def upstream(synth64, tmp_path) -> BuildingLayout:
     layout = BuildingLayout(tmp_path / "data", "synthetic64")
     shutil.copytree(synth64.root, layout.root)
     layout.path("correct_mesh").parent.mkdir(parents=True)
+    layout.path("regularize_poses").parent.mkdir(parents=True)
+    RegisteredPoses(()).save(layout.path("regularize_poses"))  # no frontal view registered: poses as imported
+    _fake_manifest(layout, "regularize_corners")
     truth = SyntheticTruth.load(layout)
     (gv, gf), (fv, ff) = truth.mesh("glass_mesh"), truth.mesh("frame_mesh")
     both = make_mesh(np.concatenate([gv, fv]), np.concatenate([gf, ff + len(gv)]))
