@@ -6,16 +6,14 @@ to the coordinates of the user's photogrammetry.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.atomic import read_json, write_json
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 
@@ -77,13 +75,9 @@ class ImportedScene:
         """Read the scene of a completed import (its manifest must exist)."""
         read_manifest(layout, "import_photogrammetry")
         path = layout.import_scene
-        try:
-            d = json.loads(path.read_text())
-            return cls(
-                tuple(View.from_dict(v) for v in d["views"]),
-                np.array(d["georef_from_local"]),
-                d["up_axis_method"],
-                d["points_source"],
-            )
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-            raise InputError(path, "an imported scene (JSON)", f"{type(e).__name__}: {e}") from None
+        return read_json(path, "an imported scene (JSON) written by import_photogrammetry", lambda d: cls(
+            tuple(View.from_dict(v) for v in d["views"]),
+            np.array(d["georef_from_local"]),
+            d["up_axis_method"],
+            d["points_source"],
+        ))  # fmt: skip

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from facade_pipeline.config import config_dir
-from facade_pipeline.io.atomic import TMP_PREFIX, atomic_path, write_text
+from facade_pipeline.errors import InputError
+from facade_pipeline.io.atomic import TMP_PREFIX, atomic_path, read_json, write_json, write_text
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from tests.helpers import make_raw, synthetic_reconstruction
@@ -90,6 +91,27 @@ def test_atomic_writer_keeps_old_file_on_error(tmp_path):
         raise RuntimeError("crash while writing")
     assert p.read_text() == "old"
     assert [q.name for q in tmp_path.iterdir()] == ["out.txt"]
+
+
+@pytest.mark.parametrize(
+    ("text", "found"),
+    [
+        (None, "no file"),
+        ('{"version": 1, "views": [', "JSONDecodeError"),
+        ('{"version": 2, "views": []}', "version 2"),
+        ('{"version": 1}', "KeyError"),
+        ('{"version": 1, "views": 3}', "TypeError"),
+    ],
+)
+def test_a_damaged_json_record_is_one_error_naming_its_file(tmp_path, text, found):
+    p = tmp_path / "poses.json"
+    if text is not None:
+        p.write_text(text)
+    with pytest.raises(InputError) as e:
+        read_json(p, "views (JSON)", lambda d: list(d["views"]), version=1)
+    assert str(p) in str(e.value) and found in str(e.value) and "views (JSON)" in str(e.value)
+    write_json(p, {"version": 1, "views": [1, 2]})
+    assert read_json(p, "views (JSON)", lambda d: list(d["views"]), version=1) == [1, 2]
 
 
 def test_cli_reports_bad_input_in_one_line(real_building):

@@ -1,7 +1,8 @@
 """Atomic output files: write to a temporary name in the same folder, then ``os.replace``.
 
 A crash, ``kill -9`` or Ctrl-C therefore leaves either the old file, the complete new file, or a stray
-temporary file (``.tmp-*``) that no reader trusts and that the next run of the stage removes.
+temporary file (``.tmp-*``) that no reader trusts and that the next run of the stage removes. ``read_json``
+is ``write_json``'s counterpart: whatever is wrong with the file comes back as one ``InputError`` naming it.
 """
 
 from __future__ import annotations
@@ -12,8 +13,13 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TypeVar
+
+from facade_pipeline.errors import InputError
+
+T = TypeVar("T")
 
 TMP_PREFIX = ".tmp-"
 
@@ -87,6 +93,23 @@ def write_text(path: str | Path, text: str) -> None:
 def write_json(path: str | Path, obj: object) -> None:
     """Write ``obj`` as indented JSON to ``path`` atomically (NaN and Inf are refused)."""
     write_text(path, json.dumps(obj, indent=2, sort_keys=False, allow_nan=False) + "\n")
+
+
+def read_json(path: str | Path, what: str, parse: Callable[[dict], T], version: int | None = None) -> T:
+    """``parse`` applied to the JSON object in ``path`` (``what``: what the file should be, for the message).
+    With ``version``, the object's ``"version"`` must equal it: a file of another format version is refused
+    before it is parsed. A missing, unreadable or malformed file (a key missing, a value of the wrong type)
+    raises ``InputError`` naming the file; ``parse``'s own ``InputError`` passes through."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+        if version is not None and d["version"] != version:
+            raise InputError(path, f"{what}, version {version}", f"version {d['version']}")
+        return parse(d)
+    except FileNotFoundError:
+        raise InputError(path, what, "no file") from None
+    except (OSError, json.JSONDecodeError, KeyError, IndexError, TypeError, ValueError) as e:
+        raise InputError(path, what, f"{type(e).__name__}: {e}") from None
 
 
 def remove_stale_temporaries(folder: str | Path) -> int:

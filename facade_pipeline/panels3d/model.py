@@ -9,7 +9,6 @@ a cylinder), ``z`` up (world z), ``h`` along the outward normal (0 on the glass)
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -17,7 +16,7 @@ from typing import Literal
 import numpy as np
 
 from facade_pipeline.errors import InputError
-from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.atomic import read_json, write_json
 
 PANELSET_VERSION = 1
 UP = np.array([0.0, 0.0, 1.0])
@@ -221,19 +220,12 @@ class PanelSet:
     @classmethod
     def load(cls, path: str | Path) -> PanelSet:
         """Read and check a panel set; a damaged file raises ``InputError`` naming it."""
-        path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-            if d["version"] != PANELSET_VERSION:
-                raise InputError(path, f"panel set version {PANELSET_VERSION}", f"version {d['version']}")
+        def parse(d: dict) -> tuple:
             parts = tuple(PartSurface.from_dict(p) for p in d["parts"])
-            panels = tuple(Panel.from_dict(p) for p in d["panels"])
-        except FileNotFoundError:
-            raise InputError(path, "a panel set (JSON) written by regularize_corners", "no file") from None
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise InputError(
-                path, "a panel set (JSON with parts and panels)", f"{type(e).__name__}: {e}"
-            ) from None
+            return parts, tuple(Panel.from_dict(p) for p in d["panels"]), d.get("meta", {})
+
+        what = "a panel set (JSON with parts and panels) written by regularize_corners"
+        parts, panels, meta = read_json(path, what, parse, PANELSET_VERSION)
         bad = [
             i
             for i, p in enumerate(panels)
@@ -245,7 +237,7 @@ class PanelSet:
                 f"panels with finite corners and a part index below {len(parts)}",
                 f"{len(bad)} bad panels (first: #{bad[0]})",
             )
-        return cls(parts, panels, d.get("meta", {}))
+        return cls(parts, panels, meta)
 
 
 def frame_width(panels: tuple[Panel, ...], surface: PartSurface) -> float:

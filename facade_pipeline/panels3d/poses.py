@@ -19,7 +19,6 @@ that view's. Frames: local (01_import), metres; pixels with centres at (i + 0.5,
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import numpy as np
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
-from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.atomic import read_json, write_json
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene
@@ -128,16 +127,8 @@ class RegisteredPoses:
     @classmethod
     def load(cls, path: str | Path) -> RegisteredPoses:
         """Read the poses; a damaged file raises ``InputError`` naming it."""
-        path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-            if d["version"] != POSES_VERSION:
-                raise InputError(path, f"registered poses version {POSES_VERSION}", f"version {d['version']}")
-            views = tuple(ViewPose.from_dict(v) for v in d["views"])
-        except FileNotFoundError:
-            raise InputError(path, "poses (JSON) written by regularize_corners", "no file") from None
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise InputError(path, "registered poses (JSON with views)", f"{type(e).__name__}: {e}") from None
+        views = read_json(path, "registered poses (JSON with views) written by regularize_corners",
+                          lambda d: tuple(ViewPose.from_dict(v) for v in d["views"]), POSES_VERSION)
         bad = [v.stem for v in views if not np.isfinite(v.cam_from_world).all()]
         if bad:
             raise InputError(path, "finite cam_from_world for every view", f"not for {bad[:3]}")

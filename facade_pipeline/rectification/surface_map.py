@@ -29,7 +29,6 @@ image would pass ``max_size_factor`` times the view's pixel count.
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -37,10 +36,9 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from facade_pipeline.errors import InputError
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.geometry.polywarp import PolyWarp, fit_polywarp
-from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.atomic import read_json, write_json
 from facade_pipeline.rectification.cylinder import Surface
 from facade_pipeline.rectification.params import RectifyParams
 
@@ -183,8 +181,7 @@ class ViewRectification:
 
     @classmethod
     def load(cls, path: str | Path) -> ViewRectification:
-        try:
-            d = json.loads(Path(path).read_text())
+        def parse(d: dict) -> ViewRectification:
             poly = d.get("polynomial")
             return cls(d["kind"], int(d["rectified_width"]), int(d["rectified_height"]),
                        float("nan") if d["metres_per_px"] is None else float(d["metres_per_px"]),
@@ -193,9 +190,8 @@ class ViewRectification:
                        float(d["s0_m"]), float(d["h0_m"]), str(d["reason"]),
                        None if poly is None else (PolyWarp.from_dict(poly["forward"]),
                                                   PolyWarp.from_dict(poly["inverse"])))
-        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise InputError(path, "a rectification (JSON with kind, sizes, scale, camera and chart)",
-                             f"{type(e).__name__}: {e}") from None
+
+        return read_json(path, "a rectification (JSON with kind, sizes, scale, camera and chart)", parse)
 
     @classmethod
     def unrectified(cls, camera: PinholeCamera, metres_per_px: float, reason: str,

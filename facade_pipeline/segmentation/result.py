@@ -11,14 +11,13 @@ top-left seen from outside.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from facade_pipeline.errors import InputError
-from facade_pipeline.io.atomic import write_json
+from facade_pipeline.io.atomic import read_json, write_json
 from facade_pipeline.io.images import read_mask, write_mask
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.rectification.surface_map import ViewRectification
@@ -97,17 +96,14 @@ class ViewSegmentation:
         """Read view ``stem``'s corners and mask and check both against its size (``width`` x ``height``
         px, the frontal view's)."""
         path = layout.path("segment_corners", stem=stem)
-        try:
-            d = json.loads(path.read_text())
+
+        def parse(d: dict) -> tuple:
             panels = tuple(_panel(path, i, p) for i, p in enumerate(d["panels"]))
-            size = (int(d["width"]), int(d["height"]))
             head = (str(d["image"]), bool(d["rectified"]), bool(d["facade_found"]), str(d.get("reason", "")))
-        except FileNotFoundError:
-            raise InputError(path, "a panel corners JSON written by segment_panels", "no file") from None
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-            raise InputError(
-                path, "a panel corners JSON (data_layout.md, Hand-off formats)", f"{type(e).__name__}: {e}"
-            ) from None
+            return panels, (int(d["width"]), int(d["height"])), head
+
+        what = "a panel corners JSON written by segment_panels (data_layout.md, Hand-off formats)"
+        panels, size, head = read_json(path, what, parse)
         if size != (width, height):
             expected = f"width x height {width}x{height} (the frontal view)"
             raise InputError(path, expected, "{}x{}".format(*size))
