@@ -5,7 +5,7 @@ Reads the frontal views' panel corners and authoritative panel masks (``03_segme
 scene, coarse mesh and coarse points (``01_import``); writes ``04_regularize/panels.json`` (a ``PanelSet``),
 each frontal view's pose registered to those panels (``04_regularize/poses.json``, ``RegisteredPoses``:
 ``facade_pipeline.panels3d.poses``, which later stages read the cameras through) and per frontal view an
-overlay (the segmented quads and the 3D panels projected over the view).
+overlay (the segmented quads and the 3D panels projected over the view through its registered pose).
 Quads cut by the image border ("complete": false) count with their corners away from the border.
 Rejected rays (missed, grazing, ghost) and grid outliers are counted in the manifest; on synthetic
 buildings the 3D corner error against gt/panels.json is added (gt is read for that metric only).
@@ -176,6 +176,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     from facade_pipeline.geometry.raycast import MeshRaycaster
     from facade_pipeline.io.meshes import read_mesh, read_points
     from facade_pipeline.panels3d.grid import build_panel_set
+    from facade_pipeline.panels3d.poses import registered_scene
     from facade_pipeline.segmentation.building import surveyed_pitch_m
 
     scene = ImportedScene.load(layout)
@@ -200,7 +201,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     panels.save(out)
     poses = _registered_poses(scene, quads, complete, view, panels)
     poses.save(layout.path("regularize_poses"))
-    overlays = _overlays(layout, scene, quads, view, panels)
+    # drawn through the registered poses, the cameras every later stage reads: a person checks those
+    overlays = _overlays(layout, registered_scene(layout), quads, view, panels)
     metrics = {
         "n_frontal_views": len(cameras),
         **({} if panels.panels else {"note": _no_panels_note(len(cameras))}),

@@ -16,7 +16,9 @@ from facade_pipeline.io.meshes import read_mesh
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, GLASS, read_labels
+from facade_pipeline.meshing.overlay import PANEL_RGB, panels_over_view, upscale_factor
 from facade_pipeline.panels3d.model import PanelSet
+from facade_pipeline.panels3d.poses import registered_scene
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.segmentation.result import ViewSegmentation
 from tests.meshing.conftest import run_stage
@@ -83,6 +85,26 @@ def test_labels_and_check_images(built64):
     assert {
         built64.relative(built64.path("regularize_overlay", stem=v.stem)) for v in scene.frontal_views
     } <= outputs
+
+
+def test_overlays_project_the_panels_through_the_registered_poses(built64):
+    """The overlay shows the cameras later stages read: the panels' outlines (drawn over the quads) are where
+    the registered pose puts them, and a refined view's differ from where the imported pose would."""
+    panels = PanelSet.load(built64.path("regularize_panels"))
+    imported = {v.stem: v for v in ImportedScene.load(built64).frontal_views}
+
+    def outlines(photo, camera, factor):
+        return (panels_over_view(photo, camera, [], panels, factor) == PANEL_RGB).all(axis=2)
+
+    moved = 0
+    for v in registered_scene(built64).frontal_views:
+        factor = upscale_factor(v.camera.width, 480)
+        photo = read_image(built64.root / v.image)
+        saved = (read_image(built64.path("regularize_overlay", stem=v.stem)) == PANEL_RGB).all(axis=2)
+        assert saved.any() and np.array_equal(saved, outlines(photo, v.camera, factor))
+        if not np.allclose(v.camera.cam_from_world, imported[v.stem].camera.cam_from_world):
+            moved += not np.array_equal(saved, outlines(photo, imported[v.stem].camera, factor))
+    assert moved > 0
 
 
 @pytest.fixture
