@@ -122,7 +122,7 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, 
     if grad.block_px is None:
         ref = np.median(colour[ref_rows], axis=0)
     else:  # each block's own colour (``Gradients.block_px``)
-        ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px)
+        ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
         ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
     return np.where(ok, (np.linalg.norm(colour - ref, axis=1) <= tol).astype(float), np.nan)
 

@@ -37,12 +37,22 @@ def nanmedian0(a: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
-def local_median(a: np.ndarray, block: float) -> np.ndarray:
-    """``a`` [L, ...] replaced by the median (NaNs left out) of its block along axis 0: about ``block``
-    rows each, the L rows split evenly (one block where L is no longer than ``block``)."""
+def local_median(a: np.ndarray, block: float, max_step: float | None = None) -> np.ndarray:
+    """``a`` [L, ..., 3] (colours) replaced by the median (NaNs left out) of its block along axis 0: about
+    ``block`` rows each, the L rows split evenly (one block where L is no longer than ``block``). With
+    ``max_step``, a lane whose neighbouring blocks' medians differ by more than that colour distance takes
+    its median along the whole of axis 0 instead: shading turns smoothly from block to block, while a step
+    is an edge crossing the lane (a rectified bar that is not quite straight leaves its frame colour in some
+    blocks and the glass in others, and each block alone would look uniform)."""
     cuts = np.linspace(0, len(a), max(1, int(round(len(a) / block))) + 1).astype(int)
-    return np.concatenate([np.broadcast_to(nanmedian0(a[i:j]), (j - i,) + a.shape[1:])
-                           for i, j in zip(cuts[:-1], cuts[1:], strict=True)])
+    med = [nanmedian0(a[i:j]) for i, j in zip(cuts[:-1], cuts[1:], strict=True)]
+    out = np.concatenate([np.broadcast_to(m, (j - i,) + a.shape[1:])
+                          for m, i, j in zip(med, cuts[:-1], cuts[1:], strict=True)])
+    if max_step is None or len(med) < 2:
+        return out
+    step = norm_last(np.diff(np.stack(med), axis=0))  # [B - 1, ...]; NaN beside a block outside the view
+    stepped = (np.where(np.isfinite(step), step, 0.0) > max_step).any(axis=0)
+    return np.where(stepped[None, ..., None], nanmedian0(a)[None], out)
 
 
 def norm_last(x: np.ndarray) -> np.ndarray:
@@ -75,14 +85,16 @@ class Gradients:
     its shading with them (a 12 m cylinder lit from one side: from 0.29 to 0.55 across a view), which a
     colour constant along it takes for a reflection or an object in front. Its uniformity
     (``uniformity``) and presence (``edges.frame_presence``) are then judged against the median of each
-    block (``local_median``), within which the shading hardly turns and a reflection does change. None:
-    against the median along the whole bar."""
+    block (``local_median``), within which the shading hardly turns and a reflection does change, except
+    where neighbouring blocks differ by more than ``block_step`` (an edge, not shading). None: against the
+    median along the whole bar."""
+    block_step: float | None = None
     # line colours by row span: a MAP pass's uniformity and colour prior and the bars' colour take the same
     _line_colours: dict[tuple[int, int, int], np.ndarray] = field(default_factory=dict, repr=False)
 
     @classmethod
     def of(cls, image: np.ndarray, axis: int, valid: np.ndarray | None = None,
-           block_px: float | None = None) -> Gradients:
+           block_px: float | None = None, block_step: float | None = None) -> Gradients:
         """axis 0: vertical bars (mullions, positions along x); axis 1: horizontal bars (transoms)."""
         img = np.asarray(image, dtype=np.float32) / 255.0
         ok = np.ones(img.shape[:2], bool) if valid is None else np.asarray(valid, bool)
@@ -94,7 +106,7 @@ class Gradients:
         known = None
         if clipped.any():
             known = (~(clipped[:, 1:] & clipped[:, :-1])).astype(np.float32)
-        return cls(img, d, ok, known, block_px)
+        return cls(img, d, ok, known, block_px, block_step)
 
     @property
     def size(self) -> int:
@@ -153,7 +165,10 @@ class Gradients:
         between pixel centres) from its median along the rows (``local_median``: over its block of
         ``block_px`` rows where set); small along a uniform frame bar."""
         col = self._line_samples(rows)  # [L, M, 3]
-        ref = self.line_colour(rows)[None] if self.block_px is None else local_median(col, self.block_px)
+        if self.block_px is None:
+            ref = self.line_colour(rows)[None]
+        else:
+            ref = local_median(col, self.block_px, self.block_step)
         v = nanmedian0(norm_last(col - ref))
         return np.where(np.isfinite(v), v, 1.0)  # positions outside the view (rectified images) are all NaN
 

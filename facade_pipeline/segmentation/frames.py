@@ -197,9 +197,11 @@ def find_bars(
             )
         )
         # on a curved surface the transoms' shading turns along them (``Gradients.block_px``): judged over
-        # blocks of the smallest pitch sought, a reflection changes within one and the shading hardly does
+        # blocks of the smallest pitch sought, a reflection changes within one and the shading hardly does;
+        # blocks a frame's own colour tolerance apart are an edge crossing the position, not shading
         gv = Gradients.of(image, 0, valid)
-        gh = Gradients.of(image, 1, valid, None if planar else float(sizes_h.min_pitch))
+        gh = Gradients.of(image, 1, valid, None if planar else float(sizes_h.min_pitch),
+                          params.frame_colour_tol)
         ahead = [pool.submit(gv.prepare)]
         ahead += [pool.submit(pitch_hypotheses, g.size, z) for g, z in ((gh, sizes_h), (gv, sizes_v))]
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole

@@ -11,7 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from facade_pipeline.segmentation.evidence import Gradients, bar_evidence, nanmedian0, norm_last
+from facade_pipeline.segmentation.evidence import Gradients, bar_evidence, local_median, nanmedian0, norm_last
 from facade_pipeline.segmentation.grid import (
     SIGMA_MIN_PX,
     STEP_PX,
@@ -294,3 +294,30 @@ def test_bar_evidence_is_the_plain_expressions_to_the_bit(axis):
                 assert np.array_equal(e, ref_e) and np.array_equal(w, ref_w)
                 assert np.array_equal(e_pool, ref_e) and np.array_equal(w_pool, ref_w)
 
+
+
+def test_block_medians_follow_shading_but_not_an_edge_crossing_the_bar():
+    """A transom along a cylinder: lane 0 is the frame, its shading turning from 0.3 to 0.6 along the bar;
+    lane 1 is where a rectified bar that is not quite straight shows frame in its first half and glass
+    (0.05) in its second. Against block medians each block of lane 1 looks uniform; with the step rule
+    lane 1 is judged against its whole length, as a bar's position with an edge across it must be, and
+    lane 0 keeps its blocks."""
+    L, block = 240, 20.0
+    shade = np.linspace(0.3, 0.6, L)
+    lane0 = np.repeat(shade[:, None], 3, axis=1)
+    lane1 = np.where(np.arange(L)[:, None] < L // 2, lane0, 0.05)
+    a = np.stack([lane0, lane1], axis=1)  # [L, 2 lanes, 3]
+    blocks = local_median(a, block)
+    stepped = local_median(a, block, max_step=0.12)
+    assert np.array_equal(stepped[:, 0], blocks[:, 0])  # smooth shading: each block its own colour
+    assert np.abs(stepped[:, 0] - a[:, 0]).max() < 0.02
+    assert np.allclose(stepped[:, 1], nanmedian0(a[:, 1]))  # the edge: one colour for the whole lane
+    # what the uniformity sees: lane 1 uniform against its blocks, not against its whole length
+    assert np.median(norm_last(a[:, 1] - blocks[:, 1])) < 0.02 < np.median(norm_last(a[:, 1] - stepped[:, 1]))
+    img = (255 * np.concatenate([a, a[:, ::-1]], axis=1)).astype(np.uint8)  # rows along x: a transom's lanes
+    g_blocks = Gradients.of(img.transpose(1, 0, 2), 1, None, block)
+    g_step = Gradients.of(img.transpose(1, 0, 2), 1, None, block, 0.12)
+    rows = slice(0, L)
+    v_blocks, v_step = g_blocks.uniformity(rows), g_step.uniformity(rows)
+    # a position between lanes 0 and 1 sees the edge only with the rule
+    assert v_step.max() > 0.2 > v_blocks.max()
