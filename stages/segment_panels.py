@@ -198,10 +198,18 @@ def with_building_grid(
     """``found`` with the building's grid tried on every view whose own grid is not it (none, or a pitch
     or bar width beyond the building's: ``building.disagreement``): sought again at the building's pitches
     (``building.pitch_range_m``), the view takes that grid where both families are found there, inside the
-    range (``building.within``), and keeps its own otherwise. Returns them and, per such view, why it
-    disagreed and what the building's grid gave."""
+    range (``building.within``); failing that, a family off the building's pitch sought there alone, the
+    other at any pitch (``building.retry_ranges``), where it is found there and the other at all; it keeps
+    its own otherwise. Returns them and, per such view, why it disagreed and what the building's grid
+    gave."""
     # imported here, not at the top: doit loads every stage module to build its task list
-    from facade_pipeline.segmentation.building import building_pitch_m, disagreement, pitch_range_m, within
+    from facade_pipeline.segmentation.building import (
+        building_pitch_m,
+        disagreement,
+        pitch_range_m,
+        retry_ranges,
+        within,
+    )
     from facade_pipeline.segmentation.grid import STEP_PX
 
     pitch = building_pitch_m([f for _, f, _ in found])
@@ -214,11 +222,17 @@ def with_building_grid(
         outcome = ""
         # a bar width of its own alone is the bars' business (``frames.widen_narrow_bars``), not the grid's
         if ("grid" in reason or "pitch" in reason) and len(wanted) == 2:
-            _, again, more = find_one(layout, view, params, mesh, unit_m, wanted)
-            taken = again is not None and within(again.pitches_m(), wanted, STEP_PX * again.metres_per_px)
-            if taken:
-                out[i] = (rect, again, seconds + more)
-            outcome = ": the building's grid taken" if taken else ": none at the building's pitch, own kept"
+            outcome = ": none at the building's pitch, own kept"
+            for ranges in retry_ranges({} if frames is None else frames.pitches_m(), wanted):
+                _, again, more = find_one(layout, view, params, mesh, unit_m, ranges)
+                seconds += more
+                if again is None or len(again.pitches_m()) < 2 or not within(
+                        again.pitches_m(), ranges, STEP_PX * again.metres_per_px):
+                    continue
+                out[i] = (rect, again, seconds)
+                outcome = (": the building's grid taken" if len(ranges) == 2 else
+                           f": the building's pitch {next(iter(ranges))} taken, the other's own kept")
+                break
         why[view.stem] = "; ".join(reason.values()) + outcome
     return out, why
 

@@ -104,6 +104,19 @@ def within(pitch_m: dict[str, float], wanted: dict[str, tuple[float, float]], st
                for name, (lo, hi) in wanted.items())
 
 
+def retry_ranges(own_m: dict[str, float], wanted: dict[str, tuple[float, float]]
+                 ) -> list[dict[str, tuple[float, float]]]:
+    """The pitch ranges (m, per family) a view off the building's grid is sought again at, in order:
+    both families at the building's pitch (``pitch_range_m``: ``wanted``), then each family whose own
+    pitch (``own_m``; a family not found has none) lies outside it alone, the other at any pitch. A family
+    may show the building's pitch where the other does not (a unit set off its neighbours' line, an empty
+    unit's box taken for the transoms), and one wrong bar of a family spoils the other's search (on a
+    plane the transoms must have the mullions' colour): with the mullions at the building's pitch, the
+    transoms are found at their own."""
+    off = [name for name, (lo, hi) in wanted.items() if not (name in own_m and lo <= own_m[name] <= hi)]
+    return [dict(wanted)] + ([{name: wanted[name]} for name in off] if len(wanted) > 1 else [])
+
+
 def disagreement(found: FrameBars | None, pitch_m: dict[str, float], width_m: dict[str, float],
                  grid: GridParams) -> dict[str, str]:
     """Why a view's grid is not the building's, by kind ("grid": none found, "pitch" or "width": a family's

@@ -519,6 +519,20 @@ def test_a_view_off_the_building_grid_is_named_with_its_reason():
     assert why[5] == {"grid": "no grid found"}
 
 
+def test_a_view_off_the_building_grid_is_sought_again_family_by_family():
+    """A view off the building's grid is sought at the building's pitch for both families first, then for
+    each family that is off it alone, the other at any pitch (one wrong bar of a family spoils the other's
+    search); a family already at the building's pitch is not sought alone, nor is one of a building that
+    found only one family."""
+    from facade_pipeline.segmentation.building import retry_ranges
+
+    wanted = {"x": (1.8, 2.2), "y": (2.7, 3.3)}
+    assert retry_ranges({}, wanted) == [wanted, {"x": (1.8, 2.2)}, {"y": (2.7, 3.3)}]
+    assert retry_ranges({"x": 2.0, "y": 2.4}, wanted) == [wanted, {"y": (2.7, 3.3)}]
+    assert retry_ranges({"x": 1.3, "y": 3.0}, wanted) == [wanted, {"x": (1.8, 2.2)}]
+    assert retry_ranges({"x": 1.3}, {"x": (1.8, 2.2)}) == [{"x": (1.8, 2.2)}]
+
+
 def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
     (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
