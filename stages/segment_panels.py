@@ -199,7 +199,7 @@ def with_building_grid(
     or bar width beyond the building's: ``building.disagreement``): sought again at the building's pitches
     (``building.pitch_range_m``), the view takes that grid where both families are found there, inside the
     range (``building.within``); failing that, a family off the building's pitch sought there alone, the
-    other at any pitch (``building.retry_ranges``), where it is found there and the other at all; it keeps
+    other at any pitch, where it is found there and the other at all (``building.sought_again``); it keeps
     its own otherwise. Returns them and, per such view, why it disagreed and what the building's grid
     gave."""
     # imported here, not at the top: doit loads every stage module to build its task list
@@ -207,10 +207,8 @@ def with_building_grid(
         building_pitch_m,
         disagreement,
         pitch_range_m,
-        retry_ranges,
-        within,
+        sought_again,
     )
-    from facade_pipeline.segmentation.grid import STEP_PX
 
     pitch = building_pitch_m([f for _, f, _ in found])
     wanted = pitch_range_m(pitch, params.grid)
@@ -222,17 +220,16 @@ def with_building_grid(
         outcome = ""
         # a bar width of its own alone is the bars' business (``frames.widen_narrow_bars``), not the grid's
         if ("grid" in reason or "pitch" in reason) and len(wanted) == 2:
-            outcome = ": none at the building's pitch, own kept"
-            for ranges in retry_ranges({} if frames is None else frames.pitches_m(), wanted):
+            spent = []
+
+            def seek(ranges, view=view, spent=spent):
                 _, again, more = find_one(layout, view, params, mesh, unit_m, ranges)
-                seconds += more
-                if again is None or len(again.pitches_m()) < 2 or not within(
-                        again.pitches_m(), ranges, STEP_PX * again.metres_per_px):
-                    continue
-                out[i] = (rect, again, seconds)
-                outcome = (": the building's grid taken" if len(ranges) == 2 else
-                           f": the building's pitch {next(iter(ranges))} taken, the other's own kept")
-                break
+                spent.append(more)
+                return again
+
+            again, outcome = sought_again({} if frames is None else frames.pitches_m(), wanted, seek)
+            if again is not None:
+                out[i] = (rect, again, seconds + sum(spent))
         why[view.stem] = "; ".join(reason.values()) + outcome
     return out, why
 

@@ -533,6 +533,36 @@ def test_a_view_off_the_building_grid_is_sought_again_family_by_family():
     assert retry_ranges({"x": 1.3}, {"x": (1.8, 2.2)}) == [{"x": (1.8, 2.2)}]
 
 
+def test_a_view_whose_mullions_hold_the_buildings_pitch_alone_takes_its_transoms_at_their_own():
+    """Two mullions in view and a dark bar (a shaded frame of a unit beyond) 1.3 pitches from the first:
+    sought freely, the grid takes the dark bar for the second mullion, and with it the wrong frame colour,
+    which the transoms must have, and the wrong transoms. The building's pitch across the transoms is
+    not this view's (a unit set off its neighbours' line), so the building's grid in both families finds
+    nothing; with the mullions alone at the building's pitch the view finds both drawn families."""
+    from facade_pipeline.segmentation.building import sought_again
+    from facade_pipeline.segmentation.frames import find_frames
+
+    d = Drawing(**{**FINE, "W": 120, "x0": -40.0}, cols=3)
+    img = d.render()
+    dark = d.x0 + 2.3 * 54.8  # the dark bar's left edge (px)
+    img[:, round(dark) : round(dark + 4.8)] = 51
+    own = find_frames(img, PARAMS, FINE_M_PER_PX, PITCH_M)
+    true_x, true_y = 54.8 * FINE_M_PER_PX, 46.6 * FINE_M_PER_PX
+    assert own.pitches_m()["x"] > 1.2 * true_x and abs(own.pitches_m()["y"] / true_y - 1) > 0.2
+    wanted = {"x": (0.88 * true_x, 1.12 * true_x), "y": (1.3 * 0.88 * true_y, 1.3 * 1.12 * true_y)}
+    tried = []
+
+    def seek(ranges):
+        tried.append(set(ranges))
+        return find_frames(img, PARAMS, FINE_M_PER_PX, PITCH_M, pitch_m=ranges)
+
+    again, outcome = sought_again(own.pitches_m(), wanted, seek)
+    assert tried[:2] == [{"x", "y"}, {"x"}] and outcome.startswith(": the building's pitch x taken")
+    assert again.pitches_m() == pytest.approx({"x": true_x, "y": true_y}, abs=0.5 * FINE_M_PER_PX)
+    centres = again.bars_v.fit.centres
+    assert centres == pytest.approx(d.x0 + 2.4 + 54.8 * np.array([1, 2]), abs=0.5)
+
+
 def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
     (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
