@@ -178,6 +178,21 @@ def test_partly_occluded_panel_keeps_the_grid():
     assert d_x > 0
 
 
+@pytest.mark.parametrize("level", [255, 20])
+def test_a_bar_clipped_white_beside_its_panes_leaves_them_whole_and_a_dark_object_does_not(level):
+    """A stretch clipped white across a grey mullion and the glass on both sides of it, over half the
+    height of the panes beside it (a highlight, the lit box of an empty unit), shows neither the bar's
+    colour nor its edges there: unknown, not absent, so the panes stay whole. A dark object over the same
+    stretch hides the bar: the panes beside it are marked occluded."""
+    d = Drawing(**FINE)
+    img = d.render()
+    img[62:86, 62:78] = level  # over the second mullion (67.4-72.2 px), the middle row's panes at 62.6-104.4
+    seg = segment_image(img, PARAMS, FINE_M_PER_PX, PITCH_M)
+    assert len(seg.panels) == 9
+    occluded = sorted((p.row, p.col) for p in seg.panels if p.reason == "occluded")
+    assert occluded == ([] if level == 255 else [(1, 0), (1, 1)])
+
+
 def test_image_without_facade():
     rng = np.random.default_rng(0)
     img = np.zeros((80, 96, 3), np.uint8)
