@@ -174,6 +174,8 @@ def main() -> None:
     ap.add_argument("--real-building", default="gcw_dev", help="the building (config) they are run as")
     ap.add_argument("--exposures", action="store_true",
                     help="also the real photos at each exposure and white balance of real_truth.EXPOSURES")
+    ap.add_argument("--exposure", action="append", default=None, choices=list(EXPOSURES),
+                    help="with --exposures, only this one (repeatable; all where not given)")
     ap.add_argument("--task", default="segment_panels", choices=["segment_panels", "regularize_corners"],
                     help="the synthetic buildings' last stage: regularize_corners adds the 3D panels' column")
     ap.add_argument("--losses", action="store_true",
@@ -187,6 +189,8 @@ def main() -> None:
                                                   Path(args.data_root), env)]
     if args.real is not None and args.exposures:
         for i, (name, gains) in enumerate(EXPOSURES.items()):
+            if args.exposure and name not in args.exposure:
+                continue
             root = Path(args.data_root) / "exposed" / str(i)
             shutil.rmtree(root, ignore_errors=True)
             exposed_copy(args.real.resolve(), root / "photos", gains)
@@ -223,6 +227,7 @@ def main() -> None:
     command = " ".join(["python benchmarks/bench_segmentation.py", "--data-root", args.data_root]
                        + ([] if args.real is None else ["--real", str(args.real)])
                        + (["--exposures"] if args.exposures else [])
+                       + [f"--exposure '{name}'" for name in args.exposure or []]
                        + (["--losses"] if args.losses else [])
                        + ([] if args.task == "segment_panels" else ["--task", args.task]) + args.buildings)
     text = "\n".join([

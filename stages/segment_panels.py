@@ -198,11 +198,17 @@ def with_building_grid(
     """``found`` with the building's grid tried on every view whose own grid is not it (none, or a pitch
     or bar width beyond the building's: ``building.disagreement``): sought again at the building's pitches
     (``building.pitch_range_m``), the view takes that grid where both families are found there, inside the
-    range (``building.within``), and keeps its own otherwise. Returns them and, per such view, why it
-    disagreed and what the building's grid gave."""
+    range (``building.within``); failing that, a family off the building's pitch sought there alone, the
+    other at any pitch, where it is found there and the other at all (``building.sought_again``); it keeps
+    its own otherwise. Returns them and, per such view, why it disagreed and what the building's grid
+    gave."""
     # imported here, not at the top: doit loads every stage module to build its task list
-    from facade_pipeline.segmentation.building import building_pitch_m, disagreement, pitch_range_m, within
-    from facade_pipeline.segmentation.grid import STEP_PX
+    from facade_pipeline.segmentation.building import (
+        building_pitch_m,
+        disagreement,
+        pitch_range_m,
+        sought_again,
+    )
 
     pitch = building_pitch_m([f for _, f, _ in found])
     wanted = pitch_range_m(pitch, params.grid)
@@ -214,11 +220,16 @@ def with_building_grid(
         outcome = ""
         # a bar width of its own alone is the bars' business (``frames.widen_narrow_bars``), not the grid's
         if ("grid" in reason or "pitch" in reason) and len(wanted) == 2:
-            _, again, more = find_one(layout, view, params, mesh, unit_m, wanted)
-            taken = again is not None and within(again.pitches_m(), wanted, STEP_PX * again.metres_per_px)
-            if taken:
-                out[i] = (rect, again, seconds + more)
-            outcome = ": the building's grid taken" if taken else ": none at the building's pitch, own kept"
+            spent = []
+
+            def seek(ranges, view=view, spent=spent):
+                _, again, more = find_one(layout, view, params, mesh, unit_m, ranges)
+                spent.append(more)
+                return again
+
+            again, outcome = sought_again({} if frames is None else frames.pitches_m(), wanted, seek)
+            if again is not None:
+                out[i] = (rect, again, seconds + sum(spent))
         why[view.stem] = "; ".join(reason.values()) + outcome
     return out, why
 

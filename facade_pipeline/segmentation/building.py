@@ -5,13 +5,15 @@ a shelf behind an empty unit taken for a transom); the building's views together
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from facade_pipeline.errors import InputError
 from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.segmentation.frames import FrameBars
-from facade_pipeline.segmentation.grid import GridParams
+from facade_pipeline.segmentation.grid import STEP_PX, GridParams
 from facade_pipeline.segmentation.parallax import agreeing
 
 #: a view's pitch is another grid than the building's where it is further from it than the grid prior's
@@ -102,6 +104,36 @@ def within(pitch_m: dict[str, float], wanted: dict[str, tuple[float, float]], st
     is the view's own grid held in by the range, not the building's found in the view."""
     return all(name in pitch_m and lo + step_m < pitch_m[name] < hi - step_m
                for name, (lo, hi) in wanted.items())
+
+
+def retry_ranges(own_m: dict[str, float], wanted: dict[str, tuple[float, float]]
+                 ) -> list[dict[str, tuple[float, float]]]:
+    """The pitch ranges (m, per family) a view off the building's grid is sought again at, in order:
+    both families at the building's pitch (``pitch_range_m``: ``wanted``), then each family whose own
+    pitch (``own_m``; a family not found has none) lies outside it alone, the other at any pitch. A family
+    may show the building's pitch where the other does not (a unit set off its neighbours' line, an empty
+    unit's box taken for the transoms), and one wrong bar of a family spoils the other's search (on a
+    plane the transoms must have the mullions' colour): with the mullions at the building's pitch, the
+    transoms are found at their own."""
+    off = [name for name, (lo, hi) in wanted.items() if not (name in own_m and lo <= own_m[name] <= hi)]
+    return [dict(wanted)] + ([{name: wanted[name]} for name in off] if len(wanted) > 1 else [])
+
+
+def sought_again(own_m: dict[str, float], wanted: dict[str, tuple[float, float]],
+                 seek: Callable[[dict[str, tuple[float, float]]], FrameBars | None]
+                 ) -> tuple[FrameBars | None, str]:
+    """The grid a view off the building's grid takes, and what the building's grid gave (for the
+    manifest): ``seek`` (the view's frames sought at pitch ranges, m per family) at each of
+    ``retry_ranges``, in order, until both families are found, those sought at the building's pitch
+    inside their range (``within``); None where no try gives that (the view keeps its own)."""
+    for ranges in retry_ranges(own_m, wanted):
+        again = seek(ranges)
+        if again is None or len(again.pitches_m()) < 2 or not within(
+                again.pitches_m(), ranges, STEP_PX * again.metres_per_px):
+            continue
+        return again, (": the building's grid taken" if len(ranges) == len(wanted) else
+                       f": the building's pitch {next(iter(ranges))} taken, the other's own kept")
+    return None, ": none at the building's pitch, own kept"
 
 
 def disagreement(found: FrameBars | None, pitch_m: dict[str, float], width_m: dict[str, float],

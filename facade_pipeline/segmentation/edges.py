@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facade_pipeline.segmentation.evidence import Gradients, local_median
+from facade_pipeline.segmentation.evidence import CLIPPED_LEVEL, Gradients, local_median
 from facade_pipeline.segmentation.grid import FamilyFit
 
 
@@ -30,6 +30,10 @@ class EdgeLine:
     present: np.ndarray | None = None
     """[L] float: 1 where the bar's own colour is seen on its centre line, 0 where not, NaN outside the
     view (None: not measured)."""
+    unknown: np.ndarray | None = None
+    """[L] bool: where the bar's centre line is clipped white away from the bar's own colour (``present``
+    0 there): what it shows lies somewhere above full scale, a highlight on the frame or the lit box of an
+    empty unit beside it as much as an object in front (None: nowhere, or not measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
@@ -103,11 +107,13 @@ def bar_edges(
     return low, high
 
 
-def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, tol: float) -> np.ndarray:
+def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
+                   tol: float) -> tuple[np.ndarray, np.ndarray | None]:
     """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
     colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
     keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
-    which is what marks a panel occluded."""
+    which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
+    and clipped white (``EdgeLine.unknown``), None where it is nowhere."""
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     centre = 0.5 * (low.at(t) + high.at(t))
@@ -118,13 +124,15 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, 
     ref_rows[rows] = True
     ref_rows &= ok
     if not ref_rows.any():
-        return np.where(ok, 1.0, np.nan)
+        return np.where(ok, 1.0, np.nan), None
     if grad.block_px is None:
         ref = np.median(colour[ref_rows], axis=0)
     else:  # each block's own colour (``Gradients.block_px``)
         ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
         ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
-    return np.where(ok, (np.linalg.norm(colour - ref, axis=1) <= tol).astype(float), np.nan)
+    near = np.linalg.norm(colour - ref, axis=1) <= tol
+    unknown = ok & ~near & (colour.max(axis=1) >= CLIPPED_LEVEL)
+    return np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None)
 
 
 @dataclass(frozen=True)

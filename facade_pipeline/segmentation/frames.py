@@ -161,8 +161,8 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams,
             e = (EdgeLine(c - w / 2, 0.0, mid, np.zeros(L)), EdgeLine(c + w / 2, 0.0, mid, np.zeros(L)))
         if e is None:
             continue
-        present = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
-        edges.append(tuple(dataclasses.replace(line, present=present) for line in e))
+        present, unknown = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
+        edges.append(tuple(dataclasses.replace(line, present=present, unknown=unknown) for line in e))
     return Bars(edges, fit) if edges else None
 
 
@@ -407,8 +407,8 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             if sc > score:
                 best, score = e, sc
         if best[0] is not low:
-            present = frame_presence(grad, best[0], best[1], span, params.frame_colour_tol)
-            best = tuple(dataclasses.replace(line, present=present) for line in best)
+            present, unknown = frame_presence(grad, best[0], best[1], span, params.frame_colour_tol)
+            best = tuple(dataclasses.replace(line, present=present, unknown=unknown) for line in best)
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n

@@ -170,13 +170,16 @@ def _supported(line: EdgeLine, lo: float, hi: float) -> float:
     """Fraction of [lo, hi] (along the line, 1 px kept clear of the corners) where its frame bar is present
     or the edge itself (the bar's side facing the panel) is found at half its median strength or more: an
     object in front hides both, while a bar that shows its shaded side face beside an empty unit keeps the
-    sharp edge where it meets the glass; 1 for the image border."""
+    sharp edge where it meets the glass; 1 for the image border. Rows where the bar is clipped white away
+    from its colour (``EdgeLine.unknown``) are left out: unknown, not absent."""
     if line.present is None:
         return 1.0
     i0, i1 = int(max(0, np.ceil(lo + 1))), int(max(0, np.floor(hi - 1)))
     present = line.present[i0:i1]
     found = line.strength[i0:i1]
     seen = ~np.isnan(present)
+    if line.unknown is not None:
+        seen &= ~line.unknown[i0:i1]
     if not seen.any():
         return 1.0
     ref = np.median(line.strength[line.strength > 0]) if (line.strength > 0).any() else np.inf

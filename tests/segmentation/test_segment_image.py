@@ -178,6 +178,21 @@ def test_partly_occluded_panel_keeps_the_grid():
     assert d_x > 0
 
 
+@pytest.mark.parametrize("level", [255, 20])
+def test_a_bar_clipped_white_beside_its_panes_leaves_them_whole_and_a_dark_object_does_not(level):
+    """A stretch clipped white across a grey mullion and the glass on both sides of it, over half the
+    height of the panes beside it (a highlight, the lit box of an empty unit), shows neither the bar's
+    colour nor its edges there: unknown, not absent, so the panes stay whole. A dark object over the same
+    stretch hides the bar: the panes beside it are marked occluded."""
+    d = Drawing(**FINE)
+    img = d.render()
+    img[62:86, 62:78] = level  # over the second mullion (67.4-72.2 px), the middle row's panes at 62.6-104.4
+    seg = segment_image(img, PARAMS, FINE_M_PER_PX, PITCH_M)
+    assert len(seg.panels) == 9
+    occluded = sorted((p.row, p.col) for p in seg.panels if p.reason == "occluded")
+    assert occluded == ([] if level == 255 else [(1, 0), (1, 1)])
+
+
 def test_image_without_facade():
     rng = np.random.default_rng(0)
     img = np.zeros((80, 96, 3), np.uint8)
@@ -517,6 +532,50 @@ def test_a_view_off_the_building_grid_is_named_with_its_reason():
     assert why[2].keys() == {"pitch"} and why[2]["pitch"].startswith("pitch y 2.4 m")
     assert why[3].keys() == {"width"} and "bar width x 0.6 m" in why[3]["width"]
     assert why[5] == {"grid": "no grid found"}
+
+
+def test_a_view_off_the_building_grid_is_sought_again_family_by_family():
+    """A view off the building's grid is sought at the building's pitch for both families first, then for
+    each family that is off it alone, the other at any pitch (one wrong bar of a family spoils the other's
+    search); a family already at the building's pitch is not sought alone, nor is one of a building that
+    found only one family."""
+    from facade_pipeline.segmentation.building import retry_ranges
+
+    wanted = {"x": (1.8, 2.2), "y": (2.7, 3.3)}
+    assert retry_ranges({}, wanted) == [wanted, {"x": (1.8, 2.2)}, {"y": (2.7, 3.3)}]
+    assert retry_ranges({"x": 2.0, "y": 2.4}, wanted) == [wanted, {"y": (2.7, 3.3)}]
+    assert retry_ranges({"x": 1.3, "y": 3.0}, wanted) == [wanted, {"x": (1.8, 2.2)}]
+    assert retry_ranges({"x": 1.3}, {"x": (1.8, 2.2)}) == [{"x": (1.8, 2.2)}]
+
+
+def test_a_view_whose_mullions_hold_the_buildings_pitch_alone_takes_its_transoms_at_their_own():
+    """Two mullions in view and a dark bar (a shaded frame of a unit beyond) 1.3 pitches from the first:
+    sought freely, the grid takes the dark bar for the second mullion, and with it the wrong frame colour,
+    which the transoms must have, and the wrong transoms. The building's pitch across the transoms is
+    not this view's (a unit set off its neighbours' line), so the building's grid in both families finds
+    nothing; with the mullions alone at the building's pitch the view finds both drawn families."""
+    from facade_pipeline.segmentation.building import sought_again
+    from facade_pipeline.segmentation.frames import find_frames
+
+    d = Drawing(**{**FINE, "W": 120, "x0": -40.0}, cols=3)
+    img = d.render()
+    dark = d.x0 + 2.3 * 54.8  # the dark bar's left edge (px)
+    img[:, round(dark) : round(dark + 4.8)] = 51
+    own = find_frames(img, PARAMS, FINE_M_PER_PX, PITCH_M)
+    true_x, true_y = 54.8 * FINE_M_PER_PX, 46.6 * FINE_M_PER_PX
+    assert own.pitches_m()["x"] > 1.2 * true_x and abs(own.pitches_m()["y"] / true_y - 1) > 0.2
+    wanted = {"x": (0.88 * true_x, 1.12 * true_x), "y": (1.3 * 0.88 * true_y, 1.3 * 1.12 * true_y)}
+    tried = []
+
+    def seek(ranges):
+        tried.append(set(ranges))
+        return find_frames(img, PARAMS, FINE_M_PER_PX, PITCH_M, pitch_m=ranges)
+
+    again, outcome = sought_again(own.pitches_m(), wanted, seek)
+    assert tried[:2] == [{"x", "y"}, {"x"}] and outcome.startswith(": the building's pitch x taken")
+    assert again.pitches_m() == pytest.approx({"x": true_x, "y": true_y}, abs=0.5 * FINE_M_PER_PX)
+    centres = again.bars_v.fit.centres
+    assert centres == pytest.approx(d.x0 + 2.4 + 54.8 * np.array([1, 2]), abs=0.5)
 
 
 def test_the_survey_finds_the_drawn_pitch_at_any_scale():
