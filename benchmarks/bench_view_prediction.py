@@ -18,6 +18,10 @@ uncovered take the photo's mean facade colour. *Aligned*: the held-out view's po
 channel fitted to the nearest photo's prediction at that d first (``training.corrections.align_view`` with
 the building's ``[evaluate.align]``, as the evaluate stage aligns a view to a model), then every source's
 prediction made from that pose with that gain.
+
+``--panes`` makes another table instead: each pane of the corrected mesh's glass as its own plane mirror of
+a scene d in front of the glass, tilted as the training views alone prefer (``fit_tilts``), against the
+glass plane; the held-out view from its nearest training photo, aligned to each prediction.
 """
 
 from __future__ import annotations
