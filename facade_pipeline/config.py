@@ -348,7 +348,7 @@ RENAMED = {
             ("the estimate's numbers are fixed (ExposureParams, training/exposure.py)", ("exposure",)),
             (
                 "no building tuned it: a constant of facade_pipeline/training/params.py",
-                ("refl_threshold", "init_bounds_margin_m"),
+                ("refl_threshold", "init_bounds_margin_m", "init_f0"),
             ),
             (
                 "no building tuned it: a constant of facade_pipeline/training/schedule.py",

@@ -31,6 +31,8 @@ INIT_BOUNDS_MARGIN = 1.0 / 60.0
 #: reference 2DGS near plane, 0.2 m, on demo; a fixed 0.2 m clips a 1:25 model's wall, 0.21-0.35 m from
 #: its cameras).
 NEAR_FRACTION = 0.2 / 60.0
+#: initial Fresnel F0 of every splat, all channels: coated facade glass reflects strongly (0-1)
+INIT_F0 = 0.5
 
 
 @dataclass(frozen=True)
@@ -98,8 +100,6 @@ class TrainParams:
     init_mesh_samples: Count
     init_reflectivity: Fraction
     init_reflectivity_glass: Fraction
-    init_f0: Fraction
-    """initial Schlick F0 of every splat, all channels (learnt from there)"""
     lr: LearningRates
     densify: DensifyParams
 

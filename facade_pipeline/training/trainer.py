@@ -54,6 +54,7 @@ from facade_pipeline.training.monitor import monitored
 from facade_pipeline.training.optimizers import gaussian_optimizer, reflection_optimizer, set_learning_rates
 from facade_pipeline.training.params import (
     INIT_BOUNDS_MARGIN,
+    INIT_F0,
     REFL_THRESHOLD,
     TrainParams,
     facade_size,
@@ -244,7 +245,7 @@ def build_trainer(
         INIT_OPACITY,
         p.init_reflectivity,
         p.init_reflectivity_glass,
-        p.init_f0,
+        INIT_F0,
         p.sh_degree,
         p.seed,
         device,
