@@ -31,7 +31,8 @@ INIT_BOUNDS_MARGIN = 1.0 / 60.0
 #: reference 2DGS near plane, 0.2 m, on demo; a fixed 0.2 m clips a 1:25 model's wall, 0.21-0.35 m from
 #: its cameras).
 NEAR_FRACTION = 0.2 / 60.0
-#: initial Fresnel F0 of every splat, all channels: coated facade glass reflects strongly (0-1)
+#: initial Fresnel F0 of every splat, all channels, learnt from there: coated facade glass reflects strongly
+#: (0-1). Uncoated float glass's 0.04 trains gcw_dev's real glass 2 dB worse (benchmarks/RESULTS.md, Tried).
 INIT_F0 = 0.5
 
 

@@ -97,3 +97,73 @@ def test_two_layers_take_the_glass_from_the_far_one(bench):
     near = bench.predictor(data, [1], plane, 0.0, glass)(K, T, (H, W))
     far = bench.predictor(data, [1], plane, 0.05, glass)(K, T, (H, W))
     assert torch.equal(two[glass], far[glass]) and torch.equal(two[~glass], near[~glass])
+
+
+#: the scene the panes mirror: a plane this far in front of the glass (behind the cameras)
+MIRRORED_AT = 1.0
+#: the true tilts (deg) of the two panes (x < 0, x > 0) from the glass plane z = 0
+TILTS = np.array([[0.0, 0.0], [2.0, -1.5]])
+
+
+def mirrored_photo(cam: PinholeCamera, panes) -> np.ndarray:
+    """What ``cam`` sees of the texture on the plane z = -MIRRORED_AT in the two panes tilted by TILTS."""
+    ys, xs = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
+    o, d = cam.pixel_rays(xs, ys)
+    k = np.where(o[:, 0] - o[:, 2] / d[:, 2] * d[:, 0] < 0, 0, 1)  # the pane the ray meets at z = 0
+    n = panes.normals(TILTS).numpy().astype(np.float64)[k]
+    centre = panes.centre.numpy().astype(np.float64)[k]
+    x = o + (((centre - o) * n).sum(1) / (d * n).sum(1))[:, None] * d
+    r = d - 2 * (d * n).sum(1, keepdims=True) * n
+    s = x + ((-MIRRORED_AT - x[:, 2]) / r[:, 2])[:, None] * r
+    return texture(s[:, :2]).reshape(H, W, 3).astype(np.float32)
+
+
+def mirror_scene(bench) -> TrainData:
+    """Two views of two panes side by side (their own vertices: two panes), mirroring the textured plane."""
+    verts = np.array(
+        [[-1, -1, 0], [0, -1, 0], [0, 1, 0], [-1, 1, 0], [0, -1, 0], [1, -1, 0], [1, 1, 0], [0, 1, 0.0]]
+    )
+    tris = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    init = InitGeometry(np.zeros((0, 3)), np.zeros((0, 3)), verts, tris, np.ones(4, bool))
+    full = np.ones((H, W), bool)
+    normals = np.broadcast_to(np.array([0, 0, -1.0], np.float32), (H, W, 3)).copy()
+    blank = TrainData(
+        tuple(TrainView(f"v{i}", camera(0, 0), normals, full, full, normals, full) for i in range(2)),
+        (0, 1),
+        (),
+        init,
+    )
+    panes = bench.Panes(blank, bench.glass_plane(blank))
+    views = []
+    for i, (x, y) in enumerate(((0.0, 0.0), (0.03, 0.01))):
+        cam = camera(x, y)
+        views.append(TrainView(f"v{i}", cam, mirrored_photo(cam, panes), full, full, normals, full))
+    return TrainData(tuple(views), (0, 1), (), init)
+
+
+def test_a_photo_mirrored_in_each_pane_at_its_tilt_is_the_other_view(bench):
+    data = mirror_scene(bench)
+    plane = bench.glass_plane(data)
+    panes = bench.Panes(data, plane)
+    assert panes.count == 2 and np.allclose(panes.own_tilt, 0, atol=1e-9)
+    target = data.views[0]
+    K = torch.as_tensor(target.camera.K, dtype=bench.DTYPE)
+    T = torch.as_tensor(target.camera.cam_from_world, dtype=bench.DTYPE)
+    warp = bench.MirrorWarp(data, 1, panes, plane, MIRRORED_AT)
+    scores = {}
+    for name, tilt in (("true", TILTS), ("one plane", np.zeros_like(TILTS))):
+        rgb, ok = warp(panes.normals(tilt), K, T, (H, W))
+        # where the source sees the scene point
+        scores[name] = psnr(rgb.numpy(), target.image, ok.numpy())
+    assert scores["true"] > 30.0 and scores["true"] > scores["one plane"] + 8.0, scores
+
+
+def test_the_tilts_fitted_on_the_training_views_are_the_panes(bench):
+    data = mirror_scene(bench)
+    plane = bench.glass_plane(data)
+    panes = bench.Panes(data, plane)
+    tilt, untilted, fitted = bench.fit_tilts(data, panes, plane, MIRRORED_AT, log=lambda *_, **__: None)
+    # a tilt common to both panes barely changes two nearby views' images (only the mirrored scene's depth):
+    # what the views decide is the panes' tilt against each other, to the fine grid's step
+    assert np.abs((tilt[1] - tilt[0]) - (TILTS[1] - TILTS[0])).max() <= 0.25, tilt
+    assert fitted > untilted + 4.0, (untilted, fitted)
