@@ -276,7 +276,9 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
         f"Building `{a.building}` ({v.width} x {v.height} px), {a.speed} iterations after {a.warmup}, "
         f"{base.patch_px or 'whole-image'} px windows, low-pass sigma {base.lowpass_sigma_px} px, "
         f"{base.supersample} x {base.supersample} samples per pixel, at most {base.densify.max_gaussians} "
-        "splats.\n",
+        "splats"
+        + (f"; set with `--set`: {', '.join(f'`{x}`' for x in a.set)}" if a.set else "")
+        + ".\n",
         "| variant | ms per iteration | peak device memory GiB | splats |",
         "| --- | --- | --- | --- |",
         *(f"| {n} | {ms:.1f} | {mem:.2f} | {k} |" for n, ms, mem, k in rows),
@@ -361,7 +363,8 @@ def report(a, p: TrainParams, align: AlignParams, prior: str, data: TrainData, r
         f"{p.exposure_estimate}, high-frequency weight "
         f"{p.lambda_hf_start} -> {p.lambda_hf_end}, {p.supersample} x {p.supersample} samples per pixel, "
         f"low-pass sigma {p.lowpass_sigma_px} px. "
-        "`mlp, as the paper` changes these to the paper's (`paper_mlp` in this file). The paper trains "
+        + (f"Set with `--set` for every variant: {', '.join(f'`{x}`' for x in a.set)}. " if a.set else "")
+        + "`mlp, as the paper` changes these to the paper's (`paper_mlp` in this file). The paper trains "
         "2 x 10^5 iterations on an A40: these are short runs. Wall time: training alone.\n",
     ]
     aligned = [r for r in rows if r[2] is not None]

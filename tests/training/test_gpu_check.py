@@ -32,9 +32,11 @@ def test_speed_from_a_bundle_on_the_cpu_and_its_summary(tmp_path):
     save_bundle(dataclasses.replace(data, exposure=est), tmp_path / "tiny.npz")
     cmd = [sys.executable, "benchmarks/bench_train.py", "--bundle", str(tmp_path / "tiny.npz"), "--device",
            "cpu", "--patch-px", "0", "--init-points", "40", "--max-gaussians", "80", "--speed", "2",
-           "--warmup", "1", "--only", "mlp,sh", "--lowpass-sigma-px", "0.7071", "--no-write"]  # fmt: skip
+           "--warmup", "1", "--only", "mlp,sh", "--lowpass-sigma-px", "0.7071", "--set", "seed=3",
+           "--no-write"]  # fmt: skip
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
+    assert "set with `--set`: `seed=3`" in run.stdout  # a figure's table says what it was measured with
     (tmp_path / "speed.log").write_text(run.stdout)
     (tmp_path / "tests.log").write_text("....ss\n4 passed, 2 skipped in 3.10s\n")
     (tmp_path / "accuracy.log").write_text(
