@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facade_pipeline.segmentation.evidence import CLIPPED_LEVEL, Gradients, local_median, relative_distance
+from facade_pipeline.segmentation.evidence import CLIPPED_LEVEL, Gradients, local_median
 from facade_pipeline.segmentation.grid import FamilyFit
 
 
@@ -110,11 +110,10 @@ def bar_edges(
 def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
                    tol: float) -> tuple[np.ndarray, np.ndarray | None]:
     """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
-    colour on its centre line (within ``tol`` of its median over ``rows``: an RGB distance as a fraction
-    of that colour's brightness, ``relative_distance``). A frame keeps its colour whatever the glass
-    beside it reflects; an object in front of it (a tree) does not, which is what marks a panel occluded.
-    With it, [L] bool: where the centre line is not the bar's colour and clipped white
-    (``EdgeLine.unknown``), None where it is nowhere."""
+    colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
+    keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
+    which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
+    and clipped white (``EdgeLine.unknown``), None where it is nowhere."""
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     centre = 0.5 * (low.at(t) + high.at(t))
@@ -131,7 +130,7 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
     else:  # each block's own colour (``Gradients.block_px``)
         ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
         ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
-    near = relative_distance(colour, ref) <= tol
+    near = np.linalg.norm(colour - ref, axis=1) <= tol
     unknown = ok & ~near & (colour.max(axis=1) >= CLIPPED_LEVEL)
     return np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None)
 

@@ -37,45 +37,22 @@ def nanmedian0(a: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
-#: the least brightness (0-1) a colour is taken to have where a distance is measured relative to it
-#: (``relative_distance``): one level of the encoding, so that a black reference does not divide by 0
-MIN_BRIGHTNESS = 1 / 255
-
-
-def brightness(colour: np.ndarray) -> np.ndarray:
-    """The brightness of colours [..., 3] (0-1): their brightest channel, at least ``MIN_BRIGHTNESS``."""
-    return np.maximum(np.max(colour, axis=-1), MIN_BRIGHTNESS)
-
-
-def relative_distance(colour: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """The RGB distance [...] of colours [..., 3] from ``ref`` [..., 3] (broadcast), as a fraction of
-    ``ref``'s brightness. An exposure multiplies a view's encoded values by one gain (near enough: the
-    encoding is a power law), which scales a colour distance and the colours alike: relative to the
-    colour compared with, the distance is the same at any exposure where nothing clips (a frame in the
-    shade of its unit is as far from its sunlit part), which an absolute RGB distance is not
-    (``photometry``'s gain brings a darker view up to full scale, never a brighter one down)."""
-    return norm_last(colour - ref) / brightness(ref)
-
-
 def local_median(a: np.ndarray, block: float, max_step: float | None = None) -> np.ndarray:
     """``a`` [L, ..., 3] (colours) replaced by the median (NaNs left out) of its block along axis 0: about
     ``block`` rows each, the L rows split evenly (one block where L is no longer than ``block``). With
-    ``max_step``, a lane whose neighbouring blocks' medians differ by more than that colour distance (as a
-    fraction of the brightness of the lane's median along the whole of axis 0, ``relative_distance``)
-    takes that median instead: shading turns smoothly from block to block, while a step is an edge crossing
-    the lane (a rectified bar that is not quite straight leaves its frame colour in some blocks and the
-    glass in others, and each block alone would look uniform)."""
+    ``max_step``, a lane whose neighbouring blocks' medians differ by more than that colour distance takes
+    its median along the whole of axis 0 instead: shading turns smoothly from block to block, while a step
+    is an edge crossing the lane (a rectified bar that is not quite straight leaves its frame colour in some
+    blocks and the glass in others, and each block alone would look uniform)."""
     cuts = np.linspace(0, len(a), max(1, int(round(len(a) / block))) + 1).astype(int)
     med = [nanmedian0(a[i:j]) for i, j in zip(cuts[:-1], cuts[1:], strict=True)]
     out = np.concatenate([np.broadcast_to(m, (j - i,) + a.shape[1:])
                           for m, i, j in zip(med, cuts[:-1], cuts[1:], strict=True)])
     if max_step is None or len(med) < 2:
         return out
-    whole = nanmedian0(a)
-    # [B - 1, ...]; NaN beside a block outside the view
-    step = norm_last(np.diff(np.stack(med), axis=0)) / brightness(whole)
+    step = norm_last(np.diff(np.stack(med), axis=0))  # [B - 1, ...]; NaN beside a block outside the view
     stepped = (np.where(np.isfinite(step), step, 0.0) > max_step).any(axis=0)
-    return np.where(stepped[None, ..., None], whole[None], out)
+    return np.where(stepped[None, ..., None], nanmedian0(a)[None], out)
 
 
 def norm_last(x: np.ndarray) -> np.ndarray:

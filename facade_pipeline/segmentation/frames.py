@@ -20,7 +20,6 @@ from facade_pipeline.segmentation.evidence import (
     log_likelihood,
     lsd_evidence,
     nanmedian0,
-    relative_distance,
 )
 from facade_pipeline.segmentation.grid import (
     EDGE_SEARCH_PX,
@@ -82,9 +81,8 @@ def _family(
     dist = None
     if frame_colour is not None:
         # a difference within the tolerance of frame_presence is the frames' own shading (a curved facade
-        # turns its transoms through many normals): only what lies beyond it costs. Both relative to the
-        # frame colour's brightness, as frame_presence's, so that an exposure scales neither
-        dist = relative_distance(grad.line_colour(span), frame_colour)[: len(e_grad)]
+        # turns its transoms through many normals): only what lies beyond it costs
+        dist = np.linalg.norm(grad.line_colour(span) - frame_colour, axis=1)[: len(e_grad)]
         dist = np.maximum(dist - params.frame_colour_tol, 0.0)
     ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid, dist)
     # outer frames are judged without the colour prior: one side meets the background, and the centre line

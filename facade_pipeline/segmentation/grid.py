@@ -92,10 +92,9 @@ class GridParams:
     uniformity_scale: Positive
     """Colour deviation along a bar (0-1 RGB) that costs one nat: frames are uniform along their length."""
     frame_colour_scale: NonNeg
-    """Colour distance of a bar of one family from the median colour of the other family's bars, as a
-    fraction of that colour's brightness (``evidence.relative_distance``), that costs one nat: mullions
-    and transoms are one material (0: not used; used on planar surfaces only, where every bar faces one
-    way and is shaded alike)."""
+    """Colour distance (0-1 RGB) of a bar of one family from the median colour of the other family's bars
+    that costs one nat: mullions and transoms are one material (0: not used; used on planar surfaces
+    only, where every bar faces one way and is shaded alike)."""
 
     def __post_init__(self) -> None:
         for low, high in (("min_pitch", "max_pitch"), ("min_bar", "max_bar")):

@@ -32,7 +32,6 @@ class SegmentParams:
     the building's pitch) of the rectified surface: border strips beyond the facade's end hold no partial
     panel."""
     frame_colour_tol: NonNeg
-    """A frame bar is present where its centre line is within this RGB distance of its median colour, as a
-    fraction of that colour's brightness (``evidence.relative_distance``: an exposure changes nothing)."""
+    """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
     parallax_max_slope: NonNeg
     """Largest frame parallax d / (Z - d) accepted (frames d proud of glass seen from Z); 0: no correction."""

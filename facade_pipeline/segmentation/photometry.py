@@ -10,9 +10,6 @@ view already at full scale there (sunlit frames or highlights, as most photos of
 is, and a view darker by any gain is brought back to it. One gain for the three channels: a gain per
 channel would also undo a white balance, but it recolours every view whose brightest part is not white
 (a blue sky reflected), and the frames' colour against the glass is evidence (``frame_colour_scale``).
-A brighter view is not darkened (what clipped cannot be brought back): the frame colour's tolerance and
-prior (``frame_colour_tol``, ``frame_colour_scale``) are distances relative to the frame's own colour
-(``evidence.relative_distance``), which such a gain leaves as they are wherever the frame does not clip.
 """
 
 from __future__ import annotations
