@@ -130,18 +130,12 @@ def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
     return FamilyFit(np.array(centres), np.array(widths), fit.pitch, fit.score), frozenset(placed)
 
 
-def bar_colour(grad: Gradients, fit: FamilyFit, span: slice, tol: float) -> np.ndarray | None:
+def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
     """[3] median colour (0-1) of one family's bars (``grad`` of that family): along their centre lines
-    over ``span``; None where no more than half of the bars in view have it, within ``tol`` (RGB
-    distance, as ``frame_presence``'s). Frames are one material, and most bars found are frames: a bar of
-    another colour is not one (the glass beside a frame, which the grid took for it), and where such bars
-    are half of them (one of two), their median is no frame's colour."""
+    over ``span``."""
     colour = grad.line_colour(span)
     idx = np.clip(np.rint(fit.centres / STEP_PX).astype(int), 0, len(colour) - 1)
-    ref = nanmedian0(colour[idx])
-    dist = np.linalg.norm(colour[idx] - ref, axis=1)
-    seen = np.isfinite(dist)  # a bar outside the view has no colour (NaN)
-    return ref if (dist[seen] <= tol).sum() > 0.5 * seen.sum() else None
+    return nanmedian0(colour[idx])
 
 
 def extent(fit: FamilyFit | None, size: int) -> slice:
@@ -229,11 +223,10 @@ def find_bars(
         v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool)
         # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
         # they run the facade's full height, while the long straight lines that reflections bring (horizon,
-        # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal. Mullions not of one
-        # colour give no reference (``bar_colour``): the transoms are then judged without it
+        # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
         colour_h = None
         if v is not None and params.grid.frame_colour_scale > 0 and planar:
-            colour_h = bar_colour(gv, v, extent(h, H), params.frame_colour_tol)
+            colour_h = bar_colour(gv, v, extent(h, H))
         h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool)
         metrics = {
             "n_segments": len(fam.segments),

@@ -491,29 +491,6 @@ def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
     assert plane.metrics["map_score_y"] < curved.metrics["map_score_y"] - (d.rows + 1)
 
 
-@pytest.mark.parametrize("gain", [1.0, 0.5])
-def test_mullions_not_of_one_colour_give_the_transoms_no_colour_reference(gain):
-    """Frames are one material: mullions of one colour, their shading within ``frame_colour_tol``, give
-    the transoms their median colour to match (as taken and at half the exposure), and so do three of
-    which one has the colour of the glass (the glass beside a frame, which the grid took for it); where
-    that is one of two, their median is no frame's colour, and they give none."""
-    from facade_pipeline.segmentation.evidence import Gradients
-    from facade_pipeline.segmentation.frames import bar_colour
-    from facade_pipeline.segmentation.grid import FamilyFit
-
-    img = np.full((60, 100, 3), 0.2)
-    for x0, level in ((20, 0.9), (50, 0.85), (80, 0.9)):  # the second in a light shade
-        img[:, x0 : x0 + 6] = level
-    fit = FamilyFit(np.array([23.0, 53.0, 83.0]), np.full(3, 6.0), 30.0, 1.0)
-    ref = bar_colour(Gradients.of(255 * gain * img, 0), fit, slice(0, 60), PARAMS.frame_colour_tol)
-    assert ref is not None and np.allclose(ref, 0.9 * gain)
-    img[:, 80:86] = 0.2
-    ref = bar_colour(Gradients.of(255 * gain * img, 0), fit, slice(0, 60), PARAMS.frame_colour_tol)
-    assert ref is not None and np.allclose(ref, 0.85 * gain)
-    two = FamilyFit(fit.centres[1:], fit.widths[1:], fit.pitch, fit.score)
-    assert bar_colour(Gradients.of(255 * gain * img, 0), two, slice(0, 60), PARAMS.frame_colour_tol) is None
-
-
 def test_a_bar_showing_its_side_face_does_not_mark_the_pane_beside_it_occluded():
     """The second mullion over the top row shows another face (lighter than the frames, as a bar's side
     face beside an empty unit does), its edges against the glass still sharp: the panes beside it are
@@ -573,12 +550,10 @@ def test_a_view_off_the_building_grid_is_sought_again_family_by_family():
 
 def test_a_view_whose_mullions_hold_the_buildings_pitch_alone_takes_its_transoms_at_their_own():
     """Two mullions in view and a dark bar (a shaded frame of a unit beyond) 1.3 pitches from the first:
-    sought freely, the grid takes the dark bar for the second mullion; its colour is not the first's, so
-    the mullions give the transoms no frame colour to match (``frames.bar_colour``: a median of the two
-    would be no frame's) and the transoms are found at their drawn pitch. The building's pitch across the
-    transoms is not this view's (a unit set off its neighbours' line), so the building's grid in both
-    families finds nothing; with the mullions alone at the building's pitch the view finds both drawn
-    families."""
+    sought freely, the grid takes the dark bar for the second mullion, and with it the wrong frame colour,
+    which the transoms must have, and the wrong transoms. The building's pitch across the transoms is
+    not this view's (a unit set off its neighbours' line), so the building's grid in both families finds
+    nothing; with the mullions alone at the building's pitch the view finds both drawn families."""
     from facade_pipeline.segmentation.building import sought_again
     from facade_pipeline.segmentation.frames import find_frames
 
@@ -588,8 +563,7 @@ def test_a_view_whose_mullions_hold_the_buildings_pitch_alone_takes_its_transoms
     img[:, round(dark) : round(dark + 4.8)] = 51
     own = find_frames(img, PARAMS, FINE_M_PER_PX, PITCH_M)
     true_x, true_y = 54.8 * FINE_M_PER_PX, 46.6 * FINE_M_PER_PX
-    assert own.pitches_m()["x"] > 1.2 * true_x
-    assert own.pitches_m()["y"] == pytest.approx(true_y, abs=0.5 * FINE_M_PER_PX)
+    assert own.pitches_m()["x"] > 1.2 * true_x and abs(own.pitches_m()["y"] / true_y - 1) > 0.2
     wanted = {"x": (0.88 * true_x, 1.12 * true_x), "y": (1.3 * 0.88 * true_y, 1.3 * 1.12 * true_y)}
     tried = []
 
