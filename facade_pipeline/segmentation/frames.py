@@ -161,9 +161,17 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams,
             e = (EdgeLine(c - w / 2, 0.0, mid, np.zeros(L)), EdgeLine(c + w / 2, 0.0, mid, np.zeros(L)))
         if e is None:
             continue
-        present, unknown = frame_presence(grad, e[0], e[1], span, params.frame_colour_tol)
-        edges.append(tuple(dataclasses.replace(line, present=present, unknown=unknown) for line in e))
+        edges.append(with_presence(grad, e, span, params))
     return Bars(edges, fit) if edges else None
+
+
+def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
+                  params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
+    """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
+    and where that is unknown (``frame_presence`` within ``frame_colour_tol``), set on both."""
+    present, unknown = frame_presence(grad, bar[0], bar[1], span, params.frame_colour_tol)
+    low, high = (dataclasses.replace(line, present=present, unknown=unknown) for line in bar)
+    return low, high
 
 
 def find_bars(
@@ -407,8 +415,7 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             if sc > score:
                 best, score = e, sc
         if best[0] is not low:
-            present, unknown = frame_presence(grad, best[0], best[1], span, params.frame_colour_tol)
-            best = tuple(dataclasses.replace(line, present=present, unknown=unknown) for line in best)
+            best = with_presence(grad, best, span, params)
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n
