@@ -209,3 +209,38 @@ def agreeing(depths: list[float]) -> bool:
         return False
     error = float(np.std(depths, ddof=1)) / np.sqrt(n)
     return float(np.mean(depths)) > (stdtrit(n - 1, 0.975) * error if error > 0 else 0.0)
+
+
+def pooled_depth_m(views: list[tuple[Bars, ParallaxField, float]], axis: int, min_bars: int) -> float:
+    """The frame depth d (m) of one family fitted over the bars of many views at once, 0 where they do not
+    show one. Each view (its ``Bars`` at the working scale, its ``ParallaxField`` with the camera's distance
+    D, its metres per pixel m) adds its bars' widths in metres, w = B + (d / D) s, s the extent (m) of a bar
+    beyond the camera's foot on either side at its found edges (``fit_parallax``'s model: there k s / (1 +
+    k) in pixels, k = d / (D - d)). One facade's frames share B and d, and on a plane each side of the foot
+    shows the same face of every bar, lit alike in every view, so views with too few bars for a fit of their
+    own (a close-up framing one unit: two bars a family) measure d together. Bars narrower than half their
+    view's median (cut by the border) and views without a distance are left out; d is the larger side's,
+    kept where it stands ``PARALLAX_MIN_T`` standard errors above 0, from at least ``min_bars`` bars and
+    more bars than unknowns."""
+    w, x, px = [], [], []
+    for bars, field, m in views:
+        if not np.isfinite(field.distance_m) or not bars.edges:
+            continue
+        widths = np.array([hi.a - lo.a for lo, hi in bars.edges])
+        for (lo, hi), width in zip(bars.edges, widths, strict=True):
+            if width < 0.5 * float(np.median(widths)):
+                continue
+            s = np.maximum([-_coord(field, axis, lo), _coord(field, axis, hi)], 0.0)
+            w.append(width * m)
+            x.append(s * m / field.distance_m)
+            px.append(s)
+    sides = [j for j in (0, 1) if len(px) and np.ptp(np.array(px)[:, j]) >= 1.0]
+    if len(w) < min_bars or not sides or len(w) <= 1 + len(sides):
+        return 0.0
+    A = np.concatenate([np.ones((len(w), 1)), np.array(x)[:, sides]], axis=1)
+    coef = np.linalg.lstsq(A, np.array(w), rcond=None)[0]
+    slopes = dict(zip(sides, coef[1:], strict=True))
+    d = float(max(slopes.values()))
+    if d <= 0.0:
+        return 0.0
+    return d if d >= PARALLAX_MIN_T * _slope_error(A, np.array(w) - A @ coef, sides, slopes) else 0.0
