@@ -90,11 +90,16 @@ class Parallax:
     """A fit through as many bars as unknowns, its slope within range: exact, so without a residual to
     judge it by; such slopes count where those of the building's views agree (``agreeing``)."""
 
-    def with_slope(self, k: float) -> Parallax:
+    def with_slope(self, k: float, sides_m: tuple[float, float] | None = None) -> Parallax:
         """This family's parallax with the slope ``k`` (the building's frame depth, ``slope_of``): a side
-        whose widths grow by less than half of it has its near edges displaced."""
-        near = tuple(bool(np.isfinite(g) and g < 0.5 * k) for g in self.slopes)
-        return dataclasses.replace(self, k=k, near_displaced=near)  # type: ignore[arg-type]
+        whose widths grow by less than half of it has its near edges displaced. Where this fit measured
+        neither side, the building's sides' depths ``sides_m`` (m, ``pooled_depth_m``) are taken instead,
+        as slopes in proportion to the larger."""
+        slopes = self.slopes
+        if sides_m is not None and not np.isfinite(slopes).any() and np.nanmax(sides_m) > 0.0:
+            slopes = tuple(k * s / np.nanmax(sides_m) for s in sides_m)  # type: ignore[assignment]
+        near = tuple(bool(np.isfinite(g) and g < 0.5 * k) for g in slopes)
+        return dataclasses.replace(self, k=k, near_displaced=near, slopes=slopes)  # type: ignore[arg-type]
 
 
 def _coord(field: ParallaxField, axis: int, line: EdgeLine) -> float:
@@ -211,7 +216,9 @@ def agreeing(depths: list[float]) -> bool:
     return float(np.mean(depths)) > (stdtrit(n - 1, 0.975) * error if error > 0 else 0.0)
 
 
-def pooled_depth_m(views: list[tuple[Bars, ParallaxField, float]], axis: int, min_bars: int) -> float:
+def pooled_depth_m(
+    views: list[tuple[Bars, ParallaxField, float]], axis: int, min_bars: int
+) -> tuple[float, tuple[float, float]]:
     """The frame depth d (m) of one family fitted over the bars of many views at once, 0 where they do not
     show one. Each view (its ``Bars`` at the working scale, its ``ParallaxField`` with the camera's distance
     D, its metres per pixel m) adds its bars' widths in metres, w = B + (d / D) s, s the extent (m) of a bar
@@ -221,7 +228,9 @@ def pooled_depth_m(views: list[tuple[Bars, ParallaxField, float]], axis: int, mi
     own (a close-up framing one unit: two bars a family) measure d together. Bars narrower than half their
     view's median (cut by the border) and views without a distance are left out; d is the larger side's,
     kept where it stands ``PARALLAX_MIN_T`` standard errors above 0, from at least ``min_bars`` bars and
-    more bars than unknowns."""
+    more bars than unknowns (else 0). Returned with each side's own d (P < 0, P > 0; NaN: not measured
+    there): a side's faces shaded like the glass show as a side whose widths do not grow
+    (``Parallax.with_slope``)."""
     w, x, px = [], [], []
     for bars, field, m in views:
         if not np.isfinite(field.distance_m) or not bars.edges:
@@ -234,13 +243,14 @@ def pooled_depth_m(views: list[tuple[Bars, ParallaxField, float]], axis: int, mi
             w.append(width * m)
             x.append(s * m / field.distance_m)
             px.append(s)
+    none = (0.0, (float("nan"), float("nan")))
     sides = [j for j in (0, 1) if len(px) and np.ptp(np.array(px)[:, j]) >= 1.0]
     if len(w) < min_bars or not sides or len(w) <= 1 + len(sides):
-        return 0.0
+        return none
     A = np.concatenate([np.ones((len(w), 1)), np.array(x)[:, sides]], axis=1)
     coef = np.linalg.lstsq(A, np.array(w), rcond=None)[0]
     slopes = dict(zip(sides, coef[1:], strict=True))
     d = float(max(slopes.values()))
-    if d <= 0.0:
-        return 0.0
-    return d if d >= PARALLAX_MIN_T * _slope_error(A, np.array(w) - A @ coef, sides, slopes) else 0.0
+    if d <= 0.0 or d < PARALLAX_MIN_T * _slope_error(A, np.array(w) - A @ coef, sides, slopes):
+        return none
+    return d, (float(slopes.get(0, np.nan)), float(slopes.get(1, np.nan)))

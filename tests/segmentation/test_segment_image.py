@@ -300,16 +300,19 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
     assert building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
 
 
-def test_close_ups_with_two_bars_each_measure_the_frame_depth_together():
+@pytest.mark.parametrize("shaded_high", [False, True])
+def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_high):
     """Close-ups of a plane, each framing one unit: two mullions a view, too few for a view's own fit, so
     no view gives a depth; pooled over the views (one facade's frames share their width and depth) the
-    bars' widths give it, and the corrected edges lie where the glass meets the frames. Flush frames,
-    their edges found with the same scatter, give none."""
+    bars' widths give it, and the corrected edges lie where the glass meets the frames. Where the side
+    faces seen beyond the camera's foot (P > 0) are shaded like the glass, the edges found there are the
+    front face's on both sides of a bar: that side's widths do not grow, and the pooled sides say so.
+    Flush frames, their edges found with the same scatter, give no depth."""
+    from facade_pipeline.segmentation.building import building_frame_parallax_m
     from facade_pipeline.segmentation.edges import Bars, EdgeLine
     from facade_pipeline.segmentation.frames import FrameBars
     from facade_pipeline.segmentation.parallax import (
         PARALLAX_MIN_BARS,
-        Parallax,
         ParallaxField,
         correct_parallax,
         fit_parallax,
@@ -328,8 +331,10 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together():
             front = lambda g: foot + (g - foot) * D / (D - depth_m)  # noqa: B023, E731
             left = rng.uniform(20.0, 60.0)
             glass = [(g, g + bar_m / m) for g in (left, left + 150.0)]  # (low, high) where it meets glass
-            # a front-face edge where the bar's far side hides the glass, the glass's own on its near side
-            found = [(front(lo) if lo < foot else lo, front(hi) if hi > foot else hi) for lo, hi in glass]
+            # a front-face edge where the bar's far side hides the glass; on its near side the glass's own,
+            # or the front face's where the side face there looks like the glass
+            found = [(front(lo) if lo < foot or shaded_high else lo, front(hi) if hi > foot else hi)
+                     for lo, hi in glass]
             bars = Bars([(line(lo + rng.normal(0, 0.1)), line(hi + rng.normal(0, 0.1))) for lo, hi in found],
                         None)
             own = fit_parallax(bars, field, 0, PARALLAX_MIN_BARS, 0.05)
@@ -339,11 +344,13 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together():
         return out
 
     proud = views(0.12)
-    depth = building_frame_depth_m([f for f, _ in proud])
+    depth, sides = building_frame_parallax_m([f for f, _ in proud])
     assert depth.keys() == {"x"} and depth["x"] == pytest.approx(0.12, abs=0.005)
+    assert sides["x"][0] == pytest.approx(0.12, abs=0.005)
+    assert (sides["x"][1] < 0.02) if shaded_high else sides["x"][1] == pytest.approx(0.12, abs=0.005)
     for f, glass in proud:
         k = slope_of(depth["x"], f.parallax.distance_m)
-        fixed = correct_parallax(f.bars_v, Parallax(0).with_slope(k), f.parallax)
+        fixed = correct_parallax(f.bars_v, f.fits["x"].with_slope(k, sides["x"]), f.parallax)
         edges = np.array([[lo.a, hi.a] for lo, hi in fixed.edges])
         assert np.abs(edges - np.array(glass)).max() < 0.4
     assert building_frame_depth_m([f for f, _ in views(0.0)]) == {}
