@@ -221,36 +221,52 @@ def pooled_depth_m(
 ) -> tuple[float, tuple[float, float]]:
     """The frame depth d (m) of one family fitted over the bars of many views at once, 0 where they do not
     show one. Each view (its ``Bars`` at the working scale, its ``ParallaxField`` with the camera's distance
-    D, its metres per pixel m) adds its bars' widths in metres, w = B + (d / D) s, s the extent (m) of a bar
-    beyond the camera's foot on either side at its found edges (``fit_parallax``'s model: there k s / (1 +
-    k) in pixels, k = d / (D - d)). One facade's frames share B and d, and on a plane each side of the foot
-    shows the same face of every bar, lit alike in every view, so views with too few bars for a fit of their
-    own (a close-up framing one unit: two bars a family) measure d together. Bars narrower than half their
-    view's median (cut by the border) and views without a distance are left out; d is the larger side's,
-    kept where it stands ``PARALLAX_MIN_T`` standard errors above 0, from at least ``min_bars`` bars and
-    more bars than unknowns (else 0). Returned with each side's own d (P < 0, P > 0; NaN: not measured
-    there): a side's faces shaded like the glass show as a side whose widths do not grow
+    D, its metres per pixel m) adds its bars' widths in metres, w = B_v + (d / D) s, s the extent (m) of a
+    bar beyond the camera's foot on either side at its found edges (``fit_parallax``'s model: there k s /
+    (1 + k) in pixels, k = d / (D - d)). One facade's frames share d, and on a plane each side of the foot
+    shows the same face of every bar, lit alike in every view, so views with too few bars for a fit of
+    their own (a close-up framing one unit: two bars a family) measure d together. Each view has its own
+    B_v: a photo's exposure, focus and scale widen or narrow all its bars alike, so only the widths within
+    a view against their extents tell d; and the bars of one view share those errors, so d's standard error
+    is over the views (the cluster-robust one, G / (G - 1) for G views). Bars narrower than half their
+    view's median (cut by the border), views without a distance and views with one bar left are left out;
+    d is the larger side's, kept where it stands ``PARALLAX_MIN_T`` standard errors above 0, from at least
+    ``min_bars`` bars and more bars than unknowns (else 0). Returned with each side's own d (P < 0, P > 0;
+    NaN: not measured there): a side's faces shaded like the glass show as a side whose widths do not grow
     (``Parallax.with_slope``)."""
-    w, x, px = [], [], []
-    for bars, field, m in views:
+    w, x, px, view = [], [], [], []
+    for i, (bars, field, m) in enumerate(views):
         if not np.isfinite(field.distance_m) or not bars.edges:
             continue
         widths = np.array([hi.a - lo.a for lo, hi in bars.edges])
-        for (lo, hi), width in zip(bars.edges, widths, strict=True):
-            if width < 0.5 * float(np.median(widths)):
-                continue
+        kept = [(lo, hi, width) for (lo, hi), width in zip(bars.edges, widths, strict=True)
+                if width >= 0.5 * float(np.median(widths))]
+        if len(kept) < 2:
+            continue
+        for lo, hi, width in kept:
             s = np.maximum([-_coord(field, axis, lo), _coord(field, axis, hi)], 0.0)
             w.append(width * m)
             x.append(s * m / field.distance_m)
             px.append(s)
+            view.append(i)
     none = (0.0, (float("nan"), float("nan")))
     sides = [j for j in (0, 1) if len(px) and np.ptp(np.array(px)[:, j]) >= 1.0]
-    if len(w) < min_bars or not sides or len(w) <= 1 + len(sides):
+    ids = np.unique(view)
+    if len(w) < min_bars or not sides or len(ids) < 2 or len(w) <= len(ids) + len(sides):
         return none
-    A = np.concatenate([np.ones((len(w), 1)), np.array(x)[:, sides]], axis=1)
+    own = (np.array(view)[:, None] == ids[None]).astype(float)
+    A = np.concatenate([own, np.array(x)[:, sides]], axis=1)
     coef = np.linalg.lstsq(A, np.array(w), rcond=None)[0]
-    slopes = dict(zip(sides, coef[1:], strict=True))
-    d = float(max(slopes.values()))
-    if d <= 0.0 or d < PARALLAX_MIN_T * _slope_error(A, np.array(w) - A @ coef, sides, slopes):
+    slopes = dict(zip(sides, coef[len(ids):], strict=True))
+    side = max(slopes, key=lambda j: slopes[j])
+    d = float(slopes[side])
+    if d <= 0.0:
+        return none
+    residual = np.array(w) - A @ coef
+    inv = np.linalg.pinv(A.T @ A)
+    scores = [A[own[:, g] > 0].T @ residual[own[:, g] > 0] for g in range(len(ids))]
+    cov = len(ids) / (len(ids) - 1) * inv @ sum(np.outer(q, q) for q in scores) @ inv
+    error = float(np.sqrt(max(cov[len(ids) + sides.index(side), len(ids) + sides.index(side)], 0.0)))
+    if d < PARALLAX_MIN_T * error:
         return none
     return d, (float(slopes.get(0, np.nan)), float(slopes.get(1, np.nan)))

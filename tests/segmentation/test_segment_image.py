@@ -335,12 +335,16 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
             # or the front face's where the side face there looks like the glass
             found = [(front(lo) if lo < foot or shaded_high else lo, front(hi) if hi > foot else hi)
                      for lo, hi in glass]
-            bars = Bars([(line(lo + rng.normal(0, 0.1)), line(hi + rng.normal(0, 0.1))) for lo, hi in found],
-                        None)
+            wider = rng.normal(0.0, 0.5)  # the view's exposure and focus widen every bar in it alike
+            noise = rng.normal(0.0, 0.1, (2, 2))
+            bars = Bars([(line(lo - wider / 2 + e[0]), line(hi + wider / 2 + e[1]))
+                         for (lo, hi), e in zip(found, noise, strict=True)], None)
             own = fit_parallax(bars, field, 0, PARALLAX_MIN_BARS, 0.05)
             assert own.k == 0.0 and not own.unjudged  # two bars: no fit of the view's own
+            # where the glass meets the frames as this photo shows them, its widening included
+            shown = [(lo - wider / 2, hi + wider / 2) for lo, hi in glass]
             out.append((FrameBars(bars, None, {"x": own}, field, (W, 254), (1.0, 1.0), m, None, {},
-                                  (None, None)), glass))
+                                  (None, None)), shown))
         return out
 
     proud = views(0.12)
@@ -352,7 +356,7 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
         k = slope_of(depth["x"], f.parallax.distance_m)
         fixed = correct_parallax(f.bars_v, f.fits["x"].with_slope(k, sides["x"]), f.parallax)
         edges = np.array([[lo.a, hi.a] for lo, hi in fixed.edges])
-        assert np.abs(edges - np.array(glass)).max() < 0.4
+        assert np.abs(edges - np.array(glass)).max() < 0.5
     assert building_frame_depth_m([f for f, _ in views(0.0)]) == {}
 
 
