@@ -243,9 +243,11 @@ def segment_one(
     frame_depth_m: dict[str, float],
     bar_width_m: dict[str, float],
     overlay_scale: float,
+    frame_sides_m: dict[str, tuple[float, float]] | None = None,
 ) -> tuple[list[Path], dict]:
-    """Segment one view from its frame bars (``find_one``) with the building's frame depth and bar widths
-    and write its three outputs; returns them and the view's metrics."""
+    """Segment one view from its frame bars (``find_one``) with the building's frame depth (and its sides'
+    where the views' bars were pooled for it: ``building_frame_parallax_m``) and bar widths and write its
+    three outputs; returns them and the view's metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image, write_image
     from facade_pipeline.segmentation.panels import segment_frames
@@ -255,7 +257,7 @@ def segment_one(
     W, H = view.camera.width, view.camera.height
     panels, ok, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
     if found is not None:
-        seg = segment_frames(found, params, frame_depth_m, bar_width_m)
+        seg = segment_frames(found, params, frame_depth_m, bar_width_m, frame_sides_m)
         labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
         ok = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if ok else []), seg.metrics
@@ -312,7 +314,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     from facade_pipeline.rectification.surface_map import ViewRectification
     from facade_pipeline.segmentation.building import (
         building_bar_width_m,
-        building_frame_depth_m,
+        building_frame_parallax_m,
         survey_unit_m,
     )
 
@@ -331,7 +333,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             found = map_views(functools.partial(_find_view, layout, params, unit), views,
                               settings.view_workers, lambda _: bar.update())
         found = [(r, f, s + t) for (r, f, s), (_, t) in zip(found, surveyed, strict=True)]
-    depth = building_frame_depth_m([f for _, f, _ in found])
+    depth, sides = building_frame_parallax_m([f for _, f, _ in found])
     width = building_bar_width_m([f for _, f, _ in found])
     # the views off the building's grid are sought again here, one after another (few, and they need the
     # building's figures, known only now)
@@ -340,7 +342,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
                           else with_building_grid(layout, views, found, params, mesh, width, unit))
     for view, (rect, frames, seconds) in zip(views, found, strict=True):
         outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
-                                                settings.overlay_scale)
+                                                settings.overlay_scale, sides)
         if unit is None and rect.kind != "skipped":
             per_view[view.stem]["reason"] = "the survey found no regular frame grid in any view at any pitch"
         per_view[view.stem]["seconds"] = round(per_view[view.stem]["seconds"] + seconds, 3)
@@ -355,6 +357,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
             "pitch_unit_m": unit,
             "frame_depth_m": {name: round(d, 4) for name, d in depth.items()},
+            "frame_side_depths_m": {name: [round(d, 4) if np.isfinite(d) else None for d in s]
+                                    for name, s in sides.items()},
             "bar_width_m": {name: round(w, 4) for name, w in width.items()},
             "views_off_the_building_grid": disagreeing,
             "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),

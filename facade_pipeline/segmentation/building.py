@@ -14,7 +14,7 @@ from facade_pipeline.layout import BuildingLayout
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.segmentation.frames import FrameBars
 from facade_pipeline.segmentation.grid import STEP_PX, GridParams
-from facade_pipeline.segmentation.parallax import agreeing
+from facade_pipeline.segmentation.parallax import PARALLAX_MIN_BARS, agreeing, pooled_depth_m
 
 #: a view's pitch is another grid than the building's where it is further from it than the grid prior's
 #: reach over one pitch: three standard deviations of a bar's place (``GridParams.sigma_frac``)
@@ -25,12 +25,25 @@ WIDTH_RATIO = 2.0
 
 
 def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
+    """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass
+    (``building_frame_parallax_m``)."""
+    return building_frame_parallax_m(found)[0]
+
+
+def building_frame_parallax_m(
+    found: list[FrameBars | None],
+) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:
     """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass: per family, the
     median of what the views' own parallax fits give (``FrameBars.frame_depths_m``); a family without any
     is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
     widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
     tight cylinder) or show it loosely. The views' exact fits (as many bars as unknowns: a few bars in a
-    small view) join the median where they agree with one another (``parallax.agreeing``)."""
+    small view) join the median where they agree with one another (``parallax.agreeing``). A family that
+    no view's fit gives a depth for is fitted over the bars of every view at once
+    (``parallax.pooled_depth_m``: close-ups of one unit show two bars a family each, too few for a view's
+    own fit). Returned with, for each family so fitted, its two sides' own depths (P < 0, P > 0): a side
+    whose widths do not grow has the near edges of its bars displaced as well (``Parallax.with_slope``),
+    which no view measured on its own."""
     depths: dict[str, list[float]] = {}
     exact: dict[str, list[float]] = {}
     for f in found:
@@ -41,7 +54,16 @@ def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
     for name, d in exact.items():
         if agreeing(d):
             depths.setdefault(name, []).extend(d)
-    return {name: float(np.median(d)) for name, d in sorted(depths.items())}
+    out = {name: float(np.median(d)) for name, d in depths.items()}
+    sides = {}
+    for name, axis in (("x", 0), ("y", 1)):
+        if name not in out:
+            views = [(bars, f.parallax, f.metres_per_px) for f in found if f is not None
+                     and f.parallax is not None and (bars := f.bars_v if axis == 0 else f.bars_h) is not None]
+            d, sides_m = pooled_depth_m(views, axis, PARALLAX_MIN_BARS)
+            if d > 0.0:
+                out[name], sides[name] = d, sides_m
+    return dict(sorted(out.items())), sides
 
 
 def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:

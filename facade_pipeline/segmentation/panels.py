@@ -31,13 +31,16 @@ def segment_frames(
     params: SegmentParams,
     frame_depth_m: dict[str, float] | None = None,
     bar_width_m: dict[str, float] | None = None,
+    frame_sides_m: dict[str, tuple[float, float]] | None = None,
 ) -> Segmentation:
     """The panels between the frame bars ``found`` (``find_frames``), corners in the given image's pixels.
     The bars are corrected for their parallax: a family with a depth in ``frame_depth_m`` ("x": mullions,
     "y": transoms; m proud of the glass, the building's, measured over all its views: a view's own widths
     may not show it) with the slope of that depth where the camera's distance to the surface is known,
     else with its own fit. A family with a width in ``bar_width_m`` (m, the building's) has its bars
-    narrower than half of it found again at it (``widen_narrow_bars``)."""
+    narrower than half of it found again at it (``widen_narrow_bars``). A family with its sides' depths
+    in ``frame_sides_m`` (m, P < 0 and P > 0, the building's where no view measured its own) whose fit
+    measured neither side takes them: which side's near edges are displaced."""
     metrics = dict(found.metrics)
     bars_v, bars_h, m = found.bars_v, found.bars_h, found.metres_per_px
     if bars_v is None or bars_h is None:
@@ -63,7 +66,7 @@ def segment_frames(
     for name, depth in (frame_depth_m or {}).items():
         k = 0.0 if found.parallax is None else slope_of(depth, found.parallax.distance_m)
         if name in fits and 0.0 < k <= params.parallax_max_slope:
-            fits[name] = fits[name].with_slope(k)
+            fits[name] = fits[name].with_slope(k, (frame_sides_m or {}).get(name))
     metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)

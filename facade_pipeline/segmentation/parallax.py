@@ -90,11 +90,16 @@ class Parallax:
     """A fit through as many bars as unknowns, its slope within range: exact, so without a residual to
     judge it by; such slopes count where those of the building's views agree (``agreeing``)."""
 
-    def with_slope(self, k: float) -> Parallax:
+    def with_slope(self, k: float, sides_m: tuple[float, float] | None = None) -> Parallax:
         """This family's parallax with the slope ``k`` (the building's frame depth, ``slope_of``): a side
-        whose widths grow by less than half of it has its near edges displaced."""
-        near = tuple(bool(np.isfinite(g) and g < 0.5 * k) for g in self.slopes)
-        return dataclasses.replace(self, k=k, near_displaced=near)  # type: ignore[arg-type]
+        whose widths grow by less than half of it has its near edges displaced. Where this fit measured
+        neither side, the building's sides' depths ``sides_m`` (m, ``pooled_depth_m``) are taken instead,
+        as slopes in proportion to the larger."""
+        slopes = self.slopes
+        if sides_m is not None and not np.isfinite(slopes).any() and np.nanmax(sides_m) > 0.0:
+            slopes = tuple(k * s / np.nanmax(sides_m) for s in sides_m)  # type: ignore[assignment]
+        near = tuple(bool(np.isfinite(g) and g < 0.5 * k) for g in slopes)
+        return dataclasses.replace(self, k=k, near_displaced=near, slopes=slopes)  # type: ignore[arg-type]
 
 
 def _coord(field: ParallaxField, axis: int, line: EdgeLine) -> float:
@@ -209,3 +214,59 @@ def agreeing(depths: list[float]) -> bool:
         return False
     error = float(np.std(depths, ddof=1)) / np.sqrt(n)
     return float(np.mean(depths)) > (stdtrit(n - 1, 0.975) * error if error > 0 else 0.0)
+
+
+def pooled_depth_m(
+    views: list[tuple[Bars, ParallaxField, float]], axis: int, min_bars: int
+) -> tuple[float, tuple[float, float]]:
+    """The frame depth d (m) of one family fitted over the bars of many views at once, 0 where they do not
+    show one. Each view (its ``Bars`` at the working scale, its ``ParallaxField`` with the camera's distance
+    D, its metres per pixel m) adds its bars' widths in metres, w = B_v + (d / D) s, s the extent (m) of a
+    bar beyond the camera's foot on either side at its found edges (``fit_parallax``'s model: there k s /
+    (1 + k) in pixels, k = d / (D - d)). One facade's frames share d, and on a plane each side of the foot
+    shows the same face of every bar, lit alike in every view, so views with too few bars for a fit of
+    their own (a close-up framing one unit: two bars a family) measure d together. Each view has its own
+    B_v: a photo's exposure, focus and scale widen or narrow all its bars alike, so only the widths within
+    a view against their extents tell d; and the bars of one view share those errors, so d's standard error
+    is over the views (the cluster-robust one, G / (G - 1) for G views). Bars narrower than half their
+    view's median (cut by the border), views without a distance and views with one bar left are left out;
+    d is the larger side's, kept where it stands ``PARALLAX_MIN_T`` standard errors above 0, from at least
+    ``min_bars`` bars and more bars than unknowns (else 0). Returned with each side's own d (P < 0, P > 0;
+    NaN: not measured there): a side's faces shaded like the glass show as a side whose widths do not grow
+    (``Parallax.with_slope``)."""
+    w, x, px, view = [], [], [], []
+    for i, (bars, field, m) in enumerate(views):
+        if not np.isfinite(field.distance_m) or not bars.edges:
+            continue
+        widths = np.array([hi.a - lo.a for lo, hi in bars.edges])
+        kept = [(lo, hi, width) for (lo, hi), width in zip(bars.edges, widths, strict=True)
+                if width >= 0.5 * float(np.median(widths))]
+        if len(kept) < 2:
+            continue
+        for lo, hi, width in kept:
+            s = np.maximum([-_coord(field, axis, lo), _coord(field, axis, hi)], 0.0)
+            w.append(width * m)
+            x.append(s * m / field.distance_m)
+            px.append(s)
+            view.append(i)
+    none = (0.0, (float("nan"), float("nan")))
+    sides = [j for j in (0, 1) if len(px) and np.ptp(np.array(px)[:, j]) >= 1.0]
+    ids = np.unique(view)
+    if len(w) < min_bars or not sides or len(ids) < 2 or len(w) <= len(ids) + len(sides):
+        return none
+    own = (np.array(view)[:, None] == ids[None]).astype(float)
+    A = np.concatenate([own, np.array(x)[:, sides]], axis=1)
+    coef = np.linalg.lstsq(A, np.array(w), rcond=None)[0]
+    slopes = dict(zip(sides, coef[len(ids):], strict=True))
+    side = max(slopes, key=lambda j: slopes[j])
+    d = float(slopes[side])
+    if d <= 0.0:
+        return none
+    residual = np.array(w) - A @ coef
+    inv = np.linalg.pinv(A.T @ A)
+    scores = [A[own[:, g] > 0].T @ residual[own[:, g] > 0] for g in range(len(ids))]
+    cov = len(ids) / (len(ids) - 1) * inv @ sum(np.outer(q, q) for q in scores) @ inv
+    error = float(np.sqrt(max(cov[len(ids) + sides.index(side), len(ids) + sides.index(side)], 0.0)))
+    if d < PARALLAX_MIN_T * error:
+        return none
+    return d, (float(slopes.get(0, np.nan)), float(slopes.get(1, np.nan)))

@@ -300,6 +300,66 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
     assert building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
 
 
+@pytest.mark.parametrize("shaded_high", [False, True])
+def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_high):
+    """Close-ups of a plane, each framing one unit: two mullions a view, too few for a view's own fit, so
+    no view gives a depth; pooled over the views (one facade's frames share their width and depth) the
+    bars' widths give it, and the corrected edges lie where the glass meets the frames. Where the side
+    faces seen beyond the camera's foot (P > 0) are shaded like the glass, the edges found there are the
+    front face's on both sides of a bar: that side's widths do not grow, and the pooled sides say so.
+    Flush frames, their edges found with the same scatter, give no depth."""
+    from facade_pipeline.segmentation.building import building_frame_parallax_m
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.parallax import (
+        PARALLAX_MIN_BARS,
+        ParallaxField,
+        correct_parallax,
+        fit_parallax,
+        slope_of,
+    )
+
+    m, bar_m, W = 0.02, 0.3, 357
+    rng = np.random.default_rng(7)
+    line = lambda a: EdgeLine(float(a), 0.0, 50.0, np.ones(100))  # noqa: E731
+
+    def views(depth_m: float) -> list[tuple[FrameBars, list[tuple[float, float]]]]:
+        out = []
+        for _ in range(12):
+            D, foot = rng.uniform(3.4, 4.0), rng.uniform(100.0, 257.0)
+            field = dataclasses.replace(ParallaxField.about((foot, 127.0), W, 254), distance_m=D)
+            front = lambda g: foot + (g - foot) * D / (D - depth_m)  # noqa: B023, E731
+            left = rng.uniform(20.0, 60.0)
+            glass = [(g, g + bar_m / m) for g in (left, left + 150.0)]  # (low, high) where it meets glass
+            # a front-face edge where the bar's far side hides the glass; on its near side the glass's own,
+            # or the front face's where the side face there looks like the glass
+            found = [(front(lo) if lo < foot or shaded_high else lo, front(hi) if hi > foot else hi)
+                     for lo, hi in glass]
+            wider = rng.normal(0.0, 0.5)  # the view's exposure and focus widen every bar in it alike
+            noise = rng.normal(0.0, 0.1, (2, 2))
+            bars = Bars([(line(lo - wider / 2 + e[0]), line(hi + wider / 2 + e[1]))
+                         for (lo, hi), e in zip(found, noise, strict=True)], None)
+            own = fit_parallax(bars, field, 0, PARALLAX_MIN_BARS, 0.05)
+            assert own.k == 0.0 and not own.unjudged  # two bars: no fit of the view's own
+            # where the glass meets the frames as this photo shows them, its widening included
+            shown = [(lo - wider / 2, hi + wider / 2) for lo, hi in glass]
+            out.append((FrameBars(bars, None, {"x": own}, field, (W, 254), (1.0, 1.0), m, None, {},
+                                  (None, None)), shown))
+        return out
+
+    proud = views(0.12)
+    depth, sides = building_frame_parallax_m([f for f, _ in proud])
+    assert depth.keys() == {"x"} and depth["x"] == pytest.approx(0.12, abs=0.005)
+    assert sides["x"][0] == pytest.approx(0.12, abs=0.005)
+    assert (sides["x"][1] < 0.02) if shaded_high else sides["x"][1] == pytest.approx(0.12, abs=0.005)
+    for f, glass in proud:
+        k = slope_of(depth["x"], f.parallax.distance_m)
+        fixed = correct_parallax(f.bars_v, f.fits["x"].with_slope(k, sides["x"]), f.parallax)
+        edges = np.array([[lo.a, hi.a] for lo, hi in fixed.edges])
+        assert np.abs(edges - np.array(glass)).max() < 0.5
+    assert building_frame_depth_m([f for f, _ in views(0.0)]) == {}
+
+
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
     """A cylinder of 6 m seen from 6 m (curved12's frontal views at half scale): frames d = 6 cm proud of
     the glass are seen shifted by (d / D) P, P growing much faster than the distance from the camera's foot
