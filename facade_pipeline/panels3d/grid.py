@@ -116,6 +116,103 @@ def grid_cells(
     return rows, cols
 
 
+def _line_ids(rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[Q, 4] index of the z line (a row's bottom or top) and of the s line (a column's left or right)
+    each corner lies on, numbered together (-1: none)."""
+    zl = np.where(rows[:, None] >= 0, 2 * rows[:, None] + ~BOTTOM[None], -1)
+    sl = np.where(cols[:, None] >= 0, 2 * cols[:, None] + ~LEFT[None], -1)
+    return zl, np.where(sl >= 0, sl + int(zl.max()) + 1, -1)
+
+
+def _linked_groups(lines: np.ndarray, views: np.ndarray, n_views: int) -> np.ndarray:
+    """[n_views] group of each view: views linked through a line (``lines`` [M]) both show ([M] view)."""
+    parent = np.arange(n_views)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for line in np.unique(lines):
+        seen = np.unique(views[lines == line])
+        for j in seen[1:]:
+            parent[find(int(j))] = find(int(seen[0]))
+    return np.array([find(i) for i in range(n_views)])
+
+
+def view_offsets(
+    szh: np.ndarray,
+    use: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    views: np.ndarray,
+    cam_sz: np.ndarray,
+) -> np.ndarray:
+    """[Q, 4, 2] the (s, z) offset of the corners lifted from each view, fitted jointly with the grid's
+    lines (linear least squares, s and z apart) over the corners ``use`` [Q, 4] of quads [Q, 4, 3] at
+    ``rows``, ``cols`` seen in ``views`` [Q], whose cameras stand at surface coordinates ``cam_sz`` [V, 2].
+
+    Every corner of a view is lifted through the view's one pose, and an error of its camera's centre (a
+    few centimetres in imported poses) or a small turn moves all of them together: the corners of a line
+    are not independent, and without offsets the view that shows a line most often sets it. Views linked
+    by the lines they share are only measured against each other, so in each linked group the offsets
+    are held to no mean and no trend along the cameras' positions: a pose error is taken to be unbiased
+    and unrelated to where its camera stands. A trend would scale the whole grid, which the poses fix,
+    and what scales each view's corners about its own camera alike (frames standing proud of the glass,
+    an error of the surface's depth) would otherwise pass into it."""
+    out = np.zeros(szh.shape[:2] + (2,))
+    for axis, lid in zip((1, 0), _line_ids(rows, cols), strict=True):
+        q, k = np.nonzero(use & (lid >= 0) & np.isfinite(szh[..., axis]))
+        if not len(q):
+            continue
+        lines, line = np.unique(lid[q, k], return_inverse=True)
+        seen, vi = np.unique(views[q], return_inverse=True)
+        n = len(lines) + len(seen)
+        a = np.zeros((len(q), n))
+        a[np.arange(len(q)), line] = 1.0
+        a[np.arange(len(q)), len(lines) + vi] = 1.0
+        groups = _linked_groups(line, vi, len(seen))
+        gauge = []
+        for g in np.unique(groups):
+            members = np.flatnonzero(groups == g)
+            c = cam_sz[seen[members], axis]
+            for basis in (np.ones(len(members)), c - c.mean()):
+                row = np.zeros(n)
+                row[len(lines) + members] = basis
+                gauge.append(row)
+        prior = np.zeros((len(seen), n))
+        prior[:, len(lines) :] = OFFSET_PRIOR_WEIGHT * np.eye(len(seen))
+        m = np.concatenate([a, GAUGE_WEIGHT * np.sqrt(len(q)) * np.array(gauge), prior])
+        b = np.concatenate([szh[q, k, axis], np.zeros(len(gauge) + len(seen))])
+        x, *_ = np.linalg.lstsq(m, b, rcond=None)
+        t = np.zeros(int(views.max()) + 1)
+        t[seen] = x[len(lines) :]
+        out[..., axis] = t[views][:, None]
+    return out
+
+
+#: weight of the prior that keeps a view's offsets (``view_offsets``) near zero, against a corner's unit
+#: weight: small, it only settles an offset no corner determines
+OFFSET_PRIOR_WEIGHT = 1e-3
+#: weight of the offsets' gauge (no mean, no trend) against a corner's, times the root of their count:
+#: large, the gauge holds
+GAUGE_WEIGHT = 1e3
+
+
+def _grid_inliers(
+    szh: np.ndarray, ok: np.ndarray, rows: np.ndarray, cols: np.ndarray, floor: float
+) -> np.ndarray:
+    """[Q, 4] whether each corner (of ``ok``) is within the outlier rule of its row's and column's lines."""
+    keep = np.ones(ok.shape, bool)
+    zl, sl = _line_ids(rows, cols)
+    for lid, axis in ((zl, 1), (sl, 0)):
+        for line in np.unique(lid[lid >= 0]):
+            q, k = np.nonzero((lid == line) & ok & np.isfinite(szh[..., axis]))
+            keep[q, k] &= robust_inliers(szh[q, k, axis], OUTLIER_MAD_FACTOR, floor)
+    return keep
+
+
 def grid_lines(
     szh: np.ndarray,
     ok: np.ndarray,
@@ -123,12 +220,22 @@ def grid_lines(
     cols: np.ndarray,
     size: tuple[float, float],
     cfg: RegularizeConfig,
+    views: np.ndarray | None = None,
+    cam_sz: np.ndarray | None = None,
 ) -> tuple[dict, dict, int]:
     """Robust lines of the grid from the true corners (``ok`` [Q, 4]) of quads [Q, 4, 3] at ``rows``,
     ``cols`` [Q]: {row: (z_bottom, z_top)}, {col: (s_left, s_right)} and the number of corner outliers.
     A line no true corner shows is put one panel ``size`` (width, height, m) from the opposite line (the
-    grid's regularity)."""
+    grid's regularity). Given the quads' ``views`` [Q] and the cameras' surface coordinates ``cam_sz``
+    [V, 2], each view's offset (``view_offsets``) is taken off its corners first, fitted again without
+    the outliers."""
     n_out = 0
+    if views is not None and cam_sz is not None:
+        use, raw = ok, szh
+        for _ in range(3):
+            szh = raw.copy()
+            szh[..., :2] -= view_offsets(raw, use, rows, cols, views, cam_sz)
+            use = ok & _grid_inliers(szh, ok, rows, cols, cfg.outlier_floor_m)
 
     def line(sel: np.ndarray, corner_mask: np.ndarray, axis: int) -> float:
         nonlocal n_out
@@ -156,17 +263,19 @@ def part_panels(
     ok: np.ndarray,
     views: np.ndarray,
     cfg: RegularizeConfig,
+    cam_sz: np.ndarray | None = None,
 ) -> tuple[list[Panel], int]:
     """The regularised panels of one part from its quads' corner surface coordinates [Q, 4, 3] (h = 0)
-    seen in ``views`` [Q]; ``ok`` [Q, 4] marks the true corners (not cut by the image border). Returns
-    the panels (rows and columns renumbered from 0, bottom to top and left to right) and the number of
-    corner outliers."""
+    seen in ``views`` [Q] from cameras at surface coordinates ``cam_sz`` [V, 2] (None: no view offsets,
+    ``view_offsets``); ``ok`` [Q, 4] marks the true corners (not cut by the image border). Returns the
+    panels (rows and columns renumbered from 0, bottom to top and left to right) and the number of corner
+    outliers."""
     ok = ok & np.isfinite(szh).all(axis=2)
     size = panel_size(szh, ok)
     if not np.isfinite(size).all() or min(size) <= 0:
         return [], 0
     rows, cols = grid_cells(szh, ok, *size, CLUSTER_GAP_FACTOR)
-    row_lines, col_lines, n_out = grid_lines(szh, ok, rows, cols, size, cfg)
+    row_lines, col_lines, n_out = grid_lines(szh, ok, rows, cols, size, cfg, views, cam_sz)
     cells = sorted({(int(a), int(b)) for a, b in zip(rows, cols, strict=True) if a >= 0 and b >= 0})
     r_num = {r: i for i, r in enumerate(sorted({r for r, _ in cells}))}
     c_num = {c: i for i, c in enumerate(sorted({c for _, c in cells}))}
@@ -340,7 +449,8 @@ def build_panel_set(
     for p, surf in enumerate(surfaces):
         sel = np.flatnonzero((part == p) & ok_any)
         szh = surface_corners(surf, rays, sel)
-        new, k = part_panels(surf, p, szh, ok[sel], rays.view[sel], cfg)
+        cam_sz = surf.coords(rays.centers)[:, :2]
+        new, k = part_panels(surf, p, szh, ok[sel], rays.view[sel], cfg, cam_sz)
         panels += new
         n_out += k
     n_before = len(panels)

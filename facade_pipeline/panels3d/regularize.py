@@ -11,7 +11,9 @@
    coarse points (``coarse_points_mode``) or the median offset of the coarse mesh (``coarse_mesh_median``).
 4. Every corner ray (missed ones included) is intersected with the part's surface; panels get global rows
    and columns by clustering their centres; per row of corners the height is averaged, per column the
-   position along the surface (s, a ruling on cylinders), both robustly (outliers by the grid's regularity).
+   position along the surface (s, a ruling on cylinders), both robustly (outliers by the grid's regularity),
+   after each view's offset along the surface (its pose's error, shared by all its corners) is fitted with
+   the lines and taken off (``facade_pipeline.panels3d.grid.view_offsets``).
 
 Frames: local (01_import), metres. Surface coordinates (s, z, h): see ``facade_pipeline.panels3d.model``.
 """
