@@ -24,12 +24,6 @@ PITCH_REACH_SIGMAS = 3.0
 WIDTH_RATIO = 2.0
 
 
-def building_frame_depth_m(found: list[FrameBars | None]) -> dict[str, float]:
-    """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass
-    (``building_frame_parallax_m``)."""
-    return building_frame_parallax_m(found)[0]
-
-
 def building_frame_parallax_m(
     found: list[FrameBars | None],
 ) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:

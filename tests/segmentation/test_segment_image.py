@@ -12,7 +12,7 @@ from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera, intrinsics
 from facade_pipeline.rectification.surface_map import ViewRectification
 from facade_pipeline.segmentation.accuracy import panel_ious
-from facade_pipeline.segmentation.building import building_bar_width_m, building_frame_depth_m
+from facade_pipeline.segmentation.building import building_bar_width_m, building_frame_parallax_m
 from facade_pipeline.segmentation.panels import segment_image
 from facade_pipeline.segmentation.params import SegmentParams
 from facade_pipeline.segmentation.quads import inside_quads
@@ -293,11 +293,11 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
 
     k = lambda d: d / (10.0 - d)  # noqa: E731
     agree = [view(k(0.12), True), view(k(0.125), True), view(k(0.118), True)]
-    assert building_frame_depth_m(agree)["x"] == pytest.approx(0.12)
+    assert building_frame_parallax_m(agree)[0]["x"] == pytest.approx(0.12)
     scatter = [view(k(0.06), True), view(k(0.005), True), view(k(0.2), True)]
-    assert building_frame_depth_m(scatter) == {}
+    assert building_frame_parallax_m(scatter)[0] == {}
     judged = scatter + [view(k(0.1), False)]
-    assert building_frame_depth_m(judged)["x"] == pytest.approx(0.1)
+    assert building_frame_parallax_m(judged)[0]["x"] == pytest.approx(0.1)
 
 
 @pytest.mark.parametrize("shaded_high", [False, True])
@@ -308,7 +308,6 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
     faces seen beyond the camera's foot (P > 0) are shaded like the glass, the edges found there are the
     front face's on both sides of a bar: that side's widths do not grow, and the pooled sides say so.
     Flush frames, their edges found with the same scatter, give no depth."""
-    from facade_pipeline.segmentation.building import building_frame_parallax_m
     from facade_pipeline.segmentation.edges import Bars, EdgeLine
     from facade_pipeline.segmentation.frames import FrameBars
     from facade_pipeline.segmentation.parallax import (
@@ -357,7 +356,7 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
         fixed = correct_parallax(f.bars_v, f.fits["x"].with_slope(k, sides["x"]), f.parallax)
         edges = np.array([[lo.a, hi.a] for lo, hi in fixed.edges])
         assert np.abs(edges - np.array(glass)).max() < 0.5
-    assert building_frame_depth_m([f for f, _ in views(0.0)]) == {}
+    assert building_frame_parallax_m([f for f, _ in views(0.0)])[0] == {}
 
 
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
@@ -529,7 +528,7 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
     k = lambda d, D: d / (D - d)  # noqa: E731
     views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
              view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
-    depth = building_frame_depth_m(views)
+    depth = building_frame_parallax_m(views)[0]
     assert depth.keys() == {"x", "y"}
     assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
     width = building_bar_width_m(views)
