@@ -90,7 +90,7 @@ def test_grid_masks(reflections):
     assert np.median(err) < 0.5 and err.max() < 1.0
     rect = ViewRectification.unrectified(CAMERA(d.W, d.H), FINE_M_PER_PX, "drawn")
     labels = panel_labels([p.corners for p in seg.panels], rect, d.W, d.H)
-    assert panel_ious(labels, glass_mask(d), 4).min() >= 0.95
+    assert panel_ious(labels, glass_mask(d), 4, len(seg.panels)).min() >= 0.95
 
 
 def test_quad_rasterisation_is_half_open_at_pixel_centres():
