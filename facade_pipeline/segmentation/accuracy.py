@@ -76,11 +76,12 @@ def glass_components(glass: np.ndarray, min_area_px: int) -> tuple[np.ndarray, l
     return labels, [k for k in range(1, n) if stats[k, cv2.CC_STAT_AREA] >= min_area_px]
 
 
-def panel_ious(pred_labels: np.ndarray, glass: np.ndarray, min_area_px: int) -> np.ndarray:
-    """IoU [P] of each predicted panel (pred_labels == p) with the true glass component it overlaps most."""
+def panel_ious(pred_labels: np.ndarray, glass: np.ndarray, min_area_px: int, n_panels: int) -> np.ndarray:
+    """IoU [P] of each of the ``n_panels`` predicted panels (pred_labels == p) with the true glass component
+    it overlaps most; 0 for a panel that covers no pixel centre (a cut panel's sliver along the border)."""
     labels, kept = glass_components(glass, min_area_px)
     out = []
-    for p in range(int(pred_labels.max()) + 1):
+    for p in range(n_panels):
         mine = pred_labels == p
         if not mine.any():
             out.append(0.0)
@@ -123,11 +124,11 @@ def true_panel_labels(
     return out.reshape(H, W)
 
 
-def panel_ious_vs_panels(pred_labels: np.ndarray, true_labels: np.ndarray) -> np.ndarray:
-    """IoU [P] of each predicted panel (pred_labels == p) with the true panel (true_labels) it overlaps
-    most; 0 for a predicted panel over no true panel."""
+def panel_ious_vs_panels(pred_labels: np.ndarray, true_labels: np.ndarray, n_panels: int) -> np.ndarray:
+    """IoU [P] of each of the ``n_panels`` predicted panels (pred_labels == p) with the true panel
+    (true_labels) it overlaps most; 0 for a predicted panel over no true panel or no pixel centre."""
     out = []
-    for p in range(int(pred_labels.max()) + 1):
+    for p in range(n_panels):
         mine = pred_labels == p
         ids, counts = np.unique(true_labels[mine], return_counts=True)
         counts = np.where(ids >= 0, counts, 0)
@@ -179,9 +180,9 @@ def evaluate_view(layout, view, truth: SyntheticTruth, min_area_px: int) -> dict
     errors = corner_errors(seg.panels, true_corners_px(panels, cam), W, H)
     _, kept = glass_components(glass, min_area_px)
     pred = panel_labels([p.corners_rectified_px for p in seg.panels], rect, W, H) if seg.panels else None
-    ious = panel_ious(pred, glass, min_area_px) if seg.panels else np.zeros(0)
+    ious = panel_ious(pred, glass, min_area_px, len(seg.panels)) if seg.panels else np.zeros(0)
     truth_labels = true_panel_labels(panels, parts, cam)
-    ious_panel = panel_ious_vs_panels(pred, truth_labels) if seg.panels else np.zeros(0)
+    ious_panel = panel_ious_vs_panels(pred, truth_labels, len(seg.panels)) if seg.panels else np.zeros(0)
     complete = np.array([p.complete for p in seg.panels], bool)
     straight = []
     for part in parts:

@@ -37,7 +37,11 @@ def building_frame_parallax_m(
     (``parallax.pooled_depth_m``: close-ups of one unit show two bars a family each, too few for a view's
     own fit). Returned with, for each family so fitted, its two sides' own depths (P < 0, P > 0): a side
     whose widths do not grow has the near edges of its bars displaced as well (``Parallax.with_slope``),
-    which no view measured on its own."""
+    which no view measured on its own. A family that neither gives a depth for while the other has one
+    takes the other's: a facade's transoms butt into its mullions, their faces about one plane before the
+    glass, so the other family's depth is near the truth where 0 (frames flush with the glass) is surely
+    wrong; a family's bars show no depth where the side faces the views see of it are shaded like the
+    glass (its widths do not grow) or where its few bars lie near the cameras' feet."""
     depths: dict[str, list[float]] = {}
     exact: dict[str, list[float]] = {}
     for f in found:
@@ -57,6 +61,9 @@ def building_frame_parallax_m(
             d, sides_m = pooled_depth_m(views, axis, PARALLAX_MIN_BARS)
             if d > 0.0:
                 out[name], sides[name] = d, sides_m
+    if len(out) == 1:  # one family measured: the other stands as proud (the docstring's last sentence)
+        (name, d), = out.items()
+        out["y" if name == "x" else "x"] = d
     return dict(sorted(out.items())), sides
 
 

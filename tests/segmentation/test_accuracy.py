@@ -8,7 +8,12 @@ import pytest
 
 from facade_pipeline.manifest import read_manifest
 from facade_pipeline.scene import ImportedScene
-from facade_pipeline.segmentation.accuracy import evaluate_view, truth_as_real
+from facade_pipeline.segmentation.accuracy import (
+    evaluate_view,
+    panel_ious,
+    panel_ious_vs_panels,
+    truth_as_real,
+)
 from facade_pipeline.segmentation.real_truth import evaluate_photo, quad_mask, summary, whole_panes
 from facade_pipeline.segmentation.result import ViewSegmentation
 from facade_pipeline.synthetic.truth import SyntheticTruth
@@ -95,3 +100,16 @@ def test_the_truth_in_the_real_photos_layout(scenes, building):
         per_photo[v.stem] = evaluate_photo(seg, mask.astype(np.uint8) * 255, outlines)
     s = summary(per_photo)
     assert s["whole_panes"] > 0 and s["found_fraction"] == 1.0
+
+
+def test_a_panel_over_no_pixel_centre_is_scored_zero_not_dropped():
+    """A cut panel may be a sliver along the border that covers no pixel centre: it is still a predicted
+    panel, scored 0, and the scores stay one per panel, in the panels' order (the bench indexes them with
+    the panels' completeness)."""
+    pred = np.full((6, 8), -1)
+    pred[1:5, 1:4] = 0  # panel 0 over the first pane; panel 1 covers nothing
+    true = np.full((6, 8), -1)
+    true[1:5, 1:4] = 7
+    true[1:5, 5:7] = 8
+    np.testing.assert_allclose(panel_ious_vs_panels(pred, true, 2), [1.0, 0.0])
+    np.testing.assert_allclose(panel_ious(pred, true >= 0, 1, 2), [1.0, 0.0])

@@ -90,7 +90,7 @@ def test_grid_masks(reflections):
     assert np.median(err) < 0.5 and err.max() < 1.0
     rect = ViewRectification.unrectified(CAMERA(d.W, d.H), FINE_M_PER_PX, "drawn")
     labels = panel_labels([p.corners for p in seg.panels], rect, d.W, d.H)
-    assert panel_ious(labels, glass_mask(d), 4).min() >= 0.95
+    assert panel_ious(labels, glass_mask(d), 4, len(seg.panels)).min() >= 0.95
 
 
 def test_quad_rasterisation_is_half_open_at_pixel_centres():
@@ -348,7 +348,8 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
 
     proud = views(0.12)
     depth, sides = building_frame_parallax_m([f for f, _ in proud])
-    assert depth.keys() == {"x"} and depth["x"] == pytest.approx(0.12, abs=0.005)
+    # no transoms at all: they take the mullions' depth, which nothing here corrects
+    assert depth.keys() == {"x", "y"} and depth["x"] == pytest.approx(0.12, abs=0.005) == depth["y"]
     assert sides["x"][0] == pytest.approx(0.12, abs=0.005)
     assert (sides["x"][1] < 0.02) if shaded_high else sides["x"][1] == pytest.approx(0.12, abs=0.005)
     for f, glass in proud:
@@ -533,6 +534,24 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
     assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
     width = building_bar_width_m(views)
     assert width == pytest.approx({"x": 0.3, "y": 0.3})
+
+
+def test_a_family_without_a_depth_of_its_own_takes_the_other_familys():
+    """The transoms' fits give a depth, the mullions' none (their side faces shaded like the glass: widths
+    that do not grow): the mullions stand as proud as the transoms they meet, not flush with the glass.
+    Where neither family gives one, neither has a depth."""
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.parallax import Parallax, ParallaxField
+
+    def view(kx: float, ky: float) -> FrameBars:
+        field = dataclasses.replace(ParallaxField.about((50.0, 50.0), 100, 100), distance_m=10.0)
+        fits = {"x": Parallax(0, kx), "y": Parallax(1, ky)}
+        return FrameBars(None, None, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
+
+    k = lambda d: d / (10.0 - d)  # noqa: E731
+    depth, sides = building_frame_parallax_m([view(0.0, k(0.12)), view(0.0, k(0.13)), view(0.0, k(0.11))])
+    assert depth == pytest.approx({"x": 0.12, "y": 0.12}) and sides == {}
+    assert building_frame_parallax_m([view(0.0, 0.0), view(0.0, 0.0)])[0] == {}
 
 
 def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
