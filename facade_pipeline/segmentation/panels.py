@@ -13,7 +13,7 @@ import numpy as np
 
 from facade_pipeline.segmentation.frames import FrameBars, extent, find_frames, widen_narrow_bars
 from facade_pipeline.segmentation.openings import Panel, build_panels
-from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, slope_of
+from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, side_face, slope_of
 from facade_pipeline.segmentation.params import SegmentParams
 
 
@@ -56,21 +56,37 @@ def segment_frames(
             "pixel)"
         ))  # fmt: skip
     (Ww, Hw), (qx, qy) = found.size, found.scale
-    for name, width in (bar_width_m or {}).items():
-        if name == "x":
-            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params)
-        else:
-            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params)
-        metrics[f"bars_widened_{name}"] = n
     fits = dict(found.fits)
     for name, depth in (frame_depth_m or {}).items():
         k = 0.0 if found.parallax is None else slope_of(depth, found.parallax.distance_m)
         if name in fits and 0.0 < k <= params.parallax_max_slope:
             fits[name] = fits[name].with_slope(k, (frame_sides_m or {}).get(name))
     metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
+
+    def faces(name: str, axis: int):  # a bar's near edge and side face (``parallax.side_face``), if any
+        if name not in fits or fits[name].k <= 0.0:
+            return None
+        return lambda low, high: side_face(found.parallax, axis, low, high, fits[name].k)
+
+    refound = {}
+    for name, width in (bar_width_m or {}).items():
+        before = bars_v if name == "x" else bars_h
+        if name == "x":
+            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params,
+                                          faces("x", 0))
+        else:
+            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params,
+                                          faces("y", 1))
+        after = bars_v if name == "x" else bars_h
+        refound[name] = frozenset(i for i, (a, b) in enumerate(zip(before.edges, after.edges, strict=True))
+                                  if a[0] is not b[0] or a[1] is not b[1])
+        metrics[f"bars_widened_{name}"] = n
     if fits:
-        bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
-        bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
+        front = {name: w / m for name, w in (bar_width_m or {}).items()}
+        bars_v = correct_parallax(bars_v, fits["x"], found.parallax, front.get("x"),
+                                  refound.get("x", frozenset()))
+        bars_h = correct_parallax(bars_h, fits["y"], found.parallax, front.get("y"),
+                                  refound.get("y", frozenset()))
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
                            found.support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]

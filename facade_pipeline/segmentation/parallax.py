@@ -178,24 +178,54 @@ def _unparallax(line: EdgeLine, field: ParallaxField, axis: int, k: float) -> Ed
     return dataclasses.replace(line, a=float(a), b=float(b))
 
 
-def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField) -> Bars:
+def side_face(field: ParallaxField, axis: int, low: EdgeLine, high: EdgeLine,
+              k: float) -> tuple[int, float] | None:
+    """Of a bar (edges ``low``, ``high`` of family ``axis``) wholly on one side of the camera's foot: which
+    edge is its near one (0: low, 1: high) and the width (px) its side face shows beside it, k P / (1 + k)
+    at that edge; None for a bar over the foot (it shows no side face)."""
+    p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
+    if p_high <= 0.0:
+        return 1, -k / (1.0 + k) * p_high
+    if p_low >= 0.0:
+        return 0, k / (1.0 + k) * p_low
+    return None
+
+
+def faces_found(width_px: float, side_px: float, front_px: float) -> str:
+    """Which faces of a proud bar a found bar ``width_px`` wide is, of a side face ``side_px`` wide
+    (``side_face``) and a front face ``front_px`` wide (the building's bar width): "side", "front" or
+    "both", whichever width is nearest. The grid takes a bar of one colour: a side face lit unlike the
+    front face (a transom's top face under the sky, seen from above) is found apart from it, as either."""
+    widths = {"side": side_px, "front": front_px, "both": front_px + side_px}
+    return min(widths, key=lambda f: abs(width_px - widths[f]))
+
+
+def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField, front_px: float | None = None,
+                     refound: frozenset[int] = frozenset()) -> Bars:
     """Bars whose front-face edges are moved by the parallax to where the glass meets the frame: each
     bar's edge on the far side from the camera's foot, both edges of a bar over it, and the near edges
-    on a side where they are displaced too (``par.near_displaced``)."""
+    on a side where they are displaced too (``par.near_displaced``). With ``front_px``, the family's
+    front-face width (px, the building's bar width), a bar wholly on one side of the foot found as its
+    front face alone (``faces_found``) has its near edge moved as well, whatever the other bars on its
+    side show; not the bars ``refound`` at the building's width (``frames.widen_narrow_bars``), whose
+    width is that by construction."""
     if par.k <= 0.0:
         return bars
     k, axis = par.k, par.axis
     edges = []
-    for low, high in bars.edges:
+    for i, (low, high) in enumerate(bars.edges):
         if high.a - low.a < par.min_width_px:
             edges.append((low, high))
             continue
         p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
         below, above = p_high <= 0.0, p_low >= 0.0  # the bar lies wholly on the low / high side
+        seen = side_face(field, axis, low, high, k)
+        front = (front_px is not None and i not in refound and seen is not None
+                 and faces_found(high.a - low.a, seen[1], front_px) == "front")
         new_low, new_high = low, high
-        if p_low < 0.0 or (above and par.near_displaced[1]):
+        if p_low < 0.0 or (above and (par.near_displaced[1] or front)):
             new_low = _unparallax(low, field, axis, k)
-        if p_high > 0.0 or (below and par.near_displaced[0]):
+        if p_high > 0.0 or (below and (par.near_displaced[0] or front)):
             new_high = _unparallax(high, field, axis, k)
         edges.append((new_low, new_high))
     return Bars(edges, bars.fit)

@@ -249,6 +249,36 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     assert correct_parallax(bars, fit_parallax(bars, field, 0, 7, 0.05), field) is bars
 
 
+def test_a_bar_found_without_its_lit_side_face_has_its_near_edge_moved_too():
+    """Bars 8 px wide at glass level seen with k = 0.01 about c = 192 (as above): left of c the side
+    faces are found with the bars (their near edges where the glass meets them), except the outer frame's
+    at 30, whose face toward the glass is lit unlike its front: the bar found there is the front face
+    alone, 8 px wide where its side face would add k P / (1 + k) = 1.6 px. Its side shows the parallax in
+    the others' widths, so the side is not displaced; with the building's bar width every edge is put
+    back, without it that near edge stays 1.6 px into the frame."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.parallax import Parallax, ParallaxField, correct_parallax
+
+    c, k = 192.0, 0.01
+    field = ParallaxField.about((c, 50.0), 400, 200)
+    true = [(x - 4.0, x + 4.0) for x in (30.0, 110.0, 190.0, 270.0, 350.0)]
+
+    def seen(u: float) -> float:
+        return c + (u - c) * (1.0 + k)
+
+    apparent = [(seen(lo), seen(hi)) if x == 30.0 else (seen(lo), hi if hi < c else seen(hi))
+                for x, (lo, hi) in zip((30.0, 110.0, 190.0, 270.0, 350.0), true, strict=True)]
+    line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
+    bars = Bars([(line(lo), line(hi)) for lo, hi in apparent], None)
+    par = Parallax(0, k, near_displaced=(False, True), min_width_px=4.0)
+    fixed = correct_parallax(bars, par, field, 8.0)
+    for (lo, hi), (f_lo, f_hi) in zip(true, fixed.edges, strict=True):
+        assert abs(f_lo.a - lo) < 0.05 and abs(f_hi.a - hi) < 0.05
+    without = correct_parallax(bars, par, field)
+    assert abs(without.edges[0][1].a - true[0][1]) > 1.5
+    assert all(abs(f.a - t) < 0.05 for (f, _), (t, _) in zip(without.edges[1:], true[1:], strict=True))
+
+
 def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scatter():
     """Five bars right of the camera's foot whose widths grow by k = 0.01 per px of P: measured to 0.05 px
     the slope is kept; measured to 1 px (a real photo's edges), the same growth is within the scatter and no
@@ -508,6 +538,33 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     assert abs(out.edges[0][0].a - 20.0) < 0.3 and abs(out.edges[0][1].a - 28.0) < 0.3
     assert out.edges[1] == whole and out.edges[2] == border
     alone = Bars([thin, border], None)
+    assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
+
+
+def test_a_bar_found_as_its_lit_side_face_alone_is_joined_to_its_front_face():
+    """A transom seen from above (the camera's foot above it): its top face, lit by the sky (rows 30-34,
+    the 4 px that k P / (1 + k) gives there), above its front face of the building's 8 px (rows 34-42,
+    darker), over the glass. The grid took the uniform top face for the bar; it is joined to the front face
+    found beyond it, away from the foot: the glass meets the frame at row 30 above and the front face ends
+    at row 42. Without the side face's width the 4 px bar (half the building's width) stays as found."""
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    H, W = 90, 60
+    img = np.full((H, W, 3), 0.30)
+    img[30:34] = 0.85  # the top face
+    img[34:42] = 0.60  # the front face
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 1)
+    span = slice(0, W)
+    top = bar_edges(grad, 32.0, 4.0, span, EDGE_SEARCH_PX)
+    assert abs(top[0].a - 30.0) < 0.3 and abs(top[1].a - 34.0) < 0.3  # what the grid found
+    out, n = widen_narrow_bars(Bars([top], None), grad, span, 8.0, PARAMS, lambda low, high: (0, 4.0))
+    assert n == 1
+    assert abs(out.edges[0][0].a - 30.0) < 0.3 and abs(out.edges[0][1].a - 42.0) < 0.3
+    alone = Bars([top], None)
     assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
 
 
