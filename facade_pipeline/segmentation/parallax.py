@@ -26,6 +26,9 @@ from facade_pipeline.segmentation.edges import Bars, EdgeLine
 #: a family with fewer whole frame bars than this is not corrected for parallax: three points are the
 #: fewest that tell a slope from one bar's error
 PARALLAX_MIN_BARS = 3
+#: a side face narrower than this (px) is not told from the front face by a bar's width
+#: (``faces_found``): the widths of one view's bars, side faces alike, scatter by about half a pixel
+SIDE_FACE_MIN_PX = 1.0
 #: a view's parallax slope counts where it stands this many standard errors above 0 (from the fit's own
 #: residual): a fit through few bars measured in a real photo scatters by more than the slope of frames
 #: nearly flush with the glass, and a slope from noise would shift every corrected edge
@@ -195,7 +198,11 @@ def faces_found(width_px: float, side_px: float, front_px: float) -> str:
     """Which faces of a proud bar a found bar ``width_px`` wide is, of a side face ``side_px`` wide
     (``side_face``) and a front face ``front_px`` wide (the building's bar width): "side", "front" or
     "both", whichever width is nearest. The grid takes a bar of one colour: a side face lit unlike the
-    front face (a transom's top face under the sky, seen from above) is found apart from it, as either."""
+    front face (a transom's top face under the sky, seen from above) is found apart from it, as either.
+    A side face narrower than ``SIDE_FACE_MIN_PX`` is "unknown": the widths of one view's bars scatter by
+    about that much, so they cannot tell the three apart."""
+    if side_px < SIDE_FACE_MIN_PX:
+        return "unknown"
     widths = {"side": side_px, "front": front_px, "both": front_px + side_px}
     return min(widths, key=lambda f: abs(width_px - widths[f]))
 
