@@ -395,7 +395,7 @@ def survey_frames(
 
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                       params: SegmentParams,
-                      side_face: Callable[[EdgeLine, EdgeLine], tuple[int, float] | None] | None = None,
+                      side_face: Callable[[EdgeLine, EdgeLine], tuple | None] | None = None,
                       ) -> tuple[Bars, int]:
     """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
     a whole width away from the image border found again at that width, and how many were: a thin line
@@ -419,7 +419,7 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
         seen = None if side_face is None else side_face(low, high)
         width = high.a - low.a
         if (seen is not None and low.a >= width_px and high.a <= size - width_px
-                and faces_found(width, seen[1], width_px) == "side"
+                and faces_found(width, seen, width_px) == "side"
                 and (width >= 0.5 * width_px or abs(width - seen[1]) <= 0.5 * seen[1])):
             near, far = (low, high) if seen[0] == 0 else (high, low)
             sign = 1.0 if seen[0] == 0 else -1.0

@@ -38,7 +38,9 @@ def segment_frames(
     "y": transoms; m proud of the glass, the building's, measured over all its views: a view's own widths
     may not show it) with the slope of that depth where the camera's distance to the surface is known,
     else with its own fit. A family with a width in ``bar_width_m`` (m, the building's) has its bars
-    narrower than half of it found again at it (``widen_narrow_bars``). A family with its sides' depths
+    narrower than half of it found again at it, and a bar found as its side face alone (as wide as the
+    parallax shows the side face, lit unlike the front face) joined to its front face
+    (``widen_narrow_bars``). A family with its sides' depths
     in ``frame_sides_m`` (m, P < 0 and P > 0, the building's where no view measured its own) whose fit
     measured neither side takes them: which side's near edges are displaced."""
     metrics = dict(found.metrics)
@@ -68,25 +70,17 @@ def segment_frames(
             return None
         return lambda low, high: side_face(found.parallax, axis, low, high, fits[name].k)
 
-    refound = {}
     for name, width in (bar_width_m or {}).items():
-        before = bars_v if name == "x" else bars_h
         if name == "x":
             bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params,
                                           faces("x", 0))
         else:
             bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params,
                                           faces("y", 1))
-        after = bars_v if name == "x" else bars_h
-        refound[name] = frozenset(i for i, (a, b) in enumerate(zip(before.edges, after.edges, strict=True))
-                                  if a[0] is not b[0] or a[1] is not b[1])
         metrics[f"bars_widened_{name}"] = n
     if fits:
-        front = {name: w / m for name, w in (bar_width_m or {}).items()}
-        bars_v = correct_parallax(bars_v, fits["x"], found.parallax, front.get("x"),
-                                  refound.get("x", frozenset()))
-        bars_h = correct_parallax(bars_h, fits["y"], found.parallax, front.get("y"),
-                                  refound.get("y", frozenset()))
+        bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
+        bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
                            found.support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]

@@ -26,8 +26,8 @@ from facade_pipeline.segmentation.edges import Bars, EdgeLine
 #: a family with fewer whole frame bars than this is not corrected for parallax: three points are the
 #: fewest that tell a slope from one bar's error
 PARALLAX_MIN_BARS = 3
-#: a side face narrower than this (px) is not told from the front face by a bar's width
-#: (``faces_found``): the widths of one view's bars, side faces alike, scatter by about half a pixel
+#: a found bar's faces are told by its width (``faces_found``) only where the faces' widths it may be
+#: differ by this much (px): the widths of one view's bars, faces alike, scatter by about half a pixel
 SIDE_FACE_MIN_PX = 1.0
 #: a view's parallax slope counts where it stands this many standard errors above 0 (from the fit's own
 #: residual): a fit through few bars measured in a real photo scatters by more than the slope of frames
@@ -182,57 +182,54 @@ def _unparallax(line: EdgeLine, field: ParallaxField, axis: int, k: float) -> Ed
 
 
 def side_face(field: ParallaxField, axis: int, low: EdgeLine, high: EdgeLine,
-              k: float) -> tuple[int, float] | None:
+              k: float) -> tuple[int, float, float] | None:
     """Of a bar (edges ``low``, ``high`` of family ``axis``) wholly on one side of the camera's foot: which
-    edge is its near one (0: low, 1: high) and the width (px) its side face shows beside it, k P / (1 + k)
-    at that edge; None for a bar over the foot (it shows no side face)."""
+    edge is its near one (0: low, 1: high), the width (px) its side face shows beside it, k P / (1 + k) at
+    that edge, and how much wider its front face is seen than at the foot, k / (1 + k) times the growth of
+    P across it (a tight cylinder's P grows fast toward its silhouette); None for a bar over the foot (it
+    shows no side face)."""
     p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
+    f = k / (1.0 + k)
     if p_high <= 0.0:
-        return 1, -k / (1.0 + k) * p_high
+        return 1, -f * p_high, f * (p_high - p_low)
     if p_low >= 0.0:
-        return 0, k / (1.0 + k) * p_low
+        return 0, f * p_low, f * (p_high - p_low)
     return None
 
 
-def faces_found(width_px: float, side_px: float, front_px: float) -> str:
-    """Which faces of a proud bar a found bar ``width_px`` wide is, of a side face ``side_px`` wide
-    (``side_face``) and a front face ``front_px`` wide (the building's bar width): "side", "front" or
-    "both", whichever width is nearest. The grid takes a bar of one colour: a side face lit unlike the
-    front face (a transom's top face under the sky, seen from above) is found apart from it, as either.
-    A side face narrower than ``SIDE_FACE_MIN_PX`` is "unknown": the widths of one view's bars scatter by
-    about that much, so they cannot tell the three apart."""
-    if side_px < SIDE_FACE_MIN_PX:
-        return "unknown"
-    widths = {"side": side_px, "front": front_px, "both": front_px + side_px}
-    return min(widths, key=lambda f: abs(width_px - widths[f]))
+def faces_found(width_px: float, seen: tuple[int, float, float], front_px: float) -> str:
+    """Which faces of a proud bar a found bar ``width_px`` wide is, of its side face and the growth of its
+    front face (``side_face``: ``seen``) and a front face ``front_px`` wide at the foot (the building's bar
+    width): "side", "front" or "both", whichever width is nearest. The grid takes a bar of one colour: a
+    side face lit unlike the front face (a transom's top face under the sky, seen from above) is found
+    apart from it, as either. Where the nearest is not ``SIDE_FACE_MIN_PX`` nearer than the next, the
+    faces are "unknown": one view's bars' widths scatter by about half that, so they cannot tell them
+    apart (a side face under a pixel; a side face as wide as the front face)."""
+    _, side, growth = seen
+    front = front_px + growth
+    widths = sorted((abs(width_px - w), f) for f, w in (("side", side), ("front", front),
+                                                        ("both", front + side)))
+    return widths[0][1] if widths[1][0] - widths[0][0] >= SIDE_FACE_MIN_PX else "unknown"
 
 
-def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField, front_px: float | None = None,
-                     refound: frozenset[int] = frozenset()) -> Bars:
+def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField) -> Bars:
     """Bars whose front-face edges are moved by the parallax to where the glass meets the frame: each
     bar's edge on the far side from the camera's foot, both edges of a bar over it, and the near edges
-    on a side where they are displaced too (``par.near_displaced``). With ``front_px``, the family's
-    front-face width (px, the building's bar width), a bar wholly on one side of the foot found as its
-    front face alone (``faces_found``) has its near edge moved as well, whatever the other bars on its
-    side show; not the bars ``refound`` at the building's width (``frames.widen_narrow_bars``), whose
-    width is that by construction."""
+    on a side where they are displaced too (``par.near_displaced``)."""
     if par.k <= 0.0:
         return bars
     k, axis = par.k, par.axis
     edges = []
-    for i, (low, high) in enumerate(bars.edges):
+    for low, high in bars.edges:
         if high.a - low.a < par.min_width_px:
             edges.append((low, high))
             continue
         p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
         below, above = p_high <= 0.0, p_low >= 0.0  # the bar lies wholly on the low / high side
-        seen = side_face(field, axis, low, high, k)
-        front = (front_px is not None and i not in refound and seen is not None
-                 and faces_found(high.a - low.a, seen[1], front_px) == "front")
         new_low, new_high = low, high
-        if p_low < 0.0 or (above and (par.near_displaced[1] or front)):
+        if p_low < 0.0 or (above and par.near_displaced[1]):
             new_low = _unparallax(low, field, axis, k)
-        if p_high > 0.0 or (below and (par.near_displaced[0] or front)):
+        if p_high > 0.0 or (below and par.near_displaced[0]):
             new_high = _unparallax(high, field, axis, k)
         edges.append((new_low, new_high))
     return Bars(edges, bars.fit)

@@ -249,36 +249,6 @@ def test_parallax_of_proud_frames_is_fitted_and_corrected():
     assert correct_parallax(bars, fit_parallax(bars, field, 0, 7, 0.05), field) is bars
 
 
-def test_a_bar_found_without_its_lit_side_face_has_its_near_edge_moved_too():
-    """Bars 8 px wide at glass level seen with k = 0.01 about c = 192 (as above): left of c the side
-    faces are found with the bars (their near edges where the glass meets them), except the outer frame's
-    at 30, whose face toward the glass is lit unlike its front: the bar found there is the front face
-    alone, 8 px wide where its side face would add k P / (1 + k) = 1.6 px. Its side shows the parallax in
-    the others' widths, so the side is not displaced; with the building's bar width every edge is put
-    back, without it that near edge stays 1.6 px into the frame."""
-    from facade_pipeline.segmentation.edges import Bars, EdgeLine
-    from facade_pipeline.segmentation.parallax import Parallax, ParallaxField, correct_parallax
-
-    c, k = 192.0, 0.01
-    field = ParallaxField.about((c, 50.0), 400, 200)
-    true = [(x - 4.0, x + 4.0) for x in (30.0, 110.0, 190.0, 270.0, 350.0)]
-
-    def seen(u: float) -> float:
-        return c + (u - c) * (1.0 + k)
-
-    apparent = [(seen(lo), seen(hi)) if x == 30.0 else (seen(lo), hi if hi < c else seen(hi))
-                for x, (lo, hi) in zip((30.0, 110.0, 190.0, 270.0, 350.0), true, strict=True)]
-    line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
-    bars = Bars([(line(lo), line(hi)) for lo, hi in apparent], None)
-    par = Parallax(0, k, near_displaced=(False, True), min_width_px=4.0)
-    fixed = correct_parallax(bars, par, field, 8.0)
-    for (lo, hi), (f_lo, f_hi) in zip(true, fixed.edges, strict=True):
-        assert abs(f_lo.a - lo) < 0.05 and abs(f_hi.a - hi) < 0.05
-    without = correct_parallax(bars, par, field)
-    assert abs(without.edges[0][1].a - true[0][1]) > 1.5
-    assert all(abs(f.a - t) < 0.05 for (f, _), (t, _) in zip(without.edges[1:], true[1:], strict=True))
-
-
 def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scatter():
     """Five bars right of the camera's foot whose widths grow by k = 0.01 per px of P: measured to 0.05 px
     the slope is kept; measured to 1 px (a real photo's edges), the same growth is within the scatter and no
@@ -561,7 +531,7 @@ def test_a_bar_found_as_its_lit_side_face_alone_is_joined_to_its_front_face():
     span = slice(0, W)
     top = bar_edges(grad, 32.0, 4.0, span, EDGE_SEARCH_PX)
     assert abs(top[0].a - 30.0) < 0.3 and abs(top[1].a - 34.0) < 0.3  # what the grid found
-    out, n = widen_narrow_bars(Bars([top], None), grad, span, 8.0, PARAMS, lambda low, high: (0, 4.0))
+    out, n = widen_narrow_bars(Bars([top], None), grad, span, 8.0, PARAMS, lambda low, high: (0, 4.0, 0.0))
     assert n == 1
     assert abs(out.edges[0][0].a - 30.0) < 0.3 and abs(out.edges[0][1].a - 42.0) < 0.3
     alone = Bars([top], None)
@@ -592,7 +562,7 @@ def test_a_thin_line_wider_than_the_side_face_is_not_taken_for_it():
     whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
     assert abs(line[0].a - 28.0) < 0.3 and abs(line[1].a - 31.0) < 0.3  # what the grid found
     bars = Bars([line, whole], None)
-    out, n = widen_narrow_bars(bars, grad, span, 8.0, PARAMS, lambda low, high: (1, 1.5))
+    out, n = widen_narrow_bars(bars, grad, span, 8.0, PARAMS, lambda low, high: (1, 1.5, 0.0))
     plain, m = widen_narrow_bars(bars, grad, span, 8.0, PARAMS)
     assert n == m == 1
     assert [(lo.a, hi.a) for lo, hi in out.edges] == [(lo.a, hi.a) for lo, hi in plain.edges]
