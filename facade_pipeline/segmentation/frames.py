@@ -405,12 +405,12 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     geometric mean of its edges' strengths, as the bar evidence of ``grid``). Only where the view shows a
     bar of the family at least half that wide: a part whose frames are all thinner than the building's
     (another style) keeps them. With ``side_face`` (``parallax.side_face`` of a bar's edges: its near
-    edge and the width its side face shows), a bar at least half that wide found as its side face alone
-    (``parallax.faces_found``, a side face lit unlike the front face) is joined to the front face of
-    ``width_px`` found beyond it, away from the camera's foot: its near edge is where the glass meets the
-    frame, and the far edge is the front face's. A thinner one only where its width is within half the
-    side face's of it: a thin line is as often the side face with the shadow it casts on the glass beside
-    it (a transom's underside seen from below), found again as above."""
+    edge, the width its side face shows and its front face's growth), a bar at least half that wide found
+    as its side face alone (``parallax.faces_found``, a side face lit unlike the front face) is joined to
+    the front face of ``width_px`` found beyond it, away from the camera's foot: its near edge is where the
+    glass meets the frame, and the far edge is the front face's. A thinner one only where its width is
+    within half the side face's of it: a thin line is as often the side face with the shadow it casts on
+    the glass beside it (a transom's underside seen from below), found again as above."""
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
