@@ -30,7 +30,13 @@ from facade_pipeline.segmentation.grid import (
     pitch_hypotheses,
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
-from facade_pipeline.segmentation.parallax import PARALLAX_MIN_BARS, Parallax, ParallaxField, fit_parallax
+from facade_pipeline.segmentation.parallax import (
+    PARALLAX_MIN_BARS,
+    Parallax,
+    ParallaxField,
+    faces_found,
+    fit_parallax,
+)
 from facade_pipeline.segmentation.params import SegmentParams
 from facade_pipeline.segmentation.photometry import normalise_exposure
 from facade_pipeline.threads import usable_cores
@@ -388,7 +394,9 @@ def survey_frames(
 
 
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
-                      params: SegmentParams) -> tuple[Bars, int]:
+                      params: SegmentParams,
+                      side_face: Callable[[EdgeLine, EdgeLine], tuple | None] | None = None,
+                      ) -> tuple[Bars, int]:
     """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
     a whole width away from the image border found again at that width, and how many were: a thin line
     that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
@@ -396,12 +404,31 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
     geometric mean of its edges' strengths, as the bar evidence of ``grid``). Only where the view shows a
     bar of the family at least half that wide: a part whose frames are all thinner than the building's
-    (another style) keeps them."""
+    (another style) keeps them. With ``side_face`` (``parallax.side_face`` of a bar's edges: its near
+    edge, the width its side face shows and its front face's growth), a bar at least half that wide found
+    as its side face alone (``parallax.faces_found``, a side face lit unlike the front face) is joined to
+    the front face of ``width_px`` found beyond it, away from the camera's foot: its near edge is where the
+    glass meets the frame, and the far edge is the front face's. A thinner one only where its width is
+    within half the side face's of it: a thin line is as often the side face with the shadow it casts on
+    the glass beside it (a transom's underside seen from below), found again as above."""
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
     edges, n = [], 0
     for low, high in bars.edges:
+        seen = None if side_face is None else side_face(low, high)
+        width = high.a - low.a
+        if (seen is not None and low.a >= width_px and high.a <= size - width_px
+                and faces_found(width, seen, width_px) == "side"
+                and (width >= 0.5 * width_px or abs(width - seen[1]) <= 0.5 * seen[1])):
+            near, far = (low, high) if seen[0] == 0 else (high, low)
+            sign = 1.0 if seen[0] == 0 else -1.0
+            e = bar_edges(grad, far.a + sign * 0.5 * width_px, width_px, span, EDGE_SEARCH_PX)
+            if e is not None and e[1].a - e[0].a >= 0.5 * width_px:
+                joined = (near, e[1]) if seen[0] == 0 else (e[0], near)
+                edges.append(with_presence(grad, joined, span, params))
+                n += 1
+                continue
         if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
             edges.append((low, high))
             continue

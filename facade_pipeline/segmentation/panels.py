@@ -13,7 +13,7 @@ import numpy as np
 
 from facade_pipeline.segmentation.frames import FrameBars, extent, find_frames, widen_narrow_bars
 from facade_pipeline.segmentation.openings import Panel, build_panels
-from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, slope_of
+from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, side_face, slope_of
 from facade_pipeline.segmentation.params import SegmentParams
 
 
@@ -38,7 +38,9 @@ def segment_frames(
     "y": transoms; m proud of the glass, the building's, measured over all its views: a view's own widths
     may not show it) with the slope of that depth where the camera's distance to the surface is known,
     else with its own fit. A family with a width in ``bar_width_m`` (m, the building's) has its bars
-    narrower than half of it found again at it (``widen_narrow_bars``). A family with its sides' depths
+    narrower than half of it found again at it, and a bar found as its side face alone (as wide as the
+    parallax shows the side face, lit unlike the front face) joined to its front face
+    (``widen_narrow_bars``). A family with its sides' depths
     in ``frame_sides_m`` (m, P < 0 and P > 0, the building's where no view measured its own) whose fit
     measured neither side takes them: which side's near edges are displaced."""
     metrics = dict(found.metrics)
@@ -56,18 +58,26 @@ def segment_frames(
             "pixel)"
         ))  # fmt: skip
     (Ww, Hw), (qx, qy) = found.size, found.scale
-    for name, width in (bar_width_m or {}).items():
-        if name == "x":
-            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params)
-        else:
-            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params)
-        metrics[f"bars_widened_{name}"] = n
     fits = dict(found.fits)
     for name, depth in (frame_depth_m or {}).items():
         k = 0.0 if found.parallax is None else slope_of(depth, found.parallax.distance_m)
         if name in fits and 0.0 < k <= params.parallax_max_slope:
             fits[name] = fits[name].with_slope(k, (frame_sides_m or {}).get(name))
     metrics.update({f"parallax_slope_{name}": round(f.k, 5) for name, f in fits.items()})
+
+    def faces(name: str, axis: int):  # a bar's near edge and side face (``parallax.side_face``), if any
+        if name not in fits or fits[name].k <= 0.0:
+            return None
+        return lambda low, high: side_face(found.parallax, axis, low, high, fits[name].k)
+
+    for name, width in (bar_width_m or {}).items():
+        if name == "x":
+            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params,
+                                          faces("x", 0))
+        else:
+            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params,
+                                          faces("y", 1))
+        metrics[f"bars_widened_{name}"] = n
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
         bars_h = correct_parallax(bars_h, fits["y"], found.parallax)

@@ -26,6 +26,9 @@ from facade_pipeline.segmentation.edges import Bars, EdgeLine
 #: a family with fewer whole frame bars than this is not corrected for parallax: three points are the
 #: fewest that tell a slope from one bar's error
 PARALLAX_MIN_BARS = 3
+#: a found bar's faces are told by its width (``faces_found``) only where the faces' widths it may be
+#: differ by this much (px): the widths of one view's bars, faces alike, scatter by about half a pixel
+SIDE_FACE_MIN_PX = 1.0
 #: a view's parallax slope counts where it stands this many standard errors above 0 (from the fit's own
 #: residual): a fit through few bars measured in a real photo scatters by more than the slope of frames
 #: nearly flush with the glass, and a slope from noise would shift every corrected edge
@@ -176,6 +179,37 @@ def _unparallax(line: EdgeLine, field: ParallaxField, axis: int, k: float) -> Ed
     A = np.stack([np.ones_like(t), t - line.mid], axis=1) * w[:, None]
     a, b = np.linalg.lstsq(A, moved * w, rcond=None)[0]
     return dataclasses.replace(line, a=float(a), b=float(b))
+
+
+def side_face(field: ParallaxField, axis: int, low: EdgeLine, high: EdgeLine,
+              k: float) -> tuple[int, float, float] | None:
+    """Of a bar (edges ``low``, ``high`` of family ``axis``) wholly on one side of the camera's foot: which
+    edge is its near one (0: low, 1: high), the width (px) its side face shows beside it, k P / (1 + k) at
+    that edge, and how much wider its front face is seen than at the foot, k / (1 + k) times the growth of
+    P across it (a tight cylinder's P grows fast toward its silhouette); None for a bar over the foot (it
+    shows no side face)."""
+    p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
+    f = k / (1.0 + k)
+    if p_high <= 0.0:
+        return 1, -f * p_high, f * (p_high - p_low)
+    if p_low >= 0.0:
+        return 0, f * p_low, f * (p_high - p_low)
+    return None
+
+
+def faces_found(width_px: float, seen: tuple[int, float, float], front_px: float) -> str:
+    """Which faces of a proud bar a found bar ``width_px`` wide is, of its side face and the growth of its
+    front face (``side_face``: ``seen``) and a front face ``front_px`` wide at the foot (the building's bar
+    width): "side", "front" or "both", whichever width is nearest. The grid takes a bar of one colour: a
+    side face lit unlike the front face (a transom's top face under the sky, seen from above) is found
+    apart from it, as either. Where the nearest is not ``SIDE_FACE_MIN_PX`` nearer than the next, the
+    faces are "unknown": one view's bars' widths scatter by about half that, so they cannot tell them
+    apart (a side face under a pixel; a side face as wide as the front face)."""
+    _, side, growth = seen
+    front = front_px + growth
+    widths = sorted((abs(width_px - w), f) for f, w in (("side", side), ("front", front),
+                                                        ("both", front + side)))
+    return widths[0][1] if widths[1][0] - widths[0][0] >= SIDE_FACE_MIN_PX else "unknown"
 
 
 def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField) -> Bars:

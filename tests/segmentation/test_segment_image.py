@@ -512,6 +512,64 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
 
 
+def test_a_bar_found_as_its_lit_side_face_alone_is_joined_to_its_front_face():
+    """A transom seen from above (the camera's foot above it): its top face, lit by the sky (rows 30-34,
+    the 4 px that k P / (1 + k) gives there), above its front face of the building's 8 px (rows 34-42,
+    darker), over the glass. The grid took the uniform top face for the bar; it is joined to the front face
+    found beyond it, away from the foot: the glass meets the frame at row 30 above and the front face ends
+    at row 42. Without the side face's width the 4 px bar (half the building's width) stays as found."""
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    H, W = 90, 60
+    img = np.full((H, W, 3), 0.30)
+    img[30:34] = 0.85  # the top face
+    img[34:42] = 0.60  # the front face
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 1)
+    span = slice(0, W)
+    top = bar_edges(grad, 32.0, 4.0, span, EDGE_SEARCH_PX)
+    assert abs(top[0].a - 30.0) < 0.3 and abs(top[1].a - 34.0) < 0.3  # what the grid found
+    out, n = widen_narrow_bars(Bars([top], None), grad, span, 8.0, PARAMS, lambda low, high: (0, 4.0, 0.0))
+    assert n == 1
+    assert abs(out.edges[0][0].a - 30.0) < 0.3 and abs(out.edges[0][1].a - 42.0) < 0.3
+    alone = Bars([top], None)
+    assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
+
+
+def test_a_thin_line_wider_than_the_side_face_is_not_taken_for_it():
+    """A transom seen from below (the camera's foot below it): its face (rows 20-28), its dark underside
+    (rows 28-30) and the shadow it casts on the glass (rows 30-31) make a dark line 3 px wide where the
+    side face is 1.5 px: not the side face alone, so the line is found again at the building's width as
+    without the side face's width (``test_a_thin_line_at_a_low_contrast_frame_...``), not joined to the
+    face with the shadow."""
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    H, W = 90, 60
+    img = np.full((H, W, 3), 0.45)
+    img[20:28] = 0.60  # the face
+    img[28:30] = 0.15  # the underside
+    img[30:31] = 0.15  # its shadow on the glass, as dark
+    img[50:58] = 0.80  # a whole transom
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 1)
+    span = slice(0, W)
+    line = bar_edges(grad, 29.5, 3.0, span, EDGE_SEARCH_PX)
+    whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
+    assert abs(line[0].a - 28.0) < 0.3 and abs(line[1].a - 31.0) < 0.3  # what the grid found
+    bars = Bars([line, whole], None)
+    out, n = widen_narrow_bars(bars, grad, span, 8.0, PARAMS, lambda low, high: (1, 1.5, 0.0))
+    plain, m = widen_narrow_bars(bars, grad, span, 8.0, PARAMS)
+    assert n == m == 1
+    assert [(lo.a, hi.a) for lo, hi in out.edges] == [(lo.a, hi.a) for lo, hi in plain.edges]
+    assert abs(out.edges[0][1].a - 31.0) > 1.0  # the shadow's edge is not taken for the glass's
+
+
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
     """Each view's own parallax fit gives d = k D / (1 + k) where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
