@@ -83,13 +83,20 @@ def views_on_device(
     )
 
 
-def view_tensors(view: ViewTensors, window: Window) -> ViewTensors:
-    """``view``'s data (``views_on_device``) inside ``window`` (x0, y0, w, h)."""
+def view_tensors(view: ViewTensors, window: Window, clipped: np.ndarray | None) -> ViewTensors:
+    """``view``'s data (``views_on_device``) inside ``window`` (x0, y0, w, h). ``clipped`` is the view's
+    ``TrainView.clipped`` on the host: a window in which the photo clipped no channel gets None there, for
+    which the camera's clipping (``losses.recorded``) is the render itself, so that the loss and the step's
+    figures skip its operations on the window (a step's few dozen operations on its window each cost
+    a wait for the CPU's threads; read on the host, the check makes a GPU wait for nothing)."""
     x0, y0, w, h = window
     sl = (slice(y0, y0 + h), slice(x0, x0 + w))
-    return ViewTensors(
+    out = ViewTensors(
         *(None if (x := getattr(view, f.name)) is None else x[sl] for f in dataclasses.fields(ViewTensors))
     )
+    if out.clipped is not None and (clipped is None or not clipped[sl].any()):
+        out = dataclasses.replace(out, clipped=None)
+    return out
 
 
 def camera(cam: Camera, corrections: ViewCorrections | None, index: int) -> Camera:

@@ -300,7 +300,7 @@ def render_window(
     refined, and with its exposure gain, if exposures are); returns it with the view's data there. ``cam``
     replaces the view's camera."""
     cam = camera(tr.cameras[index], tr.state.corrections, index) if cam is None else cam
-    vt = view_tensors(tr.views[index], window)
+    vt = view_tensors(tr.views[index], window, tr.data.views[index].clipped)
     r = render_view(
         tr.state.model,
         tr.state.reflection,
@@ -320,9 +320,10 @@ def render_window(
     return r, vt
 
 
-def step(tr: Trainer) -> dict[str, Tensor]:
-    """One optimisation step on a random training view (or patch). Returns the loss terms and the PSNR of
-    the window over its loss mask, on the device (``train`` reads them every ``log_every`` iterations).
+def step(tr: Trainer, psnr: bool = True) -> dict[str, Tensor]:
+    """One optimisation step on a random training view (or patch). Returns the loss terms and, with
+    ``psnr``, the PSNR of the window over its loss mask, on the device (``train`` reads them every
+    ``log_every`` iterations, and asks for the PSNR in those steps only: it trains nothing).
     Raises ``TrainingDivergedError`` on NaN/Inf or runaway splats: on the CPU, where reading a value costs
     nothing, checked in every step; on a GPU, where it would make the host wait for the device, by
     ``check_state`` when ``train`` reads the figures."""
@@ -366,8 +367,9 @@ def step(tr: Trainer) -> dict[str, Tensor]:
     tr.state.iteration += 1
     _densify_if_due(tr)
     out = {k: v.detach() for k, v in terms.items()}
-    seen = recorded(r.rgb.detach(), vt.image, vt.clipped).clamp(0, 1)
-    out["psnr"] = psnr_tensor(seen, vt.image, vt.mask & ~r.skipped)
+    if psnr:
+        seen = recorded(r.rgb.detach(), vt.image, vt.clipped).clamp(0, 1)
+        out["psnr"] = psnr_tensor(seen, vt.image, vt.mask & ~r.skipped)
     return out
 
 
@@ -415,9 +417,13 @@ def train(
     end = p.iterations if stop_at is None else min(stop_at, p.iterations)
     start = tr.state.iteration
     figures: dict[str, float] = {}
+
+    def logged(iteration: int) -> bool:
+        return log_every > 0 and (iteration % log_every == 0 or iteration == p.iterations)
+
     while tr.state.iteration < end:
-        out = step(tr)
-        if log_every > 0 and (tr.state.iteration % log_every == 0 or tr.state.iteration == p.iterations):
+        out = step(tr, psnr=logged(tr.state.iteration + 1))
+        if logged(tr.state.iteration):
             check_state(tr)
             figures = {k: float(v) for k, v in out.items()}
             record = {

@@ -556,3 +556,62 @@ def test_training_is_the_same_on_the_same_scene_at_1_to_25(data64):
         for key in ("loss", "psnr", "view_psnr"):
             assert math.isclose(ra[key], rb[key], rel_tol=2e-3, abs_tol=2e-4), (key, ra, rb)
     assert torch.allclose(b.state.model.means * 25.0, a.state.model.means, atol=1e-3 * data64.extent)
+
+
+def _with_clipped_corner(data, size: int):
+    """``data`` whose views' photos clipped every channel in their top-left ``size`` x ``size`` pixels."""
+    views = []
+    for v in data.views:
+        clipped = np.zeros(v.image.shape, bool)
+        clipped[:size, :size] = True
+        image = np.where(clipped, 1.0, v.image).astype(v.image.dtype)
+        views.append(dataclasses.replace(v, image=image, clipped=clipped))
+    return dataclasses.replace(data, views=tuple(views))
+
+
+def test_a_window_without_clipped_channels_skips_the_clipping_with_the_same_loss_and_gradients(data64):
+    """A window in which the photo clipped nothing gets no clipped channels (``batches.view_tensors``), and
+    its loss and gradients are those of the clipping applied with its all-False channels; a window that
+    holds some keeps them."""
+    data = _with_clipped_corner(data64, 8)
+    tr = build_trainer(small_params(), data, RASTER)
+    index = data.train_idx[0]
+    window = (20, 16, 24, 20)
+    out = []
+    for keep in (False, True):
+        r, vt = render_window(tr, index, window)
+        assert vt.clipped is None
+        if keep:  # the device's channels of the window, all False: the clipping as it was applied
+            x0, y0, w, h = window
+            vt = dataclasses.replace(vt, clipped=tr.views[index].clipped[y0 : y0 + h, x0 : x0 + w])
+            assert vt.clipped is not None and not bool(vt.clipped.any())
+        terms = compute_losses(tr.params, r, vt, tr.params.iterations)
+        terms["loss"].backward()
+        params = [*tr.state.model.params().values(), *tr.state.reflection.parameters()]
+        out.append((terms["loss"].detach(), [q.grad.clone() for q in params if q.grad is not None]))
+        for q in params:
+            q.grad = None
+    (loss_a, grads_a), (loss_b, grads_b) = out
+    torch.testing.assert_close(loss_a, loss_b, rtol=1e-6, atol=0.0)
+    assert len(grads_a) == len(grads_b) > 0
+    for ga, gb in zip(grads_a, grads_b, strict=True):
+        torch.testing.assert_close(ga, gb, rtol=1e-5, atol=1e-9)
+    _, vt = render_window(tr, index, (0, 0, 24, 20))
+    assert vt.clipped is not None and bool(vt.clipped[:8, :8].all()) and not bool(vt.clipped[8:].any())
+
+
+def test_the_step_psnr_only_in_logged_steps_trains_the_same(data64):
+    """``train`` asks for the window's PSNR only in the steps it logs; the model, the reflection and the
+    random state after training are the same logging every step as logging none."""
+    data = _with_clipped_corner(data64, 12)
+    p = small_params(iterations=12)
+    every, none = (train(build_trainer(p, data, RASTER), log_every=k) for k in (1, 0))
+    assert len(every.state.log) == 12 and all(r["psnr"] is not None for r in every.state.log)
+    assert none.state.log == []
+    for name, t in every.state.model.params().items():
+        assert torch.equal(t, getattr(none.state.model, name)), name
+    for (ka, va), (kb, vb) in zip(
+        every.state.reflection.state_dict().items(), none.state.reflection.state_dict().items(), strict=True
+    ):
+        assert ka == kb and torch.equal(va, vb), ka
+    assert torch.equal(every.state.generator.get_state(), none.state.generator.get_state())
