@@ -227,16 +227,10 @@ void backward(const Splats<S>& sp, const int64_t* offsets, const int64_t* ids, G
     const int tid = omp_get_thread_num();
     std::vector<S>& buf = buffers[tid];
     buf.assign(size_t(N * stride), S(0));
-    // tiles dealt in contiguous runs of about equal pairs (the bins' offsets), not on demand: each thread's
-    // buffer then sums the same tiles in the same order at every call, so the gradients are reproducible bit
-    // for bit at a given thread count, and no thread waits long for another (tiles dealt round robin leave
-    // the busier thread 7 % above the mean on demo's patches; runs of equal pairs, 1 %)
+    // tiles dealt round robin, not on demand: each thread's buffer then sums the same tiles in the same
+    // order at every call, so the gradients are reproducible bit for bit at a given thread count
     const int team = omp_get_num_threads();
-    const int64_t total = offsets[n_tiles];
-    for (int64_t t = 0; t < n_tiles; ++t) {
-      const int64_t owner =
-          total > 0 ? std::min<int64_t>(team - 1, (offsets[t] + offsets[t + 1]) * team / (2 * total)) : t % team;
-      if (owner != tid) continue;
+    for (int64_t t = tid; t < n_tiles; t += team) {
       const int64_t tx = t % g.tiles_x, ty = t / g.tiles_x;
       const int64_t begin = offsets[t], end = offsets[t + 1];
       std::vector<int32_t> row;
