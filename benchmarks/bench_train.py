@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -39,6 +40,7 @@ from _common import machine, record_results  # noqa: E402
 from facade_pipeline.config import load_building_config  # noqa: E402
 from facade_pipeline.evaluation.core import evaluate_views, headline, views_of  # noqa: E402
 from facade_pipeline.evaluation.image_eval import INTERIOR_MARGIN_PX, LpipsSetting  # noqa: E402
+from facade_pipeline.evaluation.params import EvaluateParams  # noqa: E402
 from facade_pipeline.evaluation.render_views import from_trainer  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX  # noqa: E402
@@ -158,7 +160,21 @@ def main() -> None:
     ap.add_argument("--only", default="", help="comma-separated variant names to run (default: all)")
     ap.add_argument("--speed", type=int, default=0, help="time this many iterations per variant (0: train)")
     ap.add_argument("--warmup", type=int, default=20, help="iterations before --speed's timing")
+    ap.add_argument(
+        "--profile",
+        type=int,
+        default=0,
+        help="with --speed: this many more iterations under torch's profiler, its operators by self time "
+        "printed",
+    )
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--align-steps", type=int, default=-1, help="-1: the building's [evaluate.align] steps")
+    ap.add_argument(
+        "--lpips",
+        action="store_true",
+        help="also LPIPS of the held-out views (the first of [evaluate] lpips_conventions, its weights found "
+        "as the evaluate stage finds them)",
+    )
     ap.add_argument(
         "--save-variants",
         action="store_true",
@@ -180,6 +196,12 @@ def main() -> None:
     cfg = load_building_config(a.building)
     base = cfg.section("train_gs", TrainParams)
     align = cfg.section("evaluate.align", AlignParams)
+    if a.align_steps >= 0:
+        align = dataclasses.replace(align, steps=a.align_steps)
+    lpips = LpipsSetting(())
+    if a.lpips:
+        lp = cfg.section("evaluate", EvaluateParams).lpips
+        lpips = LpipsSetting(lp.conventions[:1], lp.weights_dir)
     mlp = base.reflection.mlp
     base = replace_keys(
         base,
@@ -229,7 +251,7 @@ def main() -> None:
         if a.save_variants:
             save_variant(a, name, tr)
         fit = whole_view_psnr(tr, data.train_idx)
-        ev, ev_aligned = measure(tr, name, data, align)
+        ev, ev_aligned = measure(tr, name, data, align, lpips)
         rows.append((name, ev, ev_aligned, wall, tr.state.model.n, fit))
         print(
             f"\n{name}: training views {fit:.2f} dB, glass PSNR {ev['psnr_glass']:.2f} dB, "
@@ -238,6 +260,11 @@ def main() -> None:
             + ("" if ev_aligned is None else f"; aligned: glass PSNR {ev_aligned['psnr_glass']:.2f} dB"),
             flush=True,
         )
+        # one line a script reads (benchmarks/gpu_summary.py): every figure of the variant
+        figures = {"variant": name, "iterations": p.iterations, "wall_s": round(wall, 2),
+                   "splats": tr.state.model.n, "training_views_psnr": round(fit, 4), "imported": ev,
+                   "aligned": ev_aligned}  # fmt: skip
+        print("result: " + json.dumps(figures), flush=True)
     report(a, base, align, prior, data, rows, device)
 
 
@@ -253,16 +280,18 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
     for name, p in variants(base):
         if a.only and name not in a.only.split(","):
             continue
-        p = dataclasses.replace(p, iterations=a.warmup + a.speed)
+        p = dataclasses.replace(p, iterations=a.warmup + a.speed + a.profile)
         tr = build_trainer(p, data, training_rasterizer(backend, p.lowpass_sigma_px, device), device)
         train(tr, stop_at=a.warmup)
         sync()
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         t0 = time.perf_counter()
-        train(tr)
+        train(tr, stop_at=a.warmup + a.speed)
         sync()
         ms = 1000.0 * (time.perf_counter() - t0) / a.speed
+        if a.profile > 0:
+            profile(tr, name, device, sync)
         mem = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")
         rows.append((name, ms, mem, tr.state.model.n))
         print(f"{name}: {ms:.1f} ms per iteration, peak {mem:.2f} GiB, {tr.state.model.n} splats", flush=True)
@@ -289,6 +318,24 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
         record_results(text)
 
 
+def profile(tr, name: str, device, sync) -> None:
+    """The rest of ``tr``'s iterations under torch's profiler: where a step's time goes, by operator."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with torch_profile(activities=activities) as prof:
+        train(tr)
+        sync()
+    averages = prof.key_averages()
+    keys = ["self_cpu_time_total"]
+    if device.type == "cuda":
+        keys.insert(0, "self_cuda_time_total")
+    for key in keys:
+        table = averages.table(sort_by=key, row_limit=25, max_name_column_width=60)
+        print(f"\n{name}: operators by {key}\n{table}", flush=True)
+
+
 def save_variant(a, name: str, tr) -> None:
     """``tr``'s model saved as the variant ``name`` of the building, as train_gs saves 07_train."""
     from facade_pipeline.config import to_dict
@@ -308,13 +355,23 @@ def save_variant(a, name: str, tr) -> None:
     files.save(tr.state.model, tr.state.reflection, strategy, data.bounds, split)
 
 
-def measure(tr, name: str, data: TrainData, align: AlignParams) -> tuple[dict, dict | None]:
+def measure(
+    tr, name: str, data: TrainData, align: AlignParams, lpips: LpipsSetting
+) -> tuple[dict, dict | None]:
     """The held-out views' headline figures as imported and, when ``align`` has steps, aligned (the
-    evaluation core, as train_gs and the evaluate stage measure them; no LPIPS)."""
+    evaluation core, as train_gs and the evaluate stage measure them), with the facade's LPIPS under
+    ``lpips``'s convention when it names one."""
     tm = from_trainer(tr, name)
     views = views_of(data, data.test_idx, tr.params.mask_by_facade)
-    ev = headline(evaluate_views(tm, views, LpipsSetting(())))
-    aligned = headline(evaluate_views(tm, views, LpipsSetting(()), align)) if align.steps > 0 else None
+
+    def figures(result: dict) -> dict:
+        out = headline(result)
+        if lpips.conventions:
+            out["lpips"] = ((result["mean"].get("facade") or {}).get("lpips") or {}).get(lpips.conventions[0])
+        return out
+
+    ev = figures(evaluate_views(tm, views, lpips))
+    aligned = figures(evaluate_views(tm, views, lpips, align)) if align.steps > 0 else None
     return ev, aligned
 
 

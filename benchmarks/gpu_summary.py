@@ -1,27 +1,29 @@
-"""The summary table of benchmarks/gpu_check.sh, from the logs it wrote into OUT:
+"""The summary table of benchmarks/gpu_check.sh, from the logs it wrote into OUT, and the plot of accuracy
+against time (OUT/accuracy_vs_time.svg):
 
-    python benchmarks/gpu_summary.py OUT GSPLAT_BUILD_S ACCURACY_ITERS WALL_S
+    python benchmarks/gpu_summary.py OUT GSPLAT_BUILD_S WALL_S
 
 Targets: mlp at most 12 ms and sh at most 8 ms per whole-image iteration of demo on one H100 or H200.
 """
 
 from __future__ import annotations
 
+import json
 import re
 import sys
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine  # noqa: E402
 
+from facade_pipeline.evaluation.report import svg_scatter  # noqa: E402
+
 TARGET_MS = {"mlp": 12.0, "sh": 8.0}
 SPEED = re.compile(r"^(\w[\w ,]*): ([\d.]+) ms per iteration, peak ([\d.na]+) GiB, (\d+) splats", re.M)
-ACCURACY = re.compile(
-    r"^(\w[\w ,]*): glass PSNR ([\d.]+) dB, facade PSNR ([\d.]+) dB, normal error ([\d.]+) deg, (\d+) s"
-    r"(?:; aligned: glass PSNR ([\d.]+) dB)?",
-    re.M,
-)
+BUDGETS = ("gpu", "cpu")
 
 
 def read(out: Path, name: str) -> str:
@@ -29,27 +31,52 @@ def read(out: Path, name: str) -> str:
     return f.read_text() if f.is_file() else ""
 
 
-def summary(out: Path, build_s: str, accuracy_iters: str, wall_s: str) -> str:
+def results(out: Path) -> list[dict]:
+    """The accuracy points (``result:`` lines of accuracy_<N>.log), by iterations."""
+    rows = []
+    for f in out.glob("accuracy_*.log"):
+        lines = f.read_text().splitlines()
+        rows += [json.loads(ln.removeprefix("result: ")) for ln in lines if ln.startswith("result: ")]
+    return sorted(rows, key=lambda r: r["iterations"])
+
+
+def _f(x, fmt: str) -> str:
+    return format(x, fmt) if isinstance(x, (int, float)) else "-"
+
+
+def summary(out: Path, build_s: str, wall_s: str) -> str:
     counts = re.compile(r"\d+ (passed|failed|skipped)")
     tests = [ln for ln in read(out, "tests.log").splitlines() if counts.search(ln)]
     rows = [
         ("gsplat built from its wheel", f"{build_s} s"),
         ("CUDA tests", tests[-1].strip("= ") if tests else "no result (tests.log)"),
     ]
-    for name, ms, mem, n in SPEED.findall(read(out, "speed.log")):
-        target = TARGET_MS.get(name)
-        verdict = "met" if target is not None and float(ms) <= target else "NOT met"
-        met = "" if target is None else f" (target <= {target:g}: {verdict})"
-        rows.append((f"{name}, gsplat: ms per iteration", f"{float(ms):.1f}{met}"))
-        rows.append((f"{name}, gsplat: peak GPU memory GiB, splats", f"{mem}, {n}"))
-    for name, glass, facade, normal, wall, aligned in ACCURACY.findall(read(out, "accuracy.log")):
+    for budget in BUDGETS:
+        found = SPEED.findall(read(out, f"speed_{budget}.log"))
+        if not found:
+            rows.append((f"speed, {budget} budget", f"no result (speed_{budget}.log)"))
+        for name, ms, mem, n in found:
+            target = TARGET_MS.get(name)
+            verdict = "met" if target is not None and float(ms) <= target else "NOT met"
+            met = "" if target is None else f" (target <= {target:g}: {verdict})"
+            rows.append((f"{name}, {budget} budget: ms per iteration", f"{float(ms):.1f}{met}"))
+            rows.append((f"{name}, {budget} budget: peak GPU memory GiB, splats", f"{mem}, {n}"))
+    for r in results(out):
+        im, al = r["imported"], r["aligned"] or {}
         rows.append(
             (
-                f"{name}, {accuracy_iters} whole-image iterations: held-out glass PSNR dB as imported / "
-                "aligned, facade PSNR dB, normal error on glass deg, wall s",
-                f"{glass} / {aligned or '-'}, {facade}, {normal}, {wall}",
+                f"{r['variant']}, {r['iterations']} whole-image iterations: held-out glass PSNR dB as "
+                "imported / aligned, facade PSNR dB as imported / aligned, SSIM, LPIPS (aligned), normal "
+                "error on glass deg, splats, training wall s",
+                f"{_f(im['psnr_glass'], '.2f')} / {_f(al.get('psnr_glass'), '.2f')}, "
+                f"{_f(im['psnr'], '.2f')} / {_f(al.get('psnr'), '.2f')}, "
+                f"{_f(al.get('ssim', im['ssim']), '.3f')}, "
+                f"{_f(al.get('lpips', im.get('lpips')), '.3f')}, {_f(im['normal_error_glass_deg'], '.2f')}, "
+                f"{r['splats']}, {r['wall_s']:.0f}",
             )
         )
+    for ln in read(out, "skipped.log").splitlines():
+        rows.append(("accuracy point not run", ln.removeprefix("skipped: ")))
     rows.append(("the whole check, wall s", wall_s))
     try:
         import torch
@@ -63,5 +90,24 @@ def summary(out: Path, build_s: str, accuracy_iters: str, wall_s: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plot(out: Path) -> str | None:
+    """Held-out facade and glass PSNR, aligned, against training wall time (SVG); None without points."""
+    pts, labels = [], []
+    for r in results(out):
+        al = r["aligned"] or r["imported"]
+        for region, key in (("facade", "psnr"), ("glass", "psnr_glass")):
+            if isinstance(al.get(key), (int, float)):
+                pts.append((r["wall_s"], al[key]))
+                labels.append(f"{region}, {r['iterations']} iterations")
+    if not pts:
+        return None
+    return svg_scatter(pts, labels, "demo on the GPU: held-out PSNR (aligned) against training time",
+                       "training wall time (s)", "PSNR (dB)")  # fmt: skip
+
+
 if __name__ == "__main__":
-    print(summary(Path(sys.argv[1]), *sys.argv[2:5]))
+    folder = Path(sys.argv[1])
+    print(summary(folder, *sys.argv[2:4]))
+    svg = plot(folder)
+    if svg is not None:
+        (folder / "accuracy_vs_time.svg").write_text(svg)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -37,17 +38,25 @@ def test_speed_from_a_bundle_on_the_cpu_and_its_summary(tmp_path):
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "set with `--set`: `seed=3`" in run.stdout  # a figure's table says what it was measured with
-    (tmp_path / "speed.log").write_text(run.stdout)
+    (tmp_path / "speed_gpu.log").write_text(run.stdout)
     (tmp_path / "tests.log").write_text("....ss\n4 passed, 2 skipped in 3.10s\n")
-    (tmp_path / "accuracy.log").write_text(
-        "mlp: 1/9\nmlp: glass PSNR 23.08 dB, facade PSNR 24.50 dB, normal error 7.25 deg, 34 s; "
-        "aligned: glass PSNR 26.01 dB\n"
-    )
+    point = {"variant": "mlp", "iterations": 1000, "wall_s": 34.2, "splats": 151000,
+             "training_views_psnr": 27.1,
+             "imported": {"psnr": 24.5, "ssim": 0.8, "psnr_glass": 23.08, "psnr_glass_interior": 23.5,
+                          "normal_error_glass_deg": 7.25, "lpips": 0.2},
+             "aligned": {"psnr": 26.4, "ssim": 0.85, "psnr_glass": 26.01, "psnr_glass_interior": 26.5,
+                         "normal_error_glass_deg": 7.25, "lpips": 0.15}}  # fmt: skip
+    (tmp_path / "accuracy_1000.log").write_text("mlp: 1/1000\nresult: " + json.dumps(point) + "\n")
+    (tmp_path / "skipped.log").write_text("skipped: 3000 iterations (projected 160 s, 90 s left)\n")
     gpu = _summary_module()
     speeds = gpu.SPEED.findall(run.stdout)
     assert [s[0] for s in speeds] == ["mlp", "sh"] and all(float(s[1]) > 0 for s in speeds)
-    text = gpu.summary(tmp_path, "66", "1000", "300")
+    text = gpu.summary(tmp_path, "66", "300")
     assert "| CUDA tests | 4 passed, 2 skipped in 3.10s |" in text
     assert "target <= 12: " in text and "target <= 8: " in text
-    assert "| 23.08 / 26.01, 24.50, 7.25, 34 |" in text
-    assert text.count("\n| ") == 10  # header, rule, 8 rows
+    assert "| 23.08 / 26.01, 24.50 / 26.40, 0.850, 0.150, 7.25, 151000, 34 |" in text
+    assert "| speed, cpu budget | no result (speed_cpu.log) |" in text  # a missing step is said, not dropped
+    assert "| accuracy point not run | 3000 iterations (projected 160 s, 90 s left) |" in text
+    assert text.count("\n| ") == 12  # header, rule, 10 rows
+    svg = gpu.plot(tmp_path)
+    assert svg.startswith("<svg") and "facade, 1000 iterations" in svg and "glass, 1000 iterations" in svg
