@@ -39,7 +39,9 @@ def pixel_rays(
         indexing="ij",
     )
     pix = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # [H, W, 3]
-    d_cam = pix @ torch.linalg.inv(K).T  # [H, W, 3], z = 1
+    # inv_ex: inv's result without its check for a singular matrix, a read of the device that would make every
+    # step wait for it on CUDA (a camera's K is never singular)
+    d_cam = pix @ torch.linalg.inv_ex(K).inverse.T  # [H, W, 3], z = 1
     R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
     centre = -(R.T @ t)
     return centre, d_cam @ R  # d_world = R^T d_cam, written row-wise

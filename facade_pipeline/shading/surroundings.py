@@ -510,8 +510,9 @@ class Surroundings(nn.Module):
         the sky). Finite for any input; on the rays' device."""
         x, w = x.detach(), w.detach()
         ok = torch.isfinite(x).all(1) & torch.isfinite(w).all(1) & (w.norm(dim=1) > 0.5)
-        up = torch.zeros_like(w[:1])
-        up[0, 2] = 1.0  # filled on the device: a tensor made from host values would be a copy from the host
+        # (0, 0, 1) made by a kernel: a tensor from host values, or an element set from a Python number, is a
+        # copy from the host, which waits for the device
+        up = (torch.arange(3, device=w.device) == 2).to(w.dtype)[None]
         w = torch.where(ok[:, None], w, up)
         o = torch.where(ok[:, None], x, torch.zeros_like(x)) + RAY_OFFSET_CELLS * self.cell_m * w
         t_obj = self.cast(o, w)
