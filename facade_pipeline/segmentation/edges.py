@@ -36,9 +36,10 @@ class EdgeLine:
     empty unit beside it as much as an object in front (None: nowhere, or not measured)."""
     short: np.ndarray | None = None
     """[L] bool: where the bar's centre line is within the tolerance of its own colour (``present`` 1
-    there) but below full scale in a channel where that colour is clipped: the frame's value there lies
-    above full scale, so the centre line shows something darker than the frame in that channel, whatever
-    the small distance says (None: nowhere, or not measured)."""
+    there), clipped in one channel and below full scale in another where that colour is clipped: as bright
+    as the frame (above full scale), yet of another hue (the lit box of an empty unit), where the frame
+    shaded would fall below full scale in its clipped channels together (None: nowhere, or not
+    measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
@@ -118,9 +119,9 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
     colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
     keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
     which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
-    and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's colour but
-    below full scale in a channel where that colour is clipped (``EdgeLine.short``), each None where it is
-    nowhere."""
+    and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's colour,
+    clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``), each None
+    where it is nowhere."""
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     centre = 0.5 * (low.at(t) + high.at(t))
@@ -141,7 +142,7 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
     clipped = colour.max(axis=1) >= CLIPPED_LEVEL
     unknown = ok & ~near & clipped
     ref_clipped = np.broadcast_to(ref, colour.shape) >= CLIPPED_LEVEL
-    short = ok & near & (ref_clipped & (colour < CLIPPED_LEVEL)).any(axis=1)
+    short = ok & near & clipped & (ref_clipped & (colour < CLIPPED_LEVEL)).any(axis=1)
     return (np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None),
             (short if short.any() else None))
 
