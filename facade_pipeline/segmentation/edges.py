@@ -34,6 +34,12 @@ class EdgeLine:
     """[L] bool: where the bar's centre line is clipped white away from the bar's own colour (``present``
     0 there): what it shows lies somewhere above full scale, a highlight on the frame or the lit box of an
     empty unit beside it as much as an object in front (None: nowhere, or not measured)."""
+    short: np.ndarray | None = None
+    """[L] bool: where the bar's centre line is within the tolerance of its own colour (``present`` 1
+    there), clipped in one channel and below full scale in another where that colour is clipped: as bright
+    as the frame (above full scale), yet of another hue (the lit box of an empty unit), where the frame
+    shaded would fall below full scale in its clipped channels together (None: nowhere, or not
+    measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
@@ -108,12 +114,14 @@ def bar_edges(
 
 
 def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
-                   tol: float) -> tuple[np.ndarray, np.ndarray | None]:
+                   tol: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
     colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
     keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
     which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
-    and clipped white (``EdgeLine.unknown``), None where it is nowhere."""
+    and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's colour,
+    clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``), each None
+    where it is nowhere."""
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     centre = 0.5 * (low.at(t) + high.at(t))
@@ -124,15 +132,19 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
     ref_rows[rows] = True
     ref_rows &= ok
     if not ref_rows.any():
-        return np.where(ok, 1.0, np.nan), None
+        return np.where(ok, 1.0, np.nan), None, None
     if grad.block_px is None:
         ref = np.median(colour[ref_rows], axis=0)
     else:  # each block's own colour (``Gradients.block_px``)
         ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
         ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
     near = np.linalg.norm(colour - ref, axis=1) <= tol
-    unknown = ok & ~near & (colour.max(axis=1) >= CLIPPED_LEVEL)
-    return np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None)
+    clipped = colour.max(axis=1) >= CLIPPED_LEVEL
+    unknown = ok & ~near & clipped
+    ref_clipped = np.broadcast_to(ref, colour.shape) >= CLIPPED_LEVEL
+    short = ok & near & clipped & (ref_clipped & (colour < CLIPPED_LEVEL)).any(axis=1)
+    return (np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None),
+            (short if short.any() else None))
 
 
 @dataclass(frozen=True)

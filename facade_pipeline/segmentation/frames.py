@@ -174,9 +174,11 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams,
 def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
                   params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
-    and where that is unknown (``frame_presence`` within ``frame_colour_tol``), set on both."""
-    present, unknown = frame_presence(grad, bar[0], bar[1], span, params.frame_colour_tol)
-    low, high = (dataclasses.replace(line, present=present, unknown=unknown) for line in bar)
+    where that is unknown and where it is short (``frame_presence`` within ``frame_colour_tol``), set
+    on both."""
+    present, unknown, short = frame_presence(grad, bar[0], bar[1], span, params.frame_colour_tol)
+    low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short)
+                 for line in bar)
     return low, high
 
 

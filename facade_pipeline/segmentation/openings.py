@@ -8,7 +8,8 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
 (``complete = False``) when it is at least ``min_partial`` (of the building's pitch) wide and the bars of the
 other family continue into it (by their frame colour or their edges, where the facade surface is there:
-``_continues``); otherwise the facade ends at that bar, except beside the bars that continue on their own
+``_continues``; a clipped frame colour is matched only by a centre line clipped where it is,
+``EdgeLine.short``); otherwise the facade ends at that bar, except beside the bars that continue on their own
 (a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the
 border, is a partial panel.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
@@ -63,10 +64,15 @@ def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
                    inside: tuple[float, float]) -> tuple[float, float]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
-    larger ratio of its two edges' mean strength there to their mean strength over ``inside``)."""
+    larger ratio of its two edges' mean strength there to their mean strength over ``inside``). A centre
+    line below full scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near
+    a clipped frame colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
     presence = np.nan
     if bar[0].present is not None:
-        seg = bar[0].present[int(max(0, np.ceil(lo))) : int(max(0, np.floor(hi)))]
+        i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+        seg = bar[0].present[i0:i1]
+        if bar[0].short is not None:
+            seg = np.where(bar[0].short[i0:i1], 0.0, seg)
         seg = seg[~np.isnan(seg)]
         if len(seg):
             presence = float(seg.mean())

@@ -33,6 +33,8 @@ class Drawing:
     #: the transoms' grey level from the left to the right end, where their shading turns along them (a
     #: cylinder's transoms lit from one side: 0.29 to 0.55 across one of curved12's views)
     transom_ramp: tuple[float, float] | None = None
+    #: the frames' colour (above 1: clipped white, a photo brighter than its frames' full scale)
+    frame_colour: tuple[float, float, float] = (0.62, 0.64, 0.66)
 
     def _lines(self, axis: int) -> np.ndarray:
         """[n + 1] left (top) edges of the bars of one family (px), ``axis`` 0: mullions."""
@@ -53,7 +55,7 @@ class Drawing:
         gx1, gy1 = (xl[-1] + self.bar) * S, (yl[-1] + self.bar) * S
         ys, xs = np.mgrid[0:H, 0:W] + 0.5
         facade = (xs >= gx0) & (xs < gx1) & (ys >= gy0) & (ys < gy1)
-        img[facade] = (0.62, 0.64, 0.66)  # frames
+        img[facade] = self.frame_colour
         glass = np.zeros((H, W), bool)
         self.glass_rects = []
         for r in range(self.rows):

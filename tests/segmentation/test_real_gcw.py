@@ -166,7 +166,9 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 
 
 #: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do). At +0.5 EV 14 of
-#: 15 whole panes, mask IoU median 0.78, min 0.50; at +1 EV 12 of 15, 0.64 / 0.00 (benchmarks/RESULTS.md).
+#: 15 whole panes, mask IoU median 0.78, min 0.50; at +1 EV 12 of 15, 0.77 / 0.00 (benchmarks/RESULTS.md; the
+#: empty unit clipped pink, near the frames' white, no longer carries the mullions into a border strip:
+#: ``EdgeLine.short``).
 #: What is lost: the frames and the bright glass beside them meet at full scale, where no edge is left to find
 #: (at +1 EV img041 finds no grid at any pitch: its second mullion is taken on the grey glass beside the
 #: frame, and its white transoms then fail the colour prior against the two mullions' median; a clipped

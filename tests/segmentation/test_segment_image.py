@@ -466,6 +466,30 @@ def test_a_border_strip_where_the_facade_goes_on_over_part_of_it():
     assert below == {p.col for p in seg.panels}
 
 
+@pytest.mark.parametrize("lit", [None, (255, 238, 238)])
+def test_a_lit_box_clipped_near_the_frames_white_does_not_carry_them_into_a_border_strip(lit):
+    """Frames clipped white, the drawing cut by the top border: the mullions continue into the top strip
+    between their glass, and its partial panels are kept. The same strip filled with the lit box of an
+    empty unit, clipped in its red channel and just below full scale in the others (within
+    ``frame_colour_tol`` of the frames' white), shows no frame there: a frame whose colour is clipped in a
+    channel is above full scale in it, so a centre line below full scale in that channel is not the frame,
+    and the strip holds no panel."""
+    d = Drawing(y0=-10.0, cols=4, rows=3, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    first_transom = int(d.y0 + d.pitch[1])  # the first transom whole in the image starts here
+    if lit is not None:
+        noise = np.random.default_rng(1).normal(0.0, 2.0, (first_transom, d.W, 3))
+        img[:first_transom] = np.clip(np.rint(np.array(lit) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    top = [p for p in seg.panels if p.corners[:, 1].min() < 1.0]
+    below = [p for p in seg.panels if p.corners[:, 1].min() >= 1.0]
+    assert len(below) == 4 * 2 and all(p.complete for p in below if p.corners[:, 0].max() < d.W - 1.0)
+    if lit is None:
+        assert len(top) >= 3 and all(not p.complete for p in top)
+    else:
+        assert not top
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
