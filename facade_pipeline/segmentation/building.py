@@ -22,6 +22,12 @@ PITCH_REACH_SIGMAS = 3.0
 #: a view's bars are another family than the building's where their median width is beyond this factor of
 #: the building's either way: ``frames.widen_narrow_bars`` finds a bar under half of it again
 WIDTH_RATIO = 2.0
+#: the grid of every view accepts bars up to this quantile of the widths (per family) that the survey of
+#: every view found: a bar seen obliquely shows its side face beside its front face, so its width grows
+#: with the view's obliquity and half the bars are wider than the median; the upper quartile takes the
+#: views' wider bars while the few things the survey took for a bar (a shelf behind an empty unit, a
+#: reflected edge beside a bar) stay above it
+SURVEYED_BAR_QUANTILE = 0.75
 
 
 def building_frame_parallax_m(
@@ -75,6 +81,21 @@ def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:
         for name, w in ({} if f is None else f.bar_widths_m()).items():
             widths.setdefault(name, []).extend(w)
     return {name: float(np.median(w)) for name, w in sorted(widths.items()) if w}
+
+
+def surveyed_bar_max_m(widths: list[dict[str, list[float]]]) -> dict[str, float]:
+    """The widest bar (m) the grid is to accept across the mullions ("x") and the transoms ("y"): per
+    family, the ``SURVEYED_BAR_QUANTILE`` of the widths of every bar the views' surveys found (each view's
+    ``FrameBars.bar_widths_m`` of ``frames.survey_frames``, which seeks bars at sizes relative to the view
+    alone); a family without bars is left out. The grid model's ``max_bar`` is a fraction of the pitch
+    that holds for the usual profiles; a facade whose frames are wider, or deep enough that their side
+    faces widen them in oblique views, shows wider bars, and a grid that does not accept them finds them
+    at its widest width, which hides the frames' parallax."""
+    pooled: dict[str, list[float]] = {}
+    for view in widths:
+        for name, w in view.items():
+            pooled.setdefault(name, []).extend(w)
+    return {name: float(np.quantile(w, SURVEYED_BAR_QUANTILE)) for name, w in sorted(pooled.items()) if w}
 
 
 def building_pitch_m(found: list[FrameBars | None]) -> dict[str, float]:
