@@ -331,7 +331,8 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         surveyed = map_views(functools.partial(_survey_view, layout, params), views, settings.view_workers,
                              lambda _: bar.update())
     unit = survey_unit_m([p for p, _, _ in surveyed])
-    bar_max = surveyed_bar_max_m([w for _, w, _ in surveyed])
+    bar_max = {} if unit is None else surveyed_bar_max_m([w for _, w, _ in surveyed],
+                                                        params.grid.max_bar * unit)
     if unit is None:  # no view shows a grid at any pitch: each is written without panels, saying so
         found = [(ViewRectification.load(layout.path("rectify_mapping", stem=v.stem)), None, s)
                  for v, (_, _, s) in zip(views, surveyed, strict=True)]

@@ -330,7 +330,7 @@ def find_frames(
     ``pitch_m`` narrows the pitches (m) sought across the mullions ("x") or the transoms ("y") to a range
     (the building's grid, ``building.pitch_range_m``; the grid model's range where None); ``bar_max_m``
     widens the bars sought across the mullions ("x") or the transoms ("y") to at least that width (m; the
-    widths the survey saw, ``building.surveyed_bar_max_m``)."""
+    widths the survey saw where wider than the grid model's, ``building.surveyed_bar_max_m``)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px, unit_m)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
