@@ -401,16 +401,6 @@ def survey_frames(
                        support, planar, ranges)
 
 
-def _clipped_beside(grad: Gradients, span: slice, a: float) -> bool:
-    """Is the position ``a`` (px across the family) clipped with its neighbour (``Gradients.known``) over
-    more than ``1 - CLIPPED_BAR_KNOWN`` of ``span``?"""
-    known = grad.known_on_lattice
-    if known is None:
-        return False
-    i = int(np.clip(np.rint(a / STEP_PX), 0, known.shape[1] - 1))
-    return float(known[span, i].mean()) <= CLIPPED_BAR_KNOWN
-
-
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                       params: SegmentParams,
                       side_face: Callable[[EdgeLine, EdgeLine], tuple | None] | None = None,
@@ -428,12 +418,7 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     the front face of ``width_px`` found beyond it, away from the camera's foot: its near edge is where the
     glass meets the frame, and the far edge is the front face's. A thinner one only where its width is
     within half the side face's of it: a thin line is as often the side face with the shadow it casts on
-    the glass beside it (a transom's underside seen from below), found again as above. A thin line beside
-    a region clipped with its neighbour (``Gradients.known``) on one side is the edge of a frame that goes
-    on into the clip, where no edge is seen: the bars of the building's width found beside it would be
-    those whose far edge lies on the unclipped side, in the glass (a reflection's edge). It keeps its edge
-    facing away from the clip, and its far edge is placed ``width_px`` into the clip (no edge found
-    there); a thin line with a clip on both sides is kept as found."""
+    the glass beside it (a transom's underside seen from below), found again as above."""
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
@@ -454,16 +439,6 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                 continue
         if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
             edges.append((low, high))
-            continue
-        clipped = (_clipped_beside(grad, span, low.a - 1.0), _clipped_beside(grad, span, high.a + 1.0))
-        if any(clipped):
-            if not all(clipped):
-                near, sign = (high, -1.0) if clipped[0] else (low, 1.0)
-                far = EdgeLine(near.a + sign * width_px, near.b, near.mid, np.zeros_like(near.strength))
-                edges.append(with_presence(grad, (far, near) if sign < 0 else (near, far), span, params))
-                n += 1
-            else:
-                edges.append((low, high))
             continue
         best, score = (low, high), 0.0
         for c in (low.a - 0.5 * width_px, low.a + 0.5 * width_px, high.a - 0.5 * width_px,

@@ -512,45 +512,6 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     assert widen_narrow_bars(alone, grad, span, 8.0, PARAMS) == (alone, 0)
 
 
-def test_a_thin_line_beside_a_clip_keeps_its_edge_away_from_the_clip():
-    """A white frame clipped together with the sky reflected in the glass below it (rows 0-30) shows no
-    edge where it meets the glass; the first edge below is the reflection's, a dark roof line (rows
-    30-32) above a reflected building face (rows 32-40) darker below (a transom's width, 8 px, from the
-    line). The grid takes the line for a thin transom; found again at the building's width it would be
-    the line with the face below it, a reflection. It keeps the edge the view shows of the frame, facing
-    away from the clip, its far edge placed the width into the clip, whose colour on its centre line is
-    the frame's: no occluder. A thin line with a clip on both sides stays as found."""
-    from facade_pipeline.segmentation.edges import Bars, bar_edges
-    from facade_pipeline.segmentation.evidence import Gradients
-    from facade_pipeline.segmentation.frames import widen_narrow_bars
-    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
-
-    H, W = 110, 60
-    img = np.full((H, W, 3), 0.30)
-    img[:30] = 1.0  # the frame and the sky reflected below it, clipped together
-    img[30:32] = 0.15  # the reflected roof line
-    img[32:40] = 0.60  # the reflected face
-    img[60:68] = 0.80  # a well-contrasted transom
-    img[90:92] = 0.15  # a thin line between two clips
-    img[92:100] = 1.0
-    img[86:90] = 1.0
-    img = np.rint(img * 255).astype(np.uint8)
-    grad = Gradients.of(img, 1)
-    span = slice(0, W)
-    thin = bar_edges(grad, 31.0, 2.0, span, EDGE_SEARCH_PX)
-    whole = bar_edges(grad, 64.0, 8.0, span, EDGE_SEARCH_PX)
-    between = bar_edges(grad, 91.0, 2.0, span, EDGE_SEARCH_PX)
-    assert abs(thin[0].a - 30.0) < 0.3 and abs(thin[1].a - 32.0) < 0.3  # what the grid found
-    reflection = bar_edges(grad, 36.0, 8.0, span, EDGE_SEARCH_PX)
-    assert reflection is not None and abs(reflection[1].a - 40.0) < 0.3  # what the width would find
-    out, n = widen_narrow_bars(Bars([thin, whole, between], None), grad, span, 8.0, PARAMS)
-    assert n == 1
-    low, high = out.edges[0]
-    assert high.a == thin[1].a and abs(low.a - (thin[1].a - 8.0)) < 1e-9
-    assert low.present.all() and high.present.all()  # the clipped frame's colour: no occluder
-    assert out.edges[1] == whole and out.edges[2] == between
-
-
 def test_a_bar_found_as_its_lit_side_face_alone_is_joined_to_its_front_face():
     """A transom seen from above (the camera's foot above it): its top face, lit by the sky (rows 30-34,
     the 4 px that k P / (1 + k) gives there), above its front face of the building's 8 px (rows 34-42,
