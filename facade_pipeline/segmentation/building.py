@@ -22,6 +22,12 @@ PITCH_REACH_SIGMAS = 3.0
 #: a view's bars are another family than the building's where their median width is beyond this factor of
 #: the building's either way: ``frames.widen_narrow_bars`` finds a bar under half of it again
 WIDTH_RATIO = 2.0
+#: the quantiles of the widths (per family) that the survey of every view found: where the lower one (the
+#: bars that show little side face, near the cameras' feet: about the front face) is wider than the grid
+#: model's ``max_bar``, the grid of every view accepts bars up to the upper one (a bar seen obliquely shows
+#: its side face beside its front face); the few things the survey took for a bar (a shelf behind an empty
+#: unit, a reflected edge beside a bar) lie beyond both
+SURVEYED_BAR_QUANTILES = (0.25, 0.75)
 
 
 def building_frame_parallax_m(
@@ -75,6 +81,24 @@ def building_bar_width_m(found: list[FrameBars | None]) -> dict[str, float]:
         for name, w in ({} if f is None else f.bar_widths_m()).items():
             widths.setdefault(name, []).extend(w)
     return {name: float(np.median(w)) for name, w in sorted(widths.items()) if w}
+
+
+def surveyed_bar_max_m(widths: list[dict[str, list[float]]], max_bar_m: float) -> dict[str, float]:
+    """The widest bar (m) the grid is to accept across the mullions ("x") and the transoms ("y") where the
+    frames are wider than the grid model's ``max_bar`` (``max_bar_m``, m): per family whose lower
+    ``SURVEYED_BAR_QUANTILES`` of the widths of every bar the views' surveys found (each view's
+    ``FrameBars.bar_widths_m`` of ``frames.survey_frames``, which seeks bars at sizes relative to the view
+    alone) is wider than ``max_bar_m``, their upper quantile; the other families are left out. A grid
+    that does not accept the frames' front faces finds every bar at its widest width, which hides the
+    frames' parallax; where the front faces fit, the side faces seen beside them are the parallax's
+    business (``parallax``, ``frames.widen_narrow_bars``), not the grid's."""
+    pooled: dict[str, list[float]] = {}
+    for view in widths:
+        for name, w in view.items():
+            pooled.setdefault(name, []).extend(w)
+    low, high = SURVEYED_BAR_QUANTILES
+    return {name: float(np.quantile(w, high)) for name, w in sorted(pooled.items())
+            if w and float(np.quantile(w, low)) > max_bar_m}
 
 
 def building_pitch_m(found: list[FrameBars | None]) -> dict[str, float]:

@@ -321,6 +321,7 @@ def find_frames(
     support: np.ndarray | None = None,
     planar: bool = True,
     pitch_m: dict[str, tuple[float, float]] | None = None,
+    bar_max_m: dict[str, float] | None = None,
 ) -> FrameBars:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
     found at the working scale (``work_bar_px``); ``unit_m`` is the building's panel pitch (m), the unit of
@@ -329,7 +330,9 @@ def find_frames(
     rectified image has none outside the original); ``parallax`` is the image's parallax coordinate, in
     which the frames' parallax is fitted (None: not); ``planar``: the surface is a plane (``find_bars``);
     ``pitch_m`` narrows the pitches (m) sought across the mullions ("x") or the transoms ("y") to a range
-    (the building's grid, ``building.pitch_range_m``; the grid model's range where None)."""
+    (the building's grid, ``building.pitch_range_m``; the grid model's range where None); ``bar_max_m``
+    widens the bars sought across the mullions ("x") or the transoms ("y") to at least that width (m; the
+    widths the survey saw where wider than the grid model's, ``building.surveyed_bar_max_m``)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px, unit_m)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -349,6 +352,11 @@ def find_frames(
             sizes, min_pitch=max(sizes.min_pitch, pitch_m[name][0] / m),
             max_pitch=min(sizes.max_pitch, pitch_m[name][1] / m))
         for name in ("x", "y")
+    )
+    family_sizes = tuple(
+        z if name not in (bar_max_m or {}) else dataclasses.replace(
+            z, max_bar=max(z.max_bar, int(round(bar_max_m[name] / m))))
+        for name, z in zip(("x", "y"), family_sizes, strict=True)
     )
     image = normalise_exposure(image, valid)
     bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar,

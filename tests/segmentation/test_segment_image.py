@@ -751,6 +751,41 @@ def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     assert big == pytest.approx({name: 25 * p for name, p in small.items()}, rel=1e-9)
 
 
+def test_bars_wider_than_the_grid_models_widest_are_found_at_the_widths_the_survey_saw():
+    """Frames 10.2 px wide at a pitch of about 58 px: a sixth of the pitch, beyond the grid model's
+    ``max_bar``. At the model's widths alone the grid finds no bar of the drawn width; the survey, which
+    seeks bars at sizes relative to the view, sees them, and with the widest bar taken from its widths
+    (``surveyed_bar_max_m``, pooled over the views) every bar is found at its drawn width. Frames within
+    the model's widths leave it as it is: the grid finds them alike."""
+    from facade_pipeline.segmentation.building import SURVEYED_BAR_QUANTILES, surveyed_bar_max_m
+    from facade_pipeline.segmentation.frames import find_frames, survey_frames
+
+    pitch = (60.4, 55.3)
+    unit_m = float(np.sqrt(pitch[0] * pitch[1])) * M_PER_PX
+    max_bar_m = PARAMS.grid.max_bar * unit_m
+    for bar, wider in ((10.2, True), (6.0, False)):
+        img = Drawing(W=240, H=200, x0=12.3, y0=10.6, pitch=pitch, bar=bar, reflections=True).render()
+        assert (bar * M_PER_PX > max_bar_m) == wider
+        survey = survey_frames(img, PARAMS, M_PER_PX).bar_widths_m()
+        views = [survey, {}, {"x": [survey["x"][0]]}]
+        widest = surveyed_bar_max_m(views, max_bar_m)
+        own = find_frames(img, PARAMS, M_PER_PX, unit_m).bar_widths_m()
+        found = find_frames(img, PARAMS, M_PER_PX, unit_m, bar_max_m=widest).bar_widths_m()
+        if not wider:
+            assert widest == {} and found == own and len(found["x"]) == len(found["y"]) == 4
+            continue
+        assert widest.keys() == {"x", "y"}
+        assert widest["x"] == pytest.approx(np.quantile(survey["x"] + [survey["x"][0]],
+                                                        SURVEYED_BAR_QUANTILES[1]))
+        # the same widths against a grid model whose widest bar holds them all: the front faces fit
+        assert surveyed_bar_max_m(views, max(survey["x"] + survey["y"])) == {}
+        for name in ("x", "y"):
+            assert len(found[name]) == 4
+            assert np.abs(np.array(found[name]) / M_PER_PX - bar).max() < 0.35
+            at_model = np.array(own.get(name, []))
+            assert len(at_model) < 4 or np.abs(at_model / M_PER_PX - bar).max() > 1.0
+
+
 def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
     """A highlight that clips the last mullion and what lies on both sides of it to white over the whole
     height leaves no edge to find there: the bar is placed one pitch beyond the run the rest of the view
