@@ -439,7 +439,7 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                 edges.append(with_presence(grad, joined, span, params))
                 n += 1
                 continue
-        if high.a - low.a >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
+        if width >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
             edges.append((low, high))
             continue
         best, score = (low, high), 0.0
