@@ -17,7 +17,9 @@ faces it (the level ground before the facade drops out); (1) reject points on a 
 ground, clutter); (3) a quadric height field ``w = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2`` over the
 plane, by iteratively reweighted least squares, whose Hessian gives the axis (the flat eigenvector) and
 kappa (minus the other eigenvalue); (4) least squares on ``d(x)`` over (frame rotation, offset along n,
-kappa) with a soft-L1 loss.
+kappa) with a soft-L1 loss; (5) when the fit's inliers lie on two or more separate parts of the points
+(``point_parts``), the view frames two surfaces side by side (a curved part's end beside a planar part):
+one surface bent through both fits neither, and the fit is redone on the part holding most inliers.
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from facade_pipeline.errors import PipelineError
@@ -288,6 +293,41 @@ def sagitta_m(surface: Surface, points: np.ndarray) -> float:
     return abs(surface.curvature_per_m) * float(np.ptp(t)) ** 2 / 8.0 if len(t) else 0.0
 
 
+def point_parts(points: np.ndarray, knn: int) -> np.ndarray:
+    """Label [N] of each point's part: the connected components of the graph that joins two points when
+    each is among the other's ``knn`` nearest. A surface's points join densely; a lone point between two
+    surfaces (a ghost, a stray) is among neither's nearest and joins neither, so that a gap between two
+    surfaces splits them even where single points lie across it. ``knn`` 0: one part."""
+    n = len(points)
+    k = min(knn, n - 1)
+    if k <= 0:
+        return np.zeros(n, int)
+    _, idx = cKDTree(points).query(points, k + 1)
+    pairs = (np.repeat(np.arange(n), k), idx[:, 1:].ravel())
+    near = coo_matrix((np.ones(n * k), pairs), shape=(n, n)).tocsr()
+    return connected_components(near.multiply(near.T), directed=False)[1]
+
+
+def _fit_points(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
+                source: str | Path | None, curved: bool) -> tuple[Surface, np.ndarray]:
+    """Steps (2)-(4) of the module docstring on world points [N, 3]: the surface and its inlier mask [N]."""
+    rng = np.random.default_rng(RANSAC_SEED)
+    keep = ransac_plane(points, viewpoint, params, unit_m, rng)
+    check_points(points[keep], params, unit_m, source)
+    scale = params.inlier_scale * unit_m
+    surface = quadric_init(points[keep], viewpoint, scale)
+    for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
+        surface = refine_surface(surface, points[keep], scale)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
+        check_points(points[keep], params, unit_m, source)
+    rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
+    if not curved or sagitta_m(surface, points[keep]) < MIN_SAGITTA_RMS * rms:
+        surface = fit_plane(points[keep], viewpoint, scale)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
+        check_points(points[keep], params, unit_m, source)
+    return surface, keep
+
+
 def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
                 source: str | Path | None = None, toward_camera: np.ndarray | None = None,
                 curved: bool = True) -> SurfaceFit:
@@ -311,20 +351,14 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
                                   f"the camera (normal within {angle:g} deg of the optical axis)",
                                   f"{len(points)} of {n_given}")
     check_points(points, params, unit_m, source)
-    rng = np.random.default_rng(RANSAC_SEED)
-    keep = ransac_plane(points, np.asarray(viewpoint, float), params, unit_m, rng)
-    check_points(points[keep], params, unit_m, source)
     viewpoint = np.asarray(viewpoint, float)
-    scale = params.inlier_scale * unit_m
-    surface = quadric_init(points[keep], viewpoint, scale)
-    for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
-        surface = refine_surface(surface, points[keep], scale)
-        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
-        check_points(points[keep], params, unit_m, source)
-    rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
-    if not curved or sagitta_m(surface, points[keep]) < MIN_SAGITTA_RMS * rms:
-        surface = fit_plane(points[keep], viewpoint, scale)
-        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
-        check_points(points[keep], params, unit_m, source)
+    surface, keep = _fit_points(points, viewpoint, params, unit_m, source, curved)
+    parts = point_parts(points, params.normal_knn)
+    held = np.bincount(parts[keep])
+    if np.count_nonzero(held >= params.min_points) > 1:  # fitted across two surfaces: fit the main one
+        main = parts == int(np.argmax(held))
+        surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
+        keep = np.zeros(len(points), bool)
+        keep[np.flatnonzero(main)[keep_main]] = True
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))
