@@ -152,16 +152,20 @@ class Surface:
 
 @dataclass(frozen=True, eq=False)
 class SurfaceFit:
-    """A fitted surface with its quality: RMS distance of the inliers (m) and counts."""
+    """A fitted surface with its quality: RMS distance of the inliers (m) and counts. ``part``: where the
+    points lay on separate parts and the fit took the one holding most of its inliers, those inliers [K, 3]
+    (the extent of the surface the view frames); None where it took every part."""
 
     surface: Surface
     rms_m: float
     n_points: int
     n_inliers: int
+    part: np.ndarray | None = None
 
     def to_dict(self) -> dict:
-        return {**self.surface.to_dict(), "rms_m": self.rms_m, "n_points": self.n_points,
-                "n_inliers": self.n_inliers}
+        d = {**self.surface.to_dict(), "rms_m": self.rms_m, "n_points": self.n_points,
+             "n_inliers": self.n_inliers}
+        return d if self.part is None else {**d, "fitted_part": True}
 
 
 def _stable_distance(t: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
@@ -336,7 +340,10 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     surface faces it are fitted (``facing_points``); ``n_points`` counts the points given.
 
     ``curved = False`` fits a plane only; a cylinder whose sagitta over its inliers is under
-    ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well.
+    ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well. A fit whose inliers hold
+    ``min_points`` or more on each of two separate parts of the points (``point_parts`` over
+    ``normal_knn`` neighbours) is redone on the part holding most of them; the other is left to the views
+    that frame it.
 
     The params' lengths are fractions of ``unit_m``, the frontal views' footprint
     (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
@@ -360,5 +367,7 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
         surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
         keep = np.zeros(len(points), bool)
         keep[np.flatnonzero(main)[keep_main]] = True
+        d = surface.signed_distance(points[keep])
+        return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()), points[keep])
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))
