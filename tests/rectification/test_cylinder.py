@@ -126,8 +126,8 @@ def cylinder_beside_plane(x_plane, phi_cyl, radius=9.0, noise=0.03, density=25.0
     ((-7.0, -1.2), (-0.39, -0.28), (-4.0, 7.0, 3.0), np.inf),  # the plane framed, the cylinder's end beside
 ])
 def test_a_view_of_a_cylinder_beside_a_plane_fits_the_part_it_frames(x_plane, phi_cyl, eye, radius):
-    """One surface bent through both parts fits neither: a cylinder through the plane and the cylinder's
-    end (radius five times the truth), or a plane through the cylinder and the plane's end."""
+    """One surface bent through both parts fits neither: a plane through the cylinder and the plane's end,
+    or a cylinder through the plane and the cylinder's end (46 m, five times the cylinder's radius)."""
     pts = cylinder_beside_plane(x_plane, phi_cyl)
     eye = np.array(eye)
     forward = np.array([pts[:, 0].mean() - eye[0], -eye[1], 0.0])
