@@ -19,7 +19,8 @@ plane, by iteratively reweighted least squares, whose Hessian gives the axis (th
 kappa (minus the other eigenvalue); (4) least squares on ``d(x)`` over (frame rotation, offset along n,
 kappa) with a soft-L1 loss; (5) when the fit's inliers lie on two or more separate parts of the points
 (``point_parts``), the view frames two surfaces side by side (a curved part's end beside a planar part):
-one surface bent through both fits neither, and the fit is redone on the part holding most inliers.
+one surface bent through both fits neither, and the fit is redone on the part holding most inliers, unless
+the fit over all fits that part about as well as its own (one surface with a gap).
 """
 
 from __future__ import annotations
@@ -50,6 +51,12 @@ RANSAC_SEED = 0
 #: a cylinder bulging (its sagitta, |kappa| width^2 / 8) less than this many times the fit's RMS residual
 #: over the view's points is not told from a plane by them: a plane is fitted instead (-).
 MIN_SAGITTA_RMS = 3.0
+#: a fit over separate parts of the points stands (one surface with a gap: a pilaster, a strip the mesh
+#: hides) where its RMS residual over the main part's inliers is within this factor of the main part's own
+#: fit's; a surface bent through two (a curved part's end beside a planar part) fits the main part worse:
+#: 1.00 on a drawn plane or cylinder with a gap, 1.4-8 on drawn surfaces side by side, 1.9 on oblique's
+#: frontal_0000 (-)
+MAX_PART_RMS_RATIO = 1.2
 
 
 def implausible(fit: SurfaceFit, footprint_m: float, params: SurfaceFitParams,
@@ -312,6 +319,10 @@ def point_parts(points: np.ndarray, knn: int) -> np.ndarray:
     return connected_components(near.multiply(near.T), directed=False)[1]
 
 
+def _rms(surface: Surface, points: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(surface.signed_distance(points) ** 2)))
+
+
 def _fit_points(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
                 source: str | Path | None, curved: bool) -> tuple[Surface, np.ndarray]:
     """Steps (2)-(4) of the module docstring on world points [N, 3]: the surface and its inlier mask [N]."""
@@ -342,8 +353,9 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     ``curved = False`` fits a plane only; a cylinder whose sagitta over its inliers is under
     ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well. A fit whose inliers hold
     ``min_points`` or more on each of two separate parts of the points (``point_parts`` over
-    ``normal_knn`` neighbours) is redone on the part holding most of them; the other is left to the views
-    that frame it.
+    ``normal_knn`` neighbours) is redone on the part holding most of them (``SurfaceFit.part``), unless the
+    fit over all fits that part within ``MAX_PART_RMS_RATIO`` of its own fit (one surface with a gap); the
+    other is left to the views that frame it.
 
     The params' lengths are fractions of ``unit_m``, the frontal views' footprint
     (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
@@ -362,12 +374,15 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     surface, keep = _fit_points(points, viewpoint, params, unit_m, source, curved)
     parts = point_parts(points, params.normal_knn)
     held = np.bincount(parts[keep])
-    if np.count_nonzero(held >= params.min_points) > 1:  # fitted across two surfaces: fit the main one
+    if np.count_nonzero(held >= params.min_points) > 1:  # fitted across two parts: fit the main one
         main = parts == int(np.argmax(held))
-        surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
-        keep = np.zeros(len(points), bool)
-        keep[np.flatnonzero(main)[keep_main]] = True
-        d = surface.signed_distance(points[keep])
-        return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()), points[keep])
+        part_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
+        on_main = points[main][keep_main]
+        if _rms(surface, on_main) > MAX_PART_RMS_RATIO * _rms(part_surface, on_main):  # bent through both
+            keep = np.zeros(len(points), bool)
+            keep[np.flatnonzero(main)[keep_main]] = True
+            d = part_surface.signed_distance(points[keep])
+            return SurfaceFit(part_surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()),
+                              points[keep])
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))

@@ -148,3 +148,20 @@ def test_points_apart_are_separate_parts_even_with_a_stray_point_between():
     assert len(set(labels[:300])) == 1 and len(set(labels[300:600])) == 1
     assert len({labels[0], labels[300], labels[600]}) == 3
     assert np.all(point_parts(left, 0) == 0)
+
+
+@pytest.mark.parametrize("radius", [np.inf, 9.0])
+def test_one_surface_with_a_gap_is_fitted_over_both_sides(radius):
+    """A plane or a cylinder whose points a gap splits (a pilaster, a strip the mesh hides) is one surface:
+    the part fitted alone holds the other side too, and the fit over both stands."""
+    rng = np.random.default_rng(5)
+    s = np.concatenate([rng.uniform(-3.5, -1.0, 400), rng.uniform(1.0, 3.5, 400)])  # a 2 m gap
+    z = rng.uniform(0.0, 6.0, 800)
+    phi = s / radius
+    pts = np.stack([radius * np.sin(phi), radius * (np.cos(phi) - 1.0), z], 1) if np.isfinite(radius) else \
+        np.stack([s, np.zeros_like(s), z], 1)
+    pts += rng.normal(0, 0.03, pts.shape)
+    fit = fit_surface(pts, np.array([0.0, 7.0, 3.0]), FIT, FOOTPRINT_M, toward_camera=np.array([0.0, 1, 0]))
+    assert len(set(point_parts(pts, FIT.normal_knn))) == 2
+    assert fit.part is None and fit.n_inliers >= 790
+    assert fit.surface.radius_m == pytest.approx(radius, rel=0.05)
