@@ -87,6 +87,7 @@ def rectify_one(
     from facade_pipeline.io.images import read_image, write_image
     from facade_pipeline.rectification.cylinder import implausible_displacement
     from facade_pipeline.rectification.surface_map import (
+        Chart,
         ViewRectification,
         mesh_scale_m,
         rectify_view,
@@ -107,7 +108,12 @@ def rectify_one(
     cam = view.camera
     rect, displacement = None, None
     if fit is not None:
-        rect = rectify_view(cam, fit.surface, params)
+        bounds = None
+        if fit.part is not None:  # the canvas ends where the fitted part's points do, with the inlier band
+            s, _ = Chart.of(fit.surface).coords(fit.part)
+            margin = 3.0 * params.fit.inlier_scale * unit_m
+            bounds = (float(s.min()) - margin, float(s.max()) + margin)
+        rect = rectify_view(cam, fit.surface, params, bounds)
         if rect.kind != "skipped":  # edge-on or too large says more than the displacement it implies
             displacement = warp_displacement_px(cam, fit.surface)
             why = implausible_displacement(displacement, cam.width, cam.height, params.fit)

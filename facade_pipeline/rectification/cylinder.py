@@ -17,7 +17,10 @@ faces it (the level ground before the facade drops out); (1) reject points on a 
 ground, clutter); (3) a quadric height field ``w = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2`` over the
 plane, by iteratively reweighted least squares, whose Hessian gives the axis (the flat eigenvector) and
 kappa (minus the other eigenvalue); (4) least squares on ``d(x)`` over (frame rotation, offset along n,
-kappa) with a soft-L1 loss.
+kappa) with a soft-L1 loss; (5) when the fit's inliers lie on two or more separate parts of the points
+(``point_parts``), the view frames two surfaces side by side (a curved part's end beside a planar part):
+one surface bent through both fits neither, and the fit is redone on the part holding most inliers, unless
+the fit over all fits that part about as well as its own (one surface with a gap).
 """
 
 from __future__ import annotations
@@ -28,6 +31,9 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from facade_pipeline.errors import PipelineError
@@ -45,6 +51,12 @@ RANSAC_SEED = 0
 #: a cylinder bulging (its sagitta, |kappa| width^2 / 8) less than this many times the fit's RMS residual
 #: over the view's points is not told from a plane by them: a plane is fitted instead (-).
 MIN_SAGITTA_RMS = 3.0
+#: a fit over separate parts of the points stands (one surface with a gap: a pilaster, a strip the mesh
+#: hides) where its RMS residual over the main part's inliers is within this factor of the main part's own
+#: fit's; a surface bent through two (a curved part's end beside a planar part) fits the main part worse:
+#: 1.00 on a drawn plane or cylinder with a gap, 1.4-8 on drawn surfaces side by side, 1.9 on oblique's
+#: frontal_0000 (-)
+MAX_PART_RMS_RATIO = 1.2
 
 
 def implausible(fit: SurfaceFit, footprint_m: float, params: SurfaceFitParams,
@@ -147,16 +159,20 @@ class Surface:
 
 @dataclass(frozen=True, eq=False)
 class SurfaceFit:
-    """A fitted surface with its quality: RMS distance of the inliers (m) and counts."""
+    """A fitted surface with its quality: RMS distance of the inliers (m) and counts. ``part``: where the
+    points lay on separate parts and the fit took the one holding most of its inliers, those inliers [K, 3]
+    (the extent of the surface the view frames); None where it took every part."""
 
     surface: Surface
     rms_m: float
     n_points: int
     n_inliers: int
+    part: np.ndarray | None = None
 
     def to_dict(self) -> dict:
-        return {**self.surface.to_dict(), "rms_m": self.rms_m, "n_points": self.n_points,
-                "n_inliers": self.n_inliers}
+        d = {**self.surface.to_dict(), "rms_m": self.rms_m, "n_points": self.n_points,
+             "n_inliers": self.n_inliers}
+        return d if self.part is None else {**d, "fitted_part": True}
 
 
 def _stable_distance(t: np.ndarray, w: np.ndarray, k: float) -> np.ndarray:
@@ -288,6 +304,45 @@ def sagitta_m(surface: Surface, points: np.ndarray) -> float:
     return abs(surface.curvature_per_m) * float(np.ptp(t)) ** 2 / 8.0 if len(t) else 0.0
 
 
+def point_parts(points: np.ndarray, knn: int) -> np.ndarray:
+    """Label [N] of each point's part: the connected components of the graph that joins two points when
+    each is among the other's ``knn`` nearest. A surface's points join densely; a lone point between two
+    surfaces (a ghost, a stray) is among neither's nearest and joins neither, so that a gap between two
+    surfaces splits them even where single points lie across it. ``knn`` 0: one part."""
+    n = len(points)
+    k = min(knn, n - 1)
+    if k <= 0:
+        return np.zeros(n, int)
+    _, idx = cKDTree(points).query(points, k + 1)
+    pairs = (np.repeat(np.arange(n), k), idx[:, 1:].ravel())
+    near = coo_matrix((np.ones(n * k), pairs), shape=(n, n)).tocsr()
+    return connected_components(near.multiply(near.T), directed=False)[1]
+
+
+def _rms(surface: Surface, points: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(surface.signed_distance(points) ** 2)))
+
+
+def _fit_points(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
+                source: str | Path | None, curved: bool) -> tuple[Surface, np.ndarray]:
+    """Steps (2)-(4) of the module docstring on world points [N, 3]: the surface and its inlier mask [N]."""
+    rng = np.random.default_rng(RANSAC_SEED)
+    keep = ransac_plane(points, viewpoint, params, unit_m, rng)
+    check_points(points[keep], params, unit_m, source)
+    scale = params.inlier_scale * unit_m
+    surface = quadric_init(points[keep], viewpoint, scale)
+    for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
+        surface = refine_surface(surface, points[keep], scale)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
+        check_points(points[keep], params, unit_m, source)
+    rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
+    if not curved or sagitta_m(surface, points[keep]) < MIN_SAGITTA_RMS * rms:
+        surface = fit_plane(points[keep], viewpoint, scale)
+        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
+        check_points(points[keep], params, unit_m, source)
+    return surface, keep
+
+
 def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
                 source: str | Path | None = None, toward_camera: np.ndarray | None = None,
                 curved: bool = True) -> SurfaceFit:
@@ -296,7 +351,11 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     surface faces it are fitted (``facing_points``); ``n_points`` counts the points given.
 
     ``curved = False`` fits a plane only; a cylinder whose sagitta over its inliers is under
-    ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well.
+    ``MIN_SAGITTA_RMS`` times its RMS residual is replaced by the plane as well. A fit whose inliers hold
+    ``min_points`` or more on each of two separate parts of the points (``point_parts`` over
+    ``normal_knn`` neighbours) is redone on the part holding most of them (``SurfaceFit.part``), unless the
+    fit over all fits that part within ``MAX_PART_RMS_RATIO`` of its own fit (one surface with a gap); the
+    other is left to the views that frame it.
 
     The params' lengths are fractions of ``unit_m``, the frontal views' footprint
     (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
@@ -311,20 +370,19 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
                                   f"the camera (normal within {angle:g} deg of the optical axis)",
                                   f"{len(points)} of {n_given}")
     check_points(points, params, unit_m, source)
-    rng = np.random.default_rng(RANSAC_SEED)
-    keep = ransac_plane(points, np.asarray(viewpoint, float), params, unit_m, rng)
-    check_points(points[keep], params, unit_m, source)
     viewpoint = np.asarray(viewpoint, float)
-    scale = params.inlier_scale * unit_m
-    surface = quadric_init(points[keep], viewpoint, scale)
-    for _ in range(2):  # refit on the inliers of the refined surface (outliers near the plane drop out)
-        surface = refine_surface(surface, points[keep], scale)
-        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
-        check_points(points[keep], params, unit_m, source)
-    rms = float(np.sqrt(np.mean(surface.signed_distance(points[keep]) ** 2)))
-    if not curved or sagitta_m(surface, points[keep]) < MIN_SAGITTA_RMS * rms:
-        surface = fit_plane(points[keep], viewpoint, scale)
-        keep = np.abs(surface.signed_distance(points)) < 3.0 * scale
-        check_points(points[keep], params, unit_m, source)
+    surface, keep = _fit_points(points, viewpoint, params, unit_m, source, curved)
+    parts = point_parts(points, params.normal_knn)
+    held = np.bincount(parts[keep])
+    if np.count_nonzero(held >= params.min_points) > 1:  # fitted across two parts: fit the main one
+        main = parts == int(np.argmax(held))
+        part_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
+        on_main = points[main][keep_main]
+        if _rms(surface, on_main) > MAX_PART_RMS_RATIO * _rms(part_surface, on_main):  # bent through both
+            keep = np.zeros(len(points), bool)
+            keep[np.flatnonzero(main)[keep_main]] = True
+            d = part_surface.signed_distance(points[keep])
+            return SurfaceFit(part_surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()),
+                              points[keep])
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))

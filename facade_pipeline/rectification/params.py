@@ -53,7 +53,9 @@ class SurfaceFitParams:
     normal_knn: Count
     """Neighbours of each point's normal estimate (PCA over its k nearest points, -). Given the camera's
     viewing direction, points whose normal is further than ``max_normal_angle_deg`` from it are left out
-    before the fit (the ground before a facade seen from a low camera); 0: every point is kept."""
+    before the fit (the ground before a facade seen from a low camera); 0: every point is kept. The same
+    neighbours tell the points' separate parts (``cylinder.point_parts``): a fit across two is redone on
+    the one holding most of its inliers."""
     max_tilt_deg: Annotated[float, Range(0.0, 90.0)]
     """A facade stands upright: a cylinder's axis within this angle (deg) of up, a plane's normal within it
     of horizontal; a fit beyond is not the facade (a floor, a table) and the view gets no surface."""

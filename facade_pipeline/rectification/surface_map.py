@@ -221,9 +221,12 @@ def view_angle_deg(camera: PinholeCamera, surface: Surface) -> float:
     return float(np.degrees(np.arccos(np.clip(abs(n @ camera.forward), 0.0, 1.0))))
 
 
-def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams) -> ViewRectification:
+def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams,
+                 s_bounds_m: tuple[float, float] | None = None) -> ViewRectification:
     """The rectification of one view onto ``surface`` (module docstring); "skipped" with the reason when
-    the surface is seen nearly edge-on, the view's rays miss it, or the canvas would be too large."""
+    the surface is seen nearly edge-on, the view's rays miss it, or the canvas would be too large. With
+    ``s_bounds_m`` the canvas spans no more than that range of s (m): the extent of the surface where the
+    view also frames another beside it, which the canvas would show mapped onto the wrong surface."""
     W, H = camera.width, camera.height
     angle = view_angle_deg(camera, surface)
     if angle > params.max_view_angle_deg:
@@ -241,6 +244,8 @@ def rectify_view(camera: PinholeCamera, surface: Surface, params: RectifyParams)
             camera, np.nan, f"only {hit.mean():.0%} of the view's rays meet the fitted surface", "skipped")
     m = params.metres_per_px if params.metres_per_px != "auto" else ground_sample_m(unit, px[hit])
     lo, hi = sh[hit].min(axis=0), sh[hit].max(axis=0)
+    if s_bounds_m is not None:
+        lo[0], hi[0] = max(lo[0], s_bounds_m[0]), min(hi[0], s_bounds_m[1])
     width, height = (int(np.ceil(v)) for v in (hi - lo) / m)
     if width * height > params.max_size_factor * W * H:
         return ViewRectification.unrectified(

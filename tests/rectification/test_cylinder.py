@@ -16,6 +16,7 @@ from facade_pipeline.rectification.cylinder import (
     _stable_distance,
     fit_surface,
     implausible,
+    point_parts,
 )
 from stages import rectify
 
@@ -105,3 +106,62 @@ def test_fits_that_cannot_be_a_facade_are_named():
     loose = dataclasses.replace(FIT, ransac_threshold=5.0 / FOOTPRINT_M, inlier_scale=1.0 / FOOTPRINT_M)
     fit = fit_surface(clutter, np.array([0.0, 10.0, 3.0]), loose, FOOTPRINT_M, curved=False)  # fmt: skip
     assert "clutter" in implausible(fit, 6.0, FIT)
+
+
+def cylinder_beside_plane(x_plane, phi_cyl, radius=9.0, noise=0.03, density=25.0, height=6.0, seed=3):
+    """Points on a plane y = 0 over ``x_plane`` (m) and on a convex cylinder tangent to y = 0 at x = 4.6
+    over the angles ``phi_cyl`` (rad from +y, toward +x), its end at the plane's side set back from it
+    (a curved part's end beside a planar part), noise at 3/5 of the loss scale as the coarse cloud's."""
+    rng = np.random.default_rng(seed)
+    n = int((x_plane[1] - x_plane[0]) * height * density)
+    plane = np.stack([rng.uniform(*x_plane, n), np.zeros(n), rng.uniform(0, height, n)], 1)
+    m = int(radius * (phi_cyl[1] - phi_cyl[0]) * height * density)
+    phi = rng.uniform(*phi_cyl, m)
+    cyl = np.stack([4.6 + radius * np.sin(phi), radius * (np.cos(phi) - 1.0), rng.uniform(0, height, m)], 1)
+    return np.vstack([plane, cyl]) + rng.normal(0, noise, (n + m, 3))
+
+
+@pytest.mark.parametrize(("x_plane", "phi_cyl", "eye", "radius"), [
+    ((-3.5, -1.2), (-0.39, 0.35), (3.5, 7.0, 3.0), 9.0),  # the cylinder framed, the plane's end beside it
+    ((-7.0, -1.2), (-0.39, -0.28), (-4.0, 7.0, 3.0), np.inf),  # the plane framed, the cylinder's end beside
+])
+def test_a_view_of_a_cylinder_beside_a_plane_fits_the_part_it_frames(x_plane, phi_cyl, eye, radius):
+    """One surface bent through both parts fits neither: a plane through the cylinder and the plane's end,
+    or a cylinder through the plane and the cylinder's end (46 m, five times the cylinder's radius)."""
+    pts = cylinder_beside_plane(x_plane, phi_cyl)
+    eye = np.array(eye)
+    forward = np.array([pts[:, 0].mean() - eye[0], -eye[1], 0.0])
+    fit = fit_surface(pts, eye, FIT, FOOTPRINT_M, toward_camera=-forward / np.linalg.norm(forward))
+    on_plane = np.abs(pts[:, 1]) < 0.15  # the cylinder's end lies 0.65 m behind the plane
+    main = on_plane if np.isinf(radius) else pts[:, 0] > 0.0
+    assert fit.surface.radius_m == pytest.approx(radius, rel=0.02)
+    assert fit.n_inliers == pytest.approx(main.sum(), rel=0.01)
+    assert np.sqrt(np.mean(fit.surface.signed_distance(pts[main]) ** 2)) < 0.04
+
+
+def test_points_apart_are_separate_parts_even_with_a_stray_point_between():
+    rng = np.random.default_rng(4)
+    left = rng.uniform([-6, 0, 0], [-2, 0.05, 6], (300, 3))
+    right = rng.uniform([2, 0, 0], [6, 0.05, 6], (300, 3))
+    stray = np.array([[0.0, 0.0, 3.0]])  # nearest to both surfaces, among neither's nearest
+    labels = point_parts(np.vstack([left, right, stray]), 16)
+    assert len(set(labels[:300])) == 1 and len(set(labels[300:600])) == 1
+    assert len({labels[0], labels[300], labels[600]}) == 3
+    assert np.all(point_parts(left, 0) == 0)
+
+
+@pytest.mark.parametrize("radius", [np.inf, 9.0])
+def test_one_surface_with_a_gap_is_fitted_over_both_sides(radius):
+    """A plane or a cylinder whose points a gap splits (a pilaster, a strip the mesh hides) is one surface:
+    the part fitted alone holds the other side too, and the fit over both stands."""
+    rng = np.random.default_rng(5)
+    s = np.concatenate([rng.uniform(-3.5, -1.0, 400), rng.uniform(1.0, 3.5, 400)])  # a 2 m gap
+    z = rng.uniform(0.0, 6.0, 800)
+    phi = s / radius
+    pts = np.stack([radius * np.sin(phi), radius * (np.cos(phi) - 1.0), z], 1) if np.isfinite(radius) else \
+        np.stack([s, np.zeros_like(s), z], 1)
+    pts += rng.normal(0, 0.03, pts.shape)
+    fit = fit_surface(pts, np.array([0.0, 7.0, 3.0]), FIT, FOOTPRINT_M, toward_camera=np.array([0.0, 1, 0]))
+    assert len(set(point_parts(pts, FIT.normal_knn))) == 2
+    assert fit.part is None and fit.n_inliers >= 790
+    assert fit.surface.radius_m == pytest.approx(radius, rel=0.05)

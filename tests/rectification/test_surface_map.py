@@ -189,3 +189,18 @@ def test_facade_support_marks_where_the_coarse_mesh_lies_on_the_surface():
     assert not facade_support(rect, lambda o, d: far.cast(o, d).t, 0.1).any()
     unrect = ViewRectification.unrectified(cam, 0.05, "no surface")
     assert facade_support(unrect, lambda o, d: mesh.cast(o, d).t, 0.1).all()
+
+
+@pytest.mark.parametrize("surface", [plane(), cylinder()], ids=["plane", "cylinder"])
+def test_a_canvas_bounded_in_s_spans_that_range_and_keeps_the_map(surface):
+    cam = camera()
+    full = rectify_view(cam, surface, PARAMS)
+    s_lo = full.s0_m + 0.2 * full.width * full.metres_per_px  # a part's end inside the view
+    part = rectify_view(cam, surface, PARAMS, (s_lo, np.inf))
+    assert part.s0_m == pytest.approx(s_lo) and part.metres_per_px == full.metres_per_px
+    assert part.width == pytest.approx(0.8 * full.width, abs=1)
+    assert part.height == full.height
+    # the same point of the view lands on the same point of the surface, shifted by the cut
+    uv = np.array([[60.0, 30.0], [80.0, 50.0]])
+    shift = (s_lo - full.s0_m) / full.metres_per_px
+    assert np.allclose(part.to_rectified(uv), full.to_rectified(uv) - [shift, 0.0], atol=1e-6)
