@@ -157,7 +157,8 @@ def child(
     run = load_building_config(building).run
     device = resolve_device(run.device)
     t0 = time.perf_counter()
-    tr = build_trainer(p, data, training_rasterizer(run.raster_backend, p.lowpass_sigma_px, device), device)
+    raster = training_rasterizer(run.raster_backend, p.lowpass_sigma_px, device)
+    tr = build_trainer(p, data, raster, device, run.compile)
     train(tr)
     t_train = time.perf_counter() - t0
     tm = from_trainer(tr, label, run.raster_backend)

@@ -182,6 +182,12 @@ def main() -> None:
         "beside 07_train (LPIPS, frames, renders)",
     )
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    ap.add_argument(
+        "--compile",
+        action="store_true",
+        help="train with [run] compile on (torch.compile of a step's shading, losses and densification "
+        "statistics) whatever the building's [run] says",
+    )
     ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
     ap.add_argument("--bundle", default="", help="train on this .npz (from --save-bundle) instead")
     ap.add_argument(
@@ -235,8 +241,9 @@ def main() -> None:
         print(f"wrote {a.save_bundle} ({len(data.views)} views; prior: {prior})")
         return
     device = resolve_device(a.device)
+    compile = a.compile or cfg.run.compile
     if a.speed > 0:
-        speed(a, base, data, cfg.run.raster_backend, device)
+        speed(a, base, data, cfg.run.raster_backend, device, compile)
         return
     rows = []
     for name, p in variants(base):
@@ -245,7 +252,7 @@ def main() -> None:
         t0 = time.perf_counter()
         # per variant: the paper's has 2DGS's low-pass sigma whatever the building's
         raster = training_rasterizer(cfg.run.raster_backend, p.lowpass_sigma_px, device)
-        tr = build_trainer(p, data, raster, device)
+        tr = build_trainer(p, data, raster, device, compile)
         train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
         wall = time.perf_counter() - t0
         if a.save_variants:
@@ -261,14 +268,14 @@ def main() -> None:
             flush=True,
         )
         # one line a script reads (benchmarks/gpu_summary.py): every figure of the variant
-        figures = {"variant": name, "iterations": p.iterations, "wall_s": round(wall, 2),
+        figures = {"variant": name, "iterations": p.iterations, "compiled": compile, "wall_s": round(wall, 2),
                    "splats": tr.state.model.n, "training_views_psnr": round(fit, 4), "imported": ev,
                    "aligned": ev_aligned}  # fmt: skip
         print("result: " + json.dumps(figures), flush=True)
     report(a, base, align, prior, data, rows, device)
 
 
-def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
+def speed(a, base: TrainParams, data: TrainData, backend: str, device, compile: bool) -> None:
     """ms per iteration and the device's peak memory of each variant (``--speed``)."""
     import torch
 
@@ -281,7 +288,7 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
         if a.only and name not in a.only.split(","):
             continue
         p = dataclasses.replace(p, iterations=a.warmup + a.speed + a.profile)
-        tr = build_trainer(p, data, training_rasterizer(backend, p.lowpass_sigma_px, device), device)
+        tr = build_trainer(p, data, training_rasterizer(backend, p.lowpass_sigma_px, device), device, compile)
         train(tr, stop_at=a.warmup)
         sync()
         if device.type == "cuda":
@@ -306,6 +313,7 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device) -> None:
         f"{base.patch_px or 'whole-image'} px windows, low-pass sigma {base.lowpass_sigma_px} px, "
         f"{base.supersample} x {base.supersample} samples per pixel, at most {base.densify.max_gaussians} "
         "splats"
+        + ("; compiled (`--compile`)" if compile else "")
         + (f"; set with `--set`: {', '.join(f'`{x}`' for x in a.set)}" if a.set else "")
         + ".\n",
         "| variant | ms per iteration | peak device memory GiB | splats |",

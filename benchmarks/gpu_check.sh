@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU check of train_gs in one command: builds gsplat from its wheel, times the mlp and sh models per
 # whole-image iteration on demo with the GPU's peak memory (under the GPU budget and under the CPU budget's
-# smaller model), runs the CUDA tests, trains demo's GPU budget at 1k, 3k, 10k and 30k iterations as far as
+# smaller model; the GPU budget's again compiled, [run] compile), runs the CUDA tests, trains demo's GPU budget at 1k, 3k, 10k and 30k iterations as far as
 # the time allows (accuracy against time, LPIPS where weights are found) and prints one summary table.
 # Each step runs on when one before it fails; the logs say what failed.
 #
@@ -78,6 +78,21 @@ for budget in gpu cpu; do
     "${extra[@]}" > "$OUT/speed_$budget.log" 2>&1 || tail -20 "$OUT/speed_$budget.log"
 done
 
+# the same steps compiled ([run] compile: torch.compile of the shading, losses and densification statistics;
+# its warm-up steps wait for the compiler); the accuracy points train compiled where that was faster
+step "speed, gpu budget, compiled"
+FACADE_BUDGET=gpu timeout 420 "${BENCH[@]}" --compile --speed "$SPEED_ITERS" --warmup "$WARMUP" --only mlp,sh \
+  > "$OUT/speed_gpu_compiled.log" 2>&1 || tail -20 "$OUT/speed_gpu_compiled.log"
+COMPILE=()
+if "$PY" -c "import re,sys; ms=[re.search(r'^mlp: ([\d.]+) ms', open(f).read(), re.M) for f in sys.argv[1:]]; \
+sys.exit(0 if all(ms) and float(ms[1].group(1)) < float(ms[0].group(1)) else 1)" \
+  "$OUT/speed_gpu.log" "$OUT/speed_gpu_compiled.log" 2>/dev/null; then
+  COMPILE=(--compile)
+  rate_log="$OUT/speed_gpu_compiled.log"
+else
+  rate_log="$OUT/speed_gpu.log"
+fi
+
 step "CUDA tests"
 timeout 240 "$PY" -m pytest -q -p no:cacheprovider -m gpu tests/splatting/test_gsplat.py \
   tests/training/test_trainer_gpu.py > "$OUT/tests.log" 2>&1 || true
@@ -88,7 +103,7 @@ tail -3 "$OUT/tests.log"
 # rate: seconds per training iteration; overhead: a point's seconds beside its training (start-up and the
 # measurement: alignment, LPIPS), both from the point before (the first from the speed step, and a guess)
 rate=$("$PY" -c "import re,sys; m=re.search(r'^mlp: ([\d.]+) ms', open(sys.argv[1]).read(), re.M); \
-print(float(m.group(1))/1000*1.5 if m else 0.1)" "$OUT/speed_gpu.log" 2>/dev/null || echo 0.1)
+print(float(m.group(1))/1000*1.5 if m else 0.1)" "$rate_log" 2>/dev/null || echo 0.1)
 overhead=${OVERHEAD_S:-90}
 for n in $ACCURACY_ITERS; do
   projected=$("$PY" -c "print(int($n * $rate + $overhead))")
@@ -98,7 +113,7 @@ for n in $ACCURACY_ITERS; do
   fi
   step "accuracy after $n whole-image iterations (projected $projected s)"
   P0=$(date +%s)
-  FACADE_BUDGET=gpu timeout $(( $(left) + 60 )) "${BENCH[@]}" --iterations "$n" --only mlp --lpips \
+  FACADE_BUDGET=gpu timeout $(( $(left) + 60 )) "${BENCH[@]}" "${COMPILE[@]}" --iterations "$n" --only mlp --lpips \
     > "$OUT/accuracy_$n.log" 2>&1 || { tail -20 "$OUT/accuracy_$n.log"; break; }
   read -r rate overhead < <("$PY" -c "import json,sys; \
 r=[json.loads(l[8:]) for l in open(sys.argv[1]) if l.startswith('result: ')][-1]; \

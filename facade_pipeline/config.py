@@ -126,6 +126,8 @@ class RunSettings:
     """where train_gs trains and evaluate renders (``auto``: CUDA when available)"""
     raster_backend: Literal["auto", "cpp", "torch", "gsplat"]
     """the rasterizer's implementation (``splatting.render_2dgs``), in training and in every render"""
+    compile: bool
+    """train_gs compiles a step's shading, losses and densification statistics (``training.compiling``)"""
     log_every: Count
     """iterations between train_gs's training-log lines (0: none)"""
     checkpoint_every: Count

@@ -224,9 +224,9 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     rasterize = training_rasterizer(settings.raster_backend, params.lowpass_sigma_px, device)
     fp = fingerprint(layout, params)
     ckpt = layout.path("train_checkpoint")
-    tr = load_checkpoint(ckpt, params, data, rasterize, device, fp)
+    tr = load_checkpoint(ckpt, params, data, rasterize, device, fp, settings.compile)
     resumed_from = 0 if tr is None else tr.state.iteration
-    tr = tr or build_trainer(params, data, rasterize, device)
+    tr = tr or build_trainer(params, data, rasterize, device, settings.compile)
     with tqdm(
         total=params.iterations, initial=tr.state.iteration, desc="train_gs", unit="it", file=sys.stderr
     ) as bar:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from facade_pipeline.training.optimizers import adam
 from facade_pipeline.training.params import AlignParams
 
 #: Below this squared angle (rad^2) the rotation uses its Taylor series (exact to float64 rounding).
@@ -78,7 +79,7 @@ class ViewCorrections(nn.Module):
         """Adam with a named group per correction present."""
         rates = {"rotation": lr_rotation, "translation": lr_translation, "log_gain": lr_exposure}
         groups = [{"params": [t], "lr": rates[n], "name": f"view_{n}"} for n, t in self.named_parameters()]
-        return torch.optim.Adam(groups)
+        return adam(groups)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from facade_pipeline.shading.deferred import safe_normalize
+from facade_pipeline.training.compiling import torch_compiled
 from facade_pipeline.training.schedule import at_fraction, step_schedule
 
 if TYPE_CHECKING:  # annotations only: the metrics of evaluation use these losses without the trainer's data
@@ -140,24 +141,62 @@ def recorded(pred: Tensor, gt: Tensor, clipped: Tensor | None) -> Tensor:
     return torch.where(clipped, torch.minimum(pred, gt), pred)
 
 
-def compute_losses(p: TrainParams, r: Render, vt: ViewTensors, iteration: int) -> dict[str, Tensor]:
+def compute_losses(
+    p: TrainParams, r: Render, vt: ViewTensors, iteration: int, compiled: bool = False
+) -> dict[str, Tensor]:
     """The terms of Eq. 13 for one rendered window and the weighted total (key ``loss``); the photometric
-    terms compare the photo with what the camera would record of the render (``recorded``)."""
-    zero = r.rgb.new_zeros(())
+    terms compare the photo with what the camera would record of the render (``recorded``). ``compiled``:
+    the colour and normal terms through ``torch.compile`` (``training.compiling``)."""
     loss_mask = vt.mask & ~r.skipped
-    rgb = recorded(r.rgb, vt.image, vt.clipped)
-    terms = {"color": color_loss(rgb, vt.image, loss_mask, LAMBDA_DSSIM)}
+    with_normal = p.lambda_normal > 0 and iteration >= at_fraction(NORMAL_START_FRACTION, p.iterations)
+    with_prior = p.lambda_normal_prior > 0
+    terms_of = torch_compiled(_terms, False) if compiled else _terms
+    rgb, terms = terms_of(
+        r.rgb,
+        r.normal,
+        r.points,
+        vt.image,
+        vt.clipped,
+        loss_mask,
+        vt.prior,
+        vt.prior_valid,
+        vt.mask,
+        with_normal,
+        with_prior,
+    )
     total = terms["color"]
-    if p.lambda_normal > 0 and iteration >= at_fraction(NORMAL_START_FRACTION, p.iterations):
-        terms["normal"] = normal_consistency_loss(r.normal, depth_normals(r.points), loss_mask)
+    if with_normal:
         total = total + p.lambda_normal * terms["normal"]
-    if p.lambda_normal_prior > 0:
-        terms["normal_prior"] = normal_prior_loss(r.normal, vt.prior, vt.prior_valid & vt.mask)
+    if with_prior:
         total = total + p.lambda_normal_prior * terms["normal_prior"]
     tau = step_schedule(p.hf_tau_start, p.hf_tau_end, p.hf_steps, iteration, p.iterations)
     lam = step_schedule(p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, iteration, p.iterations)
-    if lam > 0:
+    if lam > 0:  # eager: its threshold changes along the run, which would recompile a compiled graph
         terms["hf"] = high_frequency_loss(rgb, vt.image, loss_mask, tau)
         total = total + lam * terms["hf"]
-    terms["loss"] = total + zero
+    terms["loss"] = total + r.rgb.new_zeros(())
     return terms
+
+
+def _terms(
+    rgb: Tensor,
+    normal: Tensor,
+    points: Tensor,
+    image: Tensor,
+    clipped: Tensor | None,
+    loss_mask: Tensor,
+    prior: Tensor,
+    prior_valid: Tensor,
+    mask: Tensor,
+    with_normal: bool,
+    with_prior: bool,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """What the camera would record of ``rgb`` and the unweighted colour, normal consistency and normal
+    prior terms (the last two where asked for)."""
+    rgb = recorded(rgb, image, clipped)
+    terms = {"color": color_loss(rgb, image, loss_mask, LAMBDA_DSSIM)}
+    if with_normal:
+        terms["normal"] = normal_consistency_loss(normal, depth_normals(points), loss_mask)
+    if with_prior:
+        terms["normal_prior"] = normal_prior_loss(normal, prior, prior_valid & mask)
+    return rgb, terms

@@ -18,6 +18,7 @@ from facade_pipeline.errors import ConfigError
 from facade_pipeline.shading import deferred
 from facade_pipeline.shading.sh import eval_sh
 from facade_pipeline.splatting.types import LOWPASS_SIGMA_PX, is_reference_lowpass
+from facade_pipeline.training.compiling import torch_compiled
 from facade_pipeline.training.model import GaussianModel
 
 Window = tuple[int, int, int, int]  # (x0, y0, width, height) in pixels of the full image
@@ -78,6 +79,9 @@ class ShadingOptions:
     supersample: int = 1
     """sub-pixel samples per pixel side: each pixel is the mean of supersample^2 shaded samples on a
     regular grid, as a camera pixel integrates over its area (1: one sample at the pixel centre)"""
+    compiled: bool = False
+    """the per-splat colours and the shading after the rasterizer run as ``torch.compile``'s fused kernels
+    (``[run] compile``): the same maps to float rounding, R evaluated at every pixel and kept where chosen"""
 
 
 @dataclass
@@ -197,7 +201,8 @@ def render_view(
                         select, chunk)  # fmt: skip
         return _block_mean(r, s)
     centre = camera.centre
-    feats = splat_features(model, centre, sh_degree)
+    features_of = torch_compiled(splat_features, True) if shading.compiled else splat_features
+    feats = features_of(model, centre, sh_degree)
     ras = rasterize(
         model.means,
         model.unit_quats(),
@@ -211,35 +216,32 @@ def render_view(
         near,
         window,
     )
-    diffuse, refl, f0 = ras.features[..., :3], ras.features[..., 3], ras.features[..., 4:7]
-    _, rays = deferred.pixel_rays(camera.K, camera.cam_from_world, window)
-    points = deferred.surface_points(centre, rays, ras.depth)
-    w_o = deferred.directions_to_camera(rays)
-    n_unit = deferred.safe_normalize(ras.normal)
-    if not shading.normal_grad:
-        n_unit = n_unit.detach()
-    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
-    candidates = refl.detach() > shading.refl_threshold
+    candidates = ras.features[..., 3].detach() > shading.refl_threshold
     if spec_mask is not None:
         candidates = candidates & spec_mask
     if reflection is None:
         candidates = torch.zeros_like(candidates)
     chosen = candidates if select is None else select(candidates)
-    specular = torch.zeros_like(diffuse)
-    if reflection is not None and gathers_chosen(diffuse.device):
-        if bool(chosen.any()):
-            w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
-            x = deferred.normalize_to_bounds(points[chosen], shading.bounds_lo, shading.bounds_hi)
-            specular = specular.index_put((chosen,), _eval_chunked(reflection, x, w_r, chunk))
-    elif reflection is not None:
-        # R at every pixel, kept where chosen (the others get neither R nor a gradient, and finite inputs, so
-        # that no NaN reaches the gradients through them)
-        c = chosen.unsqueeze(-1)
-        w_r = torch.where(c, deferred.reflect(w_o, n_unit), w_o)
-        x = deferred.normalize_to_bounds(torch.where(c, points, 0.0), shading.bounds_lo, shading.bounds_hi)
-        all_r = _eval_chunked(reflection, x.reshape(-1, 3), w_r.reshape(-1, 3), chunk).view_as(diffuse)
-        specular = torch.where(c, all_r, specular)
-    rgb = diffuse if reflection is None else deferred.composite(diffuse, refl, fresnel, specular)
+    if reflection is not None and gathers_chosen(ras.features.device) and not shading.compiled:
+        maps = _shade_gathered(ras, camera, window, centre, chosen, reflection, shading, chunk)
+    else:
+        shade = torch_compiled(_shade_everywhere, None) if shading.compiled else _shade_everywhere
+        maps = shade(
+            ras.features,
+            ras.normal,
+            ras.depth,
+            camera.K,
+            camera.cam_from_world,
+            centre,
+            window,
+            chosen,
+            reflection,
+            shading.normal_grad,
+            shading.bounds_lo,
+            shading.bounds_hi,
+            chunk,
+        )
+    rgb, diffuse, refl, fresnel, specular, points = maps
     return Render(
         rgb,
         diffuse,
@@ -254,6 +256,94 @@ def render_view(
         ras.distortion,
         points,
     )
+
+
+Maps = tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]  # rgb, diffuse, refl, fresnel, specular, points
+
+
+def _geometry(
+    features: Tensor,
+    normal: Tensor,
+    depth: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    centre: Tensor,
+    window: Window,
+    normal_grad: bool,
+):
+    """The rasterized maps split (D, r, F0), each pixel's surface point X_r, its direction to the camera and
+    its unit normal (a constant where ``normal_grad`` is False)."""
+    diffuse, refl, f0 = features[..., :3], features[..., 3], features[..., 4:7]
+    _, rays = deferred.pixel_rays(K, cam_from_world, window)
+    points = deferred.surface_points(centre, rays, depth)
+    w_o = deferred.directions_to_camera(rays)
+    n_unit = deferred.safe_normalize(normal)
+    if not normal_grad:
+        n_unit = n_unit.detach()
+    return diffuse, refl, f0, points, w_o, n_unit
+
+
+def _shade_gathered(
+    ras: RasterOutput,
+    camera: Camera,
+    window: Window,
+    centre: Tensor,
+    chosen: Tensor,
+    reflection: nn.Module,
+    shading: ShadingOptions,
+    chunk: int,
+) -> Maps:
+    """Eq. 7-9 with R evaluated at the chosen pixels only (gathered: reads how many there are)."""
+    diffuse, refl, f0, points, w_o, n_unit = _geometry(
+        ras.features,
+        ras.normal,
+        ras.depth,
+        camera.K,
+        camera.cam_from_world,
+        centre,
+        window,
+        shading.normal_grad,
+    )
+    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
+    specular = torch.zeros_like(diffuse)
+    if bool(chosen.any()):
+        w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
+        x = deferred.normalize_to_bounds(points[chosen], shading.bounds_lo, shading.bounds_hi)
+        specular = specular.index_put((chosen,), _eval_chunked(reflection, x, w_r, chunk))
+    return deferred.composite(diffuse, refl, fresnel, specular), diffuse, refl, fresnel, specular, points
+
+
+def _shade_everywhere(
+    features: Tensor,
+    normal: Tensor,
+    depth: Tensor,
+    K: Tensor,
+    cam_from_world: Tensor,
+    centre: Tensor,
+    window: Window,
+    chosen: Tensor,
+    reflection: nn.Module | None,
+    normal_grad: bool,
+    bounds_lo: Tensor,
+    bounds_hi: Tensor,
+    chunk: int,
+) -> Maps:
+    """Eq. 7-9 with R at every pixel, kept where chosen (the others get neither R nor a gradient, and finite
+    inputs, so that no NaN reaches the gradients through them): shapes that do not depend on the values, so
+    that nothing waits for the device and ``torch.compile`` can fuse it. Tensors and flags only."""
+    diffuse, refl, f0, points, w_o, n_unit = _geometry(
+        features, normal, depth, K, cam_from_world, centre, window, normal_grad
+    )
+    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
+    specular = torch.zeros_like(diffuse)
+    if reflection is None:
+        return diffuse, diffuse, refl, fresnel, specular, points
+    c = chosen.unsqueeze(-1)
+    w_r = torch.where(c, deferred.reflect(w_o, n_unit), w_o)
+    x = deferred.normalize_to_bounds(torch.where(c, points, 0.0), bounds_lo, bounds_hi)
+    all_r = _eval_chunked(reflection, x.reshape(-1, 3), w_r.reshape(-1, 3), chunk).view_as(diffuse)
+    specular = torch.where(c, all_r, specular)
+    return deferred.composite(diffuse, refl, fresnel, specular), diffuse, refl, fresnel, specular, points
 
 
 def gathers_chosen(device: torch.device) -> bool:

@@ -35,6 +35,7 @@ from facade_pipeline.training.batches import (
     views_on_device,
 )
 from facade_pipeline.training.checkpoints import TrainState, read_checkpoint, save_checkpoint
+from facade_pipeline.training.compiling import torch_compiled
 from facade_pipeline.training.corrections import ViewCorrections
 from facade_pipeline.training.data import ExposureEstimate, TrainData
 from facade_pipeline.training.densify import (
@@ -157,9 +158,11 @@ def _assemble(
     device: torch.device,
     model: GaussianModel,
     saved: dict[str, Any] | None = None,
+    compile: bool = False,
 ) -> Trainer:
     """The one way a trainer is made: around ``model``, every other part new at iteration 0, or, given
-    ``saved`` (a checkpoint's state, ``checkpoints.read_checkpoint``), as it was saved."""
+    ``saved`` (a checkpoint's state, ``checkpoints.read_checkpoint``), as it was saved. ``compile``: a
+    step's shading, losses and densification statistics through ``torch.compile`` (``[run] compile``)."""
     lo, hi = data.bounds
     f32 = dict(dtype=torch.float32, device=device)
     if p.supersample < 1:
@@ -170,6 +173,7 @@ def _assemble(
         torch.as_tensor(hi, **f32),
         p.reflection_normal_grad,
         p.supersample,
+        compile,
     )
     init = data.init
     # the proxy's surroundings from the coarse points, the reflections' virtual points mirrored back
@@ -229,9 +233,14 @@ def _assemble(
 
 
 def build_trainer(
-    p: TrainParams, data: TrainData, rasterize: Rasterizer, device: torch.device | str = "cpu"
+    p: TrainParams,
+    data: TrainData,
+    rasterize: Rasterizer,
+    device: torch.device | str = "cpu",
+    compile: bool = False,
 ) -> Trainer:
-    """A trainer at iteration 0: the initial Gaussians (section 3.2), the reflection module, optimisers."""
+    """A trainer at iteration 0: the initial Gaussians (section 3.2), the reflection module, optimisers;
+    ``compile`` as ``_assemble``'s."""
     if not data.train_idx:
         raise PipelineError(None, "at least one training view", "none")
     device = torch.device(device)
@@ -250,7 +259,7 @@ def build_trainer(
         p.seed,
         device,
     )
-    return _assemble(p, data, rasterize, device, model)
+    return _assemble(p, data, rasterize, device, model, compile=compile)
 
 
 def load_checkpoint(
@@ -260,14 +269,17 @@ def load_checkpoint(
     rasterize: Rasterizer,
     device: torch.device | str,
     fingerprint: str,
+    compile: bool = False,
 ) -> Trainer | None:
     """The trainer saved at ``path``, or None when ``checkpoints.read_checkpoint`` finds none to resume
-    (none there, other parameters or inputs, an older format, a damaged file moved aside: the log says)."""
+    (none there, other parameters or inputs, an older format, a damaged file moved aside: the log says);
+    ``compile`` as ``_assemble``'s."""
     saved = read_checkpoint(path, p, fingerprint)
     if saved is None:
         return None
     device = torch.device(device)
-    return _assemble(p, data, rasterize, device, GaussianModel.from_state(saved["model"], device), saved)
+    model = GaussianModel.from_state(saved["model"], device)
+    return _assemble(p, data, rasterize, device, model, saved, compile)
 
 
 def _check_finite(tr: Trainer, what: str, tensors: dict[str, Tensor | None]) -> None:
@@ -337,7 +349,7 @@ def step(tr: Trainer, psnr: bool = True) -> dict[str, Tensor]:
     r, vt = render_window(
         tr, index, window, select=lambda c: random_subset(c, p.mlp_max_pixels, tr.state.generator)
     )
-    terms = compute_losses(p, r, vt, tr.state.iteration)
+    terms = compute_losses(p, r, vt, tr.state.iteration, tr.shading.compiled)
     if every_step:
         _check_finite(tr, "loss terms", terms)
     terms["loss"].backward()
@@ -348,7 +360,8 @@ def step(tr: Trainer, psnr: bool = True) -> dict[str, Tensor]:
         _check_finite(tr, "gradients", grads)
     densify_end = at_fraction(DENSIFY_END_FRACTION, p.iterations)
     if tr.state.iteration < densify_end and tr.state.model.means.grad is not None:
-        g, vis = view_space_grad(
+        grad_of = torch_compiled(view_space_grad, True) if tr.shading.compiled else view_space_grad
+        g, vis = grad_of(
             tr.state.model.means,
             tr.state.model.means.grad,
             cam.cam_from_world,

@@ -57,6 +57,7 @@ def test_speed_from_a_bundle_on_the_cpu_and_its_summary(tmp_path):
     assert "| 23.08 / 26.01, 24.50 / 26.40, 0.850, 0.150, 7.25, 151000, 34 |" in text
     assert "| speed, cpu budget | no result (speed_cpu.log) |" in text  # a missing step is said, not dropped
     assert "| accuracy point not run | 3000 iterations (projected 160 s, 90 s left) |" in text
-    assert text.count("\n| ") == 12  # header, rule, 10 rows
+    assert "| speed, gpu budget compiled | no result (speed_gpu_compiled.log) |" in text
+    assert text.count("\n| ") == 13  # header, rule, 11 rows
     svg = gpu.plot(tmp_path)
     assert svg.startswith("<svg") and "facade, 1000 iterations" in svg and "glass, 1000 iterations" in svg

@@ -96,13 +96,14 @@ def _with_surroundings(data):
     return dataclasses.replace(data, init=dataclasses.replace(init, points=points, colors=colors))
 
 
-def test_steps_on_cuda_never_wait_for_the_device(cuda_device):
+@pytest.mark.parametrize("compile", [False, True])
+def test_steps_on_cuda_never_wait_for_the_device(cuda_device, compile):
     """Whole-image steps with the reflection MLP, its environment proxy (the surroundings' ray cast) and
     the estimated exposures, between log lines and densifications, under
     ``torch.cuda.set_sync_debug_mode("error")``: any read of a value on the device, and any copy of host
     values to it, raises. The rasterizer is exempt: gsplat reads how many tile intersections it has to
     sort once per render, which is gsplat's (its own one wait, not the step's); without gsplat the exact
-    torch backend renders, exempt likewise."""
+    torch backend renders, exempt likewise. Eager and compiled (``[run] compile``)."""
     data = _with_surroundings(hard_scene())
     data = dataclasses.replace(data, exposure=ExposureEstimate(np.zeros((len(data.views), 3), np.float32),
                                                                np.full(len(data.views), 100)))  # fmt: skip
@@ -118,9 +119,9 @@ def test_steps_on_cuda_never_wait_for_the_device(cuda_device):
         finally:
             torch.cuda.set_sync_debug_mode(mode)
 
-    tr = build_trainer(p, data, rasterize, cuda_device)
+    tr = build_trainer(p, data, rasterize, cuda_device, compile)
     assert tr.state.reflection.proxy.surroundings.blocks() is not None
-    train(tr, stop_at=2)  # first calls: kernels load, memory pools fill
+    train(tr, stop_at=2)  # first calls: kernels load (or compile), memory pools fill
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
