@@ -55,7 +55,12 @@ from facade_pipeline.training.data import (  # noqa: E402
 from facade_pipeline.training.monitor import whole_view_psnr  # noqa: E402
 from facade_pipeline.training.params import AlignParams, TrainParams, replace_keys  # noqa: E402
 from facade_pipeline.training.render import training_rasterizer  # noqa: E402
-from facade_pipeline.training.trainer import build_trainer, resolve_device, train  # noqa: E402
+from facade_pipeline.training.trainer import (  # noqa: E402
+    TrainingDivergedError,
+    build_trainer,
+    resolve_device,
+    train,
+)
 
 # The building's files are read with the I/O stack (open3d, OpenEXR, pycolmap), imported where they are read
 # so that `--bundle` runs on a machine with torch alone.
@@ -183,6 +188,14 @@ def main() -> None:
     )
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument(
+        "--log-every",
+        type=int,
+        default=0,
+        help="check the training views' whole-view PSNR every this many iterations, as train_gs does with "
+        "[run] log_every (a fall of more than 1 dB below its best stops the variant, measured where it "
+        "stopped); its history goes into the result line (0: no checks)",
+    )
+    ap.add_argument(
         "--compile",
         action="store_true",
         help="train with [run] compile on (torch.compile of a step's shading, losses and densification "
@@ -253,7 +266,13 @@ def main() -> None:
         # per variant: the paper's has 2DGS's low-pass sigma whatever the building's
         raster = training_rasterizer(cfg.run.raster_backend, p.lowpass_sigma_px, device)
         tr = build_trainer(p, data, raster, device, compile)
-        train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end="", flush=True))
+        stopped = None
+        try:
+            train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end=""),
+                  log_every=a.log_every)  # fmt: skip
+        except TrainingDivergedError as e:  # measured where it stopped, as train_gs keeps its last state
+            stopped = str(e)
+            print(f"\n{name}: stopped: {stopped}", flush=True)
         wall = time.perf_counter() - t0
         if a.save_variants:
             save_variant(a, name, tr)
@@ -268,7 +287,9 @@ def main() -> None:
             flush=True,
         )
         # one line a script reads (benchmarks/gpu_summary.py): every figure of the variant
+        checks = [[r["iteration"], r["n_gaussians"], r.get("view_psnr")] for r in tr.state.log]
         figures = {"variant": name, "iterations": p.iterations, "compiled": compile, "wall_s": round(wall, 2),
+                   "iterations_run": tr.state.iteration, "stopped": stopped, "checks": checks,
                    "splats": tr.state.model.n, "training_views_psnr": round(fit, 4), "imported": ev,
                    "aligned": ev_aligned}  # fmt: skip
         print("result: " + json.dumps(figures), flush=True)

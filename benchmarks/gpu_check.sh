@@ -113,11 +113,11 @@ for n in $ACCURACY_ITERS; do
   fi
   step "accuracy after $n whole-image iterations (projected $projected s)"
   P0=$(date +%s)
-  FACADE_BUDGET=gpu timeout $(( $(left) + 60 )) "${BENCH[@]}" "${COMPILE[@]}" --iterations "$n" --only mlp --lpips \
+  FACADE_BUDGET=gpu timeout $(( $(left) + 60 )) "${BENCH[@]}" "${COMPILE[@]}" --iterations "$n" --log-every $(( n / 10 )) --only mlp --lpips \
     > "$OUT/accuracy_$n.log" 2>&1 || { tail -20 "$OUT/accuracy_$n.log"; break; }
   read -r rate overhead < <("$PY" -c "import json,sys; \
 r=[json.loads(l[8:]) for l in open(sys.argv[1]) if l.startswith('result: ')][-1]; \
-print(r['wall_s']/r['iterations']*1.15, int(1.2*($(date +%s)-$P0-r['wall_s'])))" "$OUT/accuracy_$n.log") || break
+print(r['wall_s']/max(1, r.get('iterations_run', r['iterations']))*1.15, int(1.2*($(date +%s)-$P0-r['wall_s'])))" "$OUT/accuracy_$n.log") || break
 done
 
 "$PY" benchmarks/gpu_summary.py "$OUT" "$GSPLAT_BUILD_S" "$(( $(date +%s) - T0 ))" | tee "$OUT/summary.md"

@@ -77,6 +77,18 @@ def summary(out: Path, build_s: str, wall_s: str) -> str:
                 f"{r['splats']}, {r['wall_s']:.0f}",
             )
         )
+        checks = [c for c in r.get("checks") or [] if c[2] is not None]
+        if checks:  # the run's whole-view PSNR of its training views, as train_gs checks it ([run] log_every)
+            best = max(checks, key=lambda c: c[2])
+            rows.append(
+                (
+                    f"{r['variant']}, {r['iterations']} iterations: training views' whole-view PSNR dB "
+                    "(splats) at the first check, the best, the last",
+                    " / ".join(f"{c[2]:.2f} ({c[1]}) at {c[0]}" for c in (checks[0], best, checks[-1])),
+                )
+            )
+        if r.get("stopped"):
+            rows.append((f"{r['variant']}, {r['iterations']} iterations: stopped", r["stopped"]))
     for ln in read(out, "skipped.log").splitlines():
         rows.append(("accuracy point not run", ln.removeprefix("skipped: ")))
     rows.append(("the whole check, wall s", wall_s))

@@ -41,6 +41,8 @@ def test_speed_from_a_bundle_on_the_cpu_and_its_summary(tmp_path):
     (tmp_path / "speed_gpu.log").write_text(run.stdout)
     (tmp_path / "tests.log").write_text("....ss\n4 passed, 2 skipped in 3.10s\n")
     point = {"variant": "mlp", "iterations": 1000, "wall_s": 34.2, "splats": 151000,
+             "checks": [[100, 60000, 21.5], [500, 140000, 24.9], [1000, 151000, 24.1]],
+             "stopped": "the run stopped",
              "training_views_psnr": 27.1,
              "imported": {"psnr": 24.5, "ssim": 0.8, "psnr_glass": 23.08, "psnr_glass_interior": 23.5,
                           "normal_error_glass_deg": 7.25, "lpips": 0.2},
@@ -58,6 +60,8 @@ def test_speed_from_a_bundle_on_the_cpu_and_its_summary(tmp_path):
     assert "| speed, cpu budget | no result (speed_cpu.log) |" in text  # a missing step is said, not dropped
     assert "| accuracy point not run | 3000 iterations (projected 160 s, 90 s left) |" in text
     assert "| speed, gpu budget compiled | no result (speed_gpu_compiled.log) |" in text
-    assert text.count("\n| ") == 13  # header, rule, 11 rows
+    assert "| 21.50 (60000) at 100 / 24.90 (140000) at 500 / 24.10 (151000) at 1000 |" in text
+    assert "| mlp, 1000 iterations: stopped | the run stopped |" in text
+    assert text.count("\n| ") == 15  # header, rule, 13 rows
     svg = gpu.plot(tmp_path)
     assert svg.startswith("<svg") and "facade, 1000 iterations" in svg and "glass, 1000 iterations" in svg
