@@ -68,12 +68,14 @@ def _family(
     sizes: PixelSizes,
     frame_colour: np.ndarray | None = None,
     pool: Executor | None = None,
+    surface: np.ndarray | None = None,
 ) -> FamilyFit | None:
     """MAP bars of one family (axis 0: mullions; ``grad`` its gradients) with evidence taken over ``span``
     along the bars; with ``frame_colour`` [3] (the other family's bars), bars of another colour are
     penalised. ``segments`` (the family's LSD segments) may be a function that waits for them: they are
     needed only once the gradient evidence is made. With a ``pool``, the uniformity and part of the bar
-    evidence are computed on it."""
+    evidence are computed on it. ``surface`` [L, N] (the family's layout; None: everywhere): where the
+    facade surface is, for the bars the grid places where the view shows nothing (``clipped_place``)."""
     uniformity = pool.submit(grad.uniformity, span) if pool is not None else None
     (e_grad, widths), (e_out, w_out) = bar_evidence(grad, span, params.grid, sizes,
                                                     (0.0, params.grid.outer_edge_floor), pool)
@@ -94,46 +96,58 @@ def _family(
     # outer frames are judged without the colour prior: one side meets the background, and the centre line
     # of a one-sided bar found at its glass-side edge is not reliably on the frame
     ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
-    return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out))
+    return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out),
+                      lambda c, w: clipped_place(grad, span, c, w, surface))
+
+
+def clipped_place(grad: Gradients, span: slice, c: float, width: float,
+                  support: np.ndarray | None = None) -> bool:
+    """Whether a bar centred at ``c`` of ``width`` (px, lying whole in the view) shows nothing either way
+    over ``span``: its edges known (``Gradients.known``) over at most ``CLIPPED_BAR_KNOWN`` of it (the
+    frame clipped with the glass beside it), on the facade surface over at least half of it (``support``
+    [L, N] in the family's layout, None: everywhere; the sky beyond a facade's end clips too)."""
+    known = grad.known_on_lattice
+    if known is None:
+        return False
+    known = known[span]
+    M = known.shape[1]
+    i, j = (int(np.clip(np.rint(x / STEP_PX), 0, M - 1)) for x in (c - width / 2, c + width / 2))
+    col = int(np.clip(np.floor(c), 0, grad.size - 1))
+    seen = grad.valid[span, col]
+    if not seen.any() or float((known[:, i] * known[:, j])[seen].mean()) > CLIPPED_BAR_KNOWN:
+        return False
+    return support is None or float(support[span, col].mean()) >= 0.5
 
 
 def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
-                      support: np.ndarray | None = None) -> tuple[FamilyFit, frozenset[int]]:
+                      support: np.ndarray | None = None) -> FamilyFit:
     """``fit`` extended by one bar at either end, one pitch beyond it at the run's median width, where
-    that bar lies whole in the view, on the facade surface over at least half of ``span`` (``support``
-    [L, N] in the family's layout, None: everywhere; the sky beyond a facade's end clips too) and its edges
-    are known over at most ``CLIPPED_BAR_KNOWN`` of ``span`` (clipped with the glass beside it: no evidence
-    either way, and the grid places it), and the indices of the bars so placed."""
-    known = grad.known_on_lattice
-    if known is None:
-        return fit, frozenset()
-    known = known[span]
-    M = known.shape[1]
+    that bar lies whole in the view and its place shows nothing either way (``clipped_place``: clipped
+    with the glass beside it, no evidence either way, and the grid places it), the bars so placed added to
+    ``FamilyFit.placed``."""
+    if grad.known_on_lattice is None:
+        return fit
     width = float(np.median(fit.widths))
-    centres, widths, placed = list(fit.centres), list(fit.widths), []
+    centres, widths, placed = list(fit.centres), list(fit.widths), set(fit.placed)
+    added = 0
     for sign in (1.0, -1.0):
         c = (centres[-1] if sign > 0 else centres[0]) + sign * fit.pitch
-        lo, hi = c - width / 2, c + width / 2
-        if lo < 1.0 or hi > grad.size - 1.0:
+        if c - width / 2 < 1.0 or c + width / 2 > grad.size - 1.0:
             continue
-        i, j = (int(np.clip(np.rint(x / STEP_PX), 0, M - 1)) for x in (lo, hi))
-        col = int(np.clip(np.floor(c), 0, grad.size - 1))
-        seen = grad.valid[span, col]
-        if not seen.any() or float((known[:, i] * known[:, j])[seen].mean()) > CLIPPED_BAR_KNOWN:
+        if not clipped_place(grad, span, c, width, support):
             continue
-        if support is not None and float(support[span, col].mean()) < 0.5:
-            continue
+        added += 1
         if sign > 0:
             centres.append(c)
             widths.append(width)
-            placed.append(len(centres) - 1)
+            placed.add(len(centres) - 1)
         else:
             centres.insert(0, c)
             widths.insert(0, width)
-            placed = [k + 1 for k in placed] + [0]
-    if not placed:
-        return fit, frozenset()
-    return FamilyFit(np.array(centres), np.array(widths), fit.pitch, fit.score), frozenset(placed)
+            placed = {k + 1 for k in placed} | {0}
+    if not added:
+        return fit
+    return FamilyFit(np.array(centres), np.array(widths), fit.pitch, fit.score, frozenset(placed))
 
 
 def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
@@ -151,10 +165,9 @@ def extent(fit: FamilyFit | None, size: int) -> slice:
     return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
 
 
-def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams,
-           placed: frozenset[int] = frozenset()) -> Bars | None:
-    """The edges of each bar of ``fit``; a bar ``placed`` by the grid (``with_clipped_ends``) whose edges
-    are not found keeps the straight edges of its place."""
+def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> Bars | None:
+    """The edges of each bar of ``fit``; a bar placed by the grid (``FamilyFit.placed``) whose edges are
+    not found keeps the straight edges of its place."""
     found = [
         bar_edges(grad, c, w, span, EDGE_SEARCH_PX)
         for c, w in zip(fit.centres, fit.widths, strict=True)
@@ -162,7 +175,7 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams,
     edges = []
     mid = 0.5 * (span.indices(grad.img.shape[0])[0] + span.indices(grad.img.shape[0])[1])
     for k, e in enumerate(found):
-        if e is None and k in placed:
+        if e is None and k in fit.placed:
             c, w, L = fit.centres[k], fit.widths[k], grad.img.shape[0]
             e = (EdgeLine(c - w / 2, 0.0, mid, np.zeros(L)), EdgeLine(c + w / 2, 0.0, mid, np.zeros(L)))
         if e is None:
@@ -222,20 +235,21 @@ def find_bars(
         ahead += [pool.submit(pitch_hypotheses, g.size, z) for g, z in ((gh, sizes_h), (gv, sizes_v))]
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
         # width
+        support_h = None if support is None else support.T  # the transoms' layout: along them first
         h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W), params,
-                    sizes_h, pool=pool)
+                    sizes_h, pool=pool, surface=support_h)
         fam = lsd.result()
         vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
         for done in ahead:
             done.result()
-        v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool)
+        v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool, surface=support)
         # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
         # they run the facade's full height, while the long straight lines that reflections bring (horizon,
         # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
         colour_h = None
         if v is not None and params.grid.frame_colour_scale > 0 and planar:
             colour_h = bar_colour(gv, v, extent(h, H))
-        h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool)
+        h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
         metrics = {
             "n_segments": len(fam.segments),
             "n_vertical_segments": len(vseg),
@@ -248,11 +262,14 @@ def find_bars(
         if v is None or h is None:
             return None, None, metrics, {}, (gv, gh)
         # mullions only: a clipped horizontal stretch beyond the transoms is as often the lit ceiling or
-        # shelf of an empty unit seen through its open frame as a transom
-        v, placed_v = with_clipped_ends(v, gv, extent(h, H), support)
-        metrics["bars_placed_x"] = len(placed_v)
+        # shelf of an empty unit seen through its open frame as a transom. A transom is placed only where
+        # an end bay's bar was found off the grid's clipped place (``grid._with_end_bays``): the facade
+        # goes on beyond the run there
+        v = with_clipped_ends(v, gv, extent(h, H), support)
+        metrics["bars_placed_x"] = len(v.placed)
+        metrics["bars_placed_y"] = len(h.placed)
         edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
-        bars_v = _edges(v, gv, extent(h, H), params, placed_v)
+        bars_v = _edges(v, gv, extent(h, H), params)
         bars_h = edges_h.result()
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}

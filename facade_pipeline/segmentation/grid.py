@@ -32,7 +32,9 @@ counted at least ``outer_edge_floor`` of the stronger (a one-sided bar) pays for
 the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection. End bays: a
 facade's last column or row often has a pitch of its own (a wider end bay, a taller ground floor); where no
 outer frame ends the run, it is extended by the best two-sided bar between half and twice the pitch beyond
-its end, if that bar pays for two lines (``_with_end_bays``). Reflections
+its end, if that bar pays for two lines (``_with_end_bays``); where the grid's own place one pitch beyond
+the end is clipped with what lies beside it (no edge either way) and that bar lies off it, the grid's bar
+is placed there instead. Reflections
 of buildings and trees in the glass, the main distractor, are single edges (no opposite-polarity partner at
 the bar width), cover only parts of the grid and are not periodic: they lose against the prior.
 
@@ -47,6 +49,7 @@ E_g, E_l and l(c)) is made in ``evidence.py``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -191,6 +194,9 @@ class FamilyFit:
     widths: np.ndarray
     pitch: float
     score: float
+    placed: frozenset[int] = frozenset()
+    """Indices of the bars placed by the grid where the view shows nothing either way (clipped with what
+    lies beside them): their edges, where not found, are those of their place."""
 
 
 def best_run(values: np.ndarray) -> tuple[float, int, int]:
@@ -279,9 +285,12 @@ def map_family(
     params: GridParams,
     sizes: PixelSizes,
     outer: tuple[np.ndarray, np.ndarray] | None = None,
+    clipped_at: Callable[[float, float], bool] | None = None,
 ) -> FamilyFit | None:
     """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines.
-    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames.
+    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames and
+    the end bays; ``clipped_at`` (a bar's centre and width, px) says where a bar's place shows nothing
+    either way (``_with_end_bays``).
 
     Pitches run from the smallest up; at each, the phases are ranked by their gain (the sum of their
     positive terms, which bounds any run's score) and the best few get the exact run. A pitch none of whose
@@ -334,7 +343,7 @@ def map_family(
         return fit
     framed = _with_outer_frames(fit, *outer, size, params)
     ended = (framed.centres[0] != fit.centres[0], framed.centres[-1] != fit.centres[-1])
-    return _with_end_bays(framed, ll, widths, size, params, sizes, ended)
+    return _with_end_bays(framed, ll, widths, size, params, sizes, ended, clipped_at)
 
 
 def _with_outer_frames(
@@ -380,18 +389,26 @@ END_BAY_RATIO = 2.0
 
 def _with_end_bays(
     fit: FamilyFit, ll: np.ndarray, widths: np.ndarray, size: int, params: GridParams, sizes: PixelSizes,
-    ended: tuple[bool, bool],
+    ended: tuple[bool, bool], clipped_at: Callable[[float, float], bool] | None = None,
 ) -> FamilyFit:
     """The run extended by one bar at either end, at a pitch of its own (a wider end bay, a taller ground
     floor): the best two-sided bar between 1 / ``END_BAY_RATIO`` and ``END_BAY_RATIO`` pitches (within the
     pitch range) beyond the end, kept where its l(c) pays ``END_BAY_LINES`` lines and it lies whole in the
-    view. Not beyond an outer frame (``ended``: the facade ends there)."""
+    view. Not beyond an outer frame (``ended``: the facade ends there). Where the grid's own place one
+    pitch beyond the end is ``clipped_at`` (the bar and what lies beside it clipped together: no edge either
+    way) and the bar found lies off it by more than the prior's deviation, the bar is placed there at the
+    run's median width instead (``FamilyFit.placed``): the grid's bar, a priori likelier than an end bay's
+    (``END_BAY_LINES``), cannot be told absent there, while an edge found within the bay (the lit ceiling
+    of an empty unit behind its frame) may be another object's."""
     M = len(ll)
     lo = max(sizes.min_pitch, fit.pitch / END_BAY_RATIO)
     hi = min(sizes.max_pitch, fit.pitch * END_BAY_RATIO)
     if hi < lo:
         return fit
+    sigma = max(SIGMA_MIN_PX, params.sigma_frac * fit.pitch)
+    median_width = float(np.median(fit.widths))
     centres, bar_widths, score = list(fit.centres), list(fit.widths), fit.score
+    placed = set(fit.placed)
     for end, sign, done in ((-1, 1.0, ended[1]), (0, -1.0, ended[0])):
         if done:
             continue
@@ -405,11 +422,19 @@ def _with_end_bays(
         k = int(np.argmax(gain))
         if gain[k] <= 0:
             continue
-        score += float(gain[k])
-        if sign > 0:
-            centres.append(float(c[k]))
-            bar_widths.append(float(w[k]))
+        at, width, grid_place = float(c[k]), float(w[k]), centres[end] + sign * fit.pitch
+        if (clipped_at is not None and abs(at - grid_place) > sigma
+                and grid_place - median_width / 2 >= 1.0 and grid_place + median_width / 2 <= size - 1.0
+                and clipped_at(grid_place, median_width)):
+            at, width = grid_place, median_width
+            placed.add(len(centres) if sign > 0 else -1)
         else:
-            centres.insert(0, float(c[k]))
-            bar_widths.insert(0, float(w[k]))
-    return FamilyFit(np.array(centres), np.array(bar_widths), fit.pitch, float(score))
+            score += float(gain[k])
+        if sign > 0:
+            centres.append(at)
+            bar_widths.append(width)
+        else:
+            centres.insert(0, at)
+            bar_widths.insert(0, width)
+            placed = {j + 1 for j in placed}
+    return FamilyFit(np.array(centres), np.array(bar_widths), fit.pitch, float(score), frozenset(placed))

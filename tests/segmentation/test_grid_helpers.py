@@ -321,3 +321,41 @@ def test_block_medians_follow_shading_but_not_an_edge_crossing_the_bar():
     v_blocks, v_step = g_blocks.uniformity(rows), g_step.uniformity(rows)
     # a position between lanes 0 and 1 sees the edge only with the rule
     assert v_step.max() > 0.2 > v_blocks.max()
+
+
+@pytest.mark.parametrize("clipped", [True, False])
+def test_an_end_bay_off_the_grids_clipped_place_gives_way_to_the_grids_bar(clipped):
+    """Bars every 40 px from 80 to 160 and a stronger two-sided bar at 48, 0.8 of a pitch before the first
+    (the lit ceiling of an empty unit behind its frame), nothing at 40. Where the grid's place at 40 shows
+    nothing either way (the bar clipped with the sky beside it), the grid's bar is placed there, at the
+    run's width, and marked placed; where it is seen, the empty place is evidence against a bar there and
+    the end bay at 48 is kept, as found."""
+    size = 200
+    M = 2 * size + 1
+    x = np.arange(M) * STEP_PX
+    ll = np.full(M, -1.5)
+    for c, a in ((80.0, 4.0), (120.0, 4.0), (160.0, 4.0), (48.0, 5.0)):
+        ll += (a + 1.5) * np.exp(-0.5 * ((x - c) / 0.8) ** 2)
+    widths = np.where(np.abs(x - 48.0) < 2.0, 3.0, 4.0)
+    params = GridParams(min_pitch=0.5, max_pitch=2.0, sigma_frac=0.04, line_cost=1.2, min_bar=0.02,
+                        max_bar=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+                        frame_colour_scale=0.1)
+    sizes = PixelSizes(min_pitch=20.0, max_pitch=80.0, min_bar=2, max_bar=5)
+    seen = []
+
+    def clipped_at(c: float, w: float) -> bool:
+        seen.append((c, w))
+        return clipped and abs(c - 40.0) < w
+
+    fit = map_family(ll, widths, size, params, sizes, (ll, widths), clipped_at)
+    assert fit is not None and abs(fit.pitch - 40.0) <= STEP_PX
+    assert np.allclose(fit.centres[1:], [80.0, 120.0, 160.0], atol=STEP_PX)
+    assert seen and all(abs(c - (fit.centres[1] - fit.pitch)) < 1e-9 and w == 4.0 for c, w in seen)
+    if clipped:
+        assert fit.centres[0] == fit.centres[1] - fit.pitch and fit.widths[0] == 4.0
+        assert fit.placed == frozenset({0})
+    else:
+        assert abs(fit.centres[0] - 48.0) <= STEP_PX and fit.widths[0] == 3.0 and not fit.placed
+    # without a say on the places, as before: the bar found
+    before = map_family(ll, widths, size, params, sizes, (ll, widths))
+    assert abs(before.centres[0] - 48.0) <= STEP_PX and not before.placed
