@@ -192,8 +192,8 @@ def main() -> None:
         type=int,
         default=0,
         help="check the training views' whole-view PSNR every this many iterations, as train_gs does with "
-        "[run] log_every (a fall of more than 1 dB below its best stops the variant, measured where it "
-        "stopped); its history goes into the result line (0: no checks)",
+        "[run] log_every (a divergence it finds stops the variant, measured where it stopped); its "
+        "history goes into the result line (0: no checks)",
     )
     ap.add_argument(
         "--compile",
