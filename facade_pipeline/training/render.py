@@ -271,8 +271,8 @@ def _geometry(
     window: Window,
     normal_grad: bool,
 ):
-    """The rasterized maps split (D, r, F0), each pixel's surface point X_r, its direction to the camera and
-    its unit normal (a constant where ``normal_grad`` is False)."""
+    """The rasterized maps split (D, r) with the Fresnel term F (Eq. 8), each pixel's surface point X_r,
+    its direction to the camera and its unit normal (a constant where ``normal_grad`` is False)."""
     diffuse, refl, f0 = features[..., :3], features[..., 3], features[..., 4:7]
     _, rays = deferred.pixel_rays(K, cam_from_world, window)
     points = deferred.surface_points(centre, rays, depth)
@@ -280,7 +280,8 @@ def _geometry(
     n_unit = deferred.safe_normalize(normal)
     if not normal_grad:
         n_unit = n_unit.detach()
-    return diffuse, refl, f0, points, w_o, n_unit
+    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
+    return diffuse, refl, fresnel, points, w_o, n_unit
 
 
 def _shade_gathered(
@@ -294,7 +295,7 @@ def _shade_gathered(
     chunk: int,
 ) -> Maps:
     """Eq. 7-9 with R evaluated at the chosen pixels only (gathered: reads how many there are)."""
-    diffuse, refl, f0, points, w_o, n_unit = _geometry(
+    diffuse, refl, fresnel, points, w_o, n_unit = _geometry(
         ras.features,
         ras.normal,
         ras.depth,
@@ -304,7 +305,6 @@ def _shade_gathered(
         window,
         shading.normal_grad,
     )
-    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
     specular = torch.zeros_like(diffuse)
     if bool(chosen.any()):
         w_r = deferred.reflect(w_o[chosen], n_unit[chosen])
@@ -331,10 +331,9 @@ def _shade_everywhere(
     """Eq. 7-9 with R at every pixel, kept where chosen (the others get neither R nor a gradient, and finite
     inputs, so that no NaN reaches the gradients through them): shapes that do not depend on the values, so
     that nothing waits for the device and ``torch.compile`` can fuse it. Tensors and flags only."""
-    diffuse, refl, f0, points, w_o, n_unit = _geometry(
+    diffuse, refl, fresnel, points, w_o, n_unit = _geometry(
         features, normal, depth, K, cam_from_world, centre, window, normal_grad
     )
-    fresnel = deferred.schlick_fresnel(f0, deferred.cos_theta(n_unit, w_o))
     specular = torch.zeros_like(diffuse)
     if reflection is None:
         return diffuse, diffuse, refl, fresnel, specular, points
