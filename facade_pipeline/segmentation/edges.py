@@ -41,13 +41,6 @@ class EdgeLine:
     shaded would fall below full scale in its clipped channels together (None: nowhere, or not
     measured)."""
 
-    alike: np.ndarray | None = None
-    """[L] bool: where the openings on both sides of the bar (to the next bars or the image border) show
-    its own colour over at least ``ALIKE_SHARE`` of their width as well: a bar is a line of its colour
-    between things of another, and within a region of its colour (a lit empty unit whose box, shelves and
-    ceiling clip to the frames' white) its centre line shows nothing of it either way (None: nowhere, or not
-    measured; ``surroundings_alike``)."""
-
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
 
@@ -120,11 +113,15 @@ def bar_edges(
     return low, high
 
 
-def _centre_line(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The colour [L, 3] on the centre line of the bar between ``low`` and ``high``, where it shows the
-    view [L], and the bar's own colour [L, 3] there (its median over ``rows``, or each block's:
-    ``Gradients.block_px``; None where no row of ``rows`` shows the view)."""
+def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
+                   tol: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
+    colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
+    keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
+    which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
+    and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's colour,
+    clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``), each None
+    where it is nowhere."""
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     centre = 0.5 * (low.at(t) + high.at(t))
@@ -135,80 +132,19 @@ def _centre_line(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice
     ref_rows[rows] = True
     ref_rows &= ok
     if not ref_rows.any():
-        return colour, ok, None
+        return np.where(ok, 1.0, np.nan), None, None
     if grad.block_px is None:
-        ref = np.broadcast_to(np.median(colour[ref_rows], axis=0), colour.shape)
+        ref = np.median(colour[ref_rows], axis=0)
     else:  # each block's own colour (``Gradients.block_px``)
         ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
         ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
-    return colour, ok, ref
-
-
-def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
-                   tol: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
-    colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
-    keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
-    which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
-    and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's colour,
-    clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``), each None
-    where it is nowhere."""
-    colour, ok, ref = _centre_line(grad, low, high, rows)
-    if ref is None:
-        return np.where(ok, 1.0, np.nan), None, None
     near = np.linalg.norm(colour - ref, axis=1) <= tol
     clipped = colour.max(axis=1) >= CLIPPED_LEVEL
     unknown = ok & ~near & clipped
-    short = ok & near & clipped & ((ref >= CLIPPED_LEVEL) & (colour < CLIPPED_LEVEL)).any(axis=1)
+    ref_clipped = np.broadcast_to(ref, colour.shape) >= CLIPPED_LEVEL
+    short = ok & near & clipped & (ref_clipped & (colour < CLIPPED_LEVEL)).any(axis=1)
     return (np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None),
             (short if short.any() else None))
-
-
-#: the share of an opening's width, along one row, in the bar's own colour above which the opening is of
-#: that colour there: more than half of it, so that the opening, not the glass in it, is that colour
-ALIKE_SHARE = 0.5
-
-
-def surroundings_alike(grad: Gradients, edges: list[tuple[EdgeLine, EdgeLine]], rows: slice,
-                       tol: float) -> list[np.ndarray | None]:
-    """Per bar of one family (``edges``, low to high), [L] bool: where the openings on both of its sides,
-    from its edges to the next bars' facing edges (the image border beyond the outer bars), 1 px clear of
-    the edges, show its own colour (within ``tol`` of it, RGB 0-1, over ``rows``, as ``frame_presence``
-    judges its centre line; a colour clipped where the bar's is not clipped, or below full scale where the
-    bar's is clipped, is not its colour) over more than ``ALIKE_SHARE`` of their width that shows the view
-    (``EdgeLine.alike``; None where nowhere)."""
-    L, N = grad.img.shape[:2]
-    t = np.arange(L) + 0.5
-    clipped = grad.img >= CLIPPED_LEVEL  # [L, N, 3]
-    total = np.concatenate([np.zeros((L, 1)), np.cumsum(grad.valid, axis=1)], axis=1)
-    r = np.arange(L)
-    out = []
-    for k, (low, high) in enumerate(edges):
-        _, _, ref = _centre_line(grad, low, high, rows)
-        if ref is None:
-            out.append(None)
-            continue
-        ref_clipped = ref >= CLIPPED_LEVEL  # [L, 3]
-        near = np.linalg.norm(grad.img - ref[:, None, :], axis=2) <= tol
-        near &= ~(clipped.any(axis=2) & (ref_clipped[:, None, :] & ~clipped).any(axis=2))
-        alike_px = np.concatenate([np.zeros((L, 1)), np.cumsum(near & grad.valid, axis=1)], axis=1)
-        both, shown = np.ones(L, bool), np.zeros(L, bool)
-        w = high.at(t) - low.at(t)
-        before = edges[k - 1][1].at(t) if k > 0 else np.full(L, -1.0)
-        after = edges[k + 1][0].at(t) if k + 1 < len(edges) else np.full(L, N + 1.0)
-        for a, b in ((np.maximum(before, low.at(t) - w - 1.0), low.at(t)),
-                     (high.at(t), np.minimum(after, high.at(t) + w + 1.0))):
-            # the pixels whose centres lie 1 px or more inside the opening (a, b)
-            i0 = np.clip(np.ceil(a + 0.5).astype(int), 0, N)
-            i1 = np.clip(np.floor(b - 0.5).astype(int), 0, N)
-            i1 = np.maximum(i0, i1)
-            seen = total[r, i1] - total[r, i0]
-            share = np.where(seen > 0, (alike_px[r, i1] - alike_px[r, i0]) / np.maximum(seen, 1), 0.0)
-            both &= (share > ALIKE_SHARE) | (seen == 0)
-            shown |= seen > 0
-        both &= shown
-        out.append(both if both.any() else None)
-    return out
 
 
 @dataclass(frozen=True)

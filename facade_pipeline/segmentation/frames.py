@@ -13,13 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from facade_pipeline.segmentation.edges import (
-    Bars,
-    EdgeLine,
-    bar_edges,
-    frame_presence,
-    surroundings_alike,
-)
+from facade_pipeline.segmentation.edges import Bars, EdgeLine, bar_edges, frame_presence
 from facade_pipeline.segmentation.evidence import (
     Gradients,
     bar_evidence,
@@ -199,15 +193,6 @@ def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
     low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short)
                  for line in bar)
     return low, high
-
-
-def with_surroundings(bars: Bars, grad: Gradients, span: slice, params: SegmentParams) -> Bars:
-    """``bars`` with where the openings on both sides of each show its own colour as well
-    (``EdgeLine.alike``, within ``frame_colour_tol`` over ``span``), set on both of its edges."""
-    alike = surroundings_alike(grad, bars.edges, span, params.frame_colour_tol)
-    edges = [tuple(dataclasses.replace(line, alike=a) for line in bar)
-             for bar, a in zip(bars.edges, alike, strict=True)]
-    return Bars(edges, bars.fit)
 
 
 def find_bars(

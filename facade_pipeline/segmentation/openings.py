@@ -28,10 +28,6 @@ from facade_pipeline.segmentation.params import SegmentParams
 
 #: a panel side whose frame is present over less than this fraction of its length marks the panel occluded
 MIN_EDGE_SUPPORT = 0.6
-#: a bar whose centre line is told from what lies beside it (``EdgeLine.alike``) over less than this share
-#: of a border strip's part that shows the view gives no presence there: what it shows is the colour of a
-#: region around it, not of a bar
-TOLD_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -77,11 +73,8 @@ def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
         seg = bar[0].present[i0:i1]
         if bar[0].short is not None:
             seg = np.where(bar[0].short[i0:i1], 0.0, seg)
-        shown = int(np.count_nonzero(~np.isnan(seg)))
-        if bar[0].alike is not None:
-            seg = np.where(bar[0].alike[i0:i1], np.nan, seg)
         seg = seg[~np.isnan(seg)]
-        if len(seg) and len(seg) >= TOLD_SHARE * shown:
+        if len(seg):
             presence = float(seg.mean())
     seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
     ratio = 0.0

@@ -11,13 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facade_pipeline.segmentation.frames import (
-    FrameBars,
-    extent,
-    find_frames,
-    widen_narrow_bars,
-    with_surroundings,
-)
+from facade_pipeline.segmentation.frames import FrameBars, extent, find_frames, widen_narrow_bars
 from facade_pipeline.segmentation.openings import Panel, build_panels
 from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, side_face, slope_of
 from facade_pipeline.segmentation.params import SegmentParams
@@ -87,9 +81,6 @@ def segment_frames(
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
         bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
-    # where each bar's openings show its colour too, which the border strips' continuation leaves out
-    bars_v = with_surroundings(bars_v, found.grads[0], extent(bars_h.fit, Hw), params)
-    bars_h = with_surroundings(bars_h, found.grads[1], extent(bars_v.fit, Ww), params)
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
                            found.support)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
