@@ -85,7 +85,7 @@ def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
 
 
 def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
-               params: SegmentParams) -> frozenset[int] | None:
+               params: SegmentParams, whole: bool = True) -> frozenset[int] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
     across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
 
@@ -104,9 +104,9 @@ def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], s
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
     presence = [p for p, _ in found if not np.isnan(p)]
-    if presence and float(np.median(presence)) >= params.continuation_presence:
+    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
         return None
-    if found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
+    if whole and found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
         return None
     return frozenset(
         i for i, (p, r) in enumerate(found)
@@ -160,13 +160,20 @@ def openings(
     across = (other.fit.centres[0], other.fit.centres[-1])
     out = []
     lo, top = e[0][0].a, e[-1][1].a
+    # the grid's next bar one pitch beyond the outermost, where it would lie whole in the view: the run and
+    # its end bays found none there, so the facade's panes do not go on across the whole strip
+    fit = bars.fit
+    w = float(np.median(fit.widths))
+    short_of = (fit.centres[0] - fit.pitch - w / 2 >= 1.0, fit.centres[-1] + fit.pitch + w / 2 <= size - 1.0)
     if lo >= min_partial_px:
-        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params)
+        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params,
+                           not short_of[0])
         if going is None or going:
             out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
     out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
     if size - top >= min_partial_px:
-        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params)
+        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params,
+                           not short_of[1])
         if going is None or going:
             out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
     return out
