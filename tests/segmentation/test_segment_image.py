@@ -498,7 +498,8 @@ def test_a_border_strip_that_holds_the_grids_next_bar_takes_only_the_bars_that_c
     empty unit there instead, clipped to the frames' white, its cloth across the third mullion's place: the
     other mullions' centre lines show the frames' white, which before carried all of them into the strip in
     the median, the cloth's two openings with them; now only the openings between the bars (or a bar and
-    the border) that continue on their own hold a panel."""
+    the border) that continue on their own hold a panel. On a cylinder (not ``planar``), whose far bars the
+    run may stop short of, the median still carries them all."""
     d = Drawing(y0=30.0 - 2 * 23.3, cols=4, rows=4, frame_colour=(1.1, 1.1, 1.1))
     img = d.render()
     lost = int(np.ceil(d.y0 + d.pitch[1] + d.bar))  # the top strip's transom: the glass below drawn over it
@@ -516,6 +517,8 @@ def test_a_border_strip_that_holds_the_grids_next_bar_takes_only_the_bars_that_c
     assert all(not p.complete for p in seg.panels if p.corners[:, 1].min() < 1.0)
     assert top == ([0, 3] if unit else [0, 1, 2, 3])
     assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0]) == 4 * 2
+    curved = segment_image(img, PARAMS, M_PER_PX, PITCH_M, planar=False)
+    assert sorted(p.col for p in curved.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 2, 3]
 
 
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
