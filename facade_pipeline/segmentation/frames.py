@@ -306,6 +306,8 @@ class FrameBars:
     grads: tuple[Gradients, Gradients]
     unit_m: float = 1.0
     """The building's pitch (m) the bars were sought at: the unit of the params' lengths."""
+    planar: bool = True
+    """Whether the surface is a plane (``find_bars``)."""
 
     def bar_widths_m(self) -> dict[str, list[float]]:
         """The widths (m) of the bars found, per family ("x": mullions, "y": transoms)."""
@@ -379,7 +381,8 @@ def find_frames(
     bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar,
                                                      support)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
-    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m)
+    return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m,
+                     planar)
 
 
 #: the survey, which measures the building's pitch before any length is known, seeks each family's pitch

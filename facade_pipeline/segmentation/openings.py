@@ -11,7 +11,9 @@ other family continue into it (by their frame colour or their edges, where the f
 ``_continues``; a clipped frame colour is matched only by a centre line clipped where it is,
 ``EdgeLine.short``); otherwise the facade ends at that bar, except beside the bars that continue on their own
 (a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the
-border, is a partial panel.
+border, is a partial panel. A strip that holds the place of its family's next bar whole (one pitch beyond
+the outermost, on a plane: ``openings``), where the grid found none, is not judged in the median: only the
+bars that continue on their own go on into it.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
@@ -85,7 +87,7 @@ def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
 
 
 def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
-               params: SegmentParams) -> frozenset[int] | None:
+               params: SegmentParams, whole: bool = True) -> frozenset[int] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
     across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
 
@@ -99,14 +101,18 @@ def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], s
     survives what takes the edges away: a specular highlight on the glass beside a bar, the blur of a far,
     upsampled part of an oblique rectified photo. Where the median fails, a bar that passes either test on
     its own still continues: a partly installed or stepped facade ends over part of a strip only (an empty
-    unit, a unit set off its neighbours' line), and the openings beside such a bar go on."""
+    unit, a unit set off its neighbours' line), and the openings beside such a bar go on. Not ``whole``
+    (the strip holds the grid's next bar's place, and no bar was found there): the bars continue on their
+    own only, the median over them left out, since the facade's panes do not go on across the whole strip
+    (the lit box of an empty unit behind several openings, clipped to the frames' colour, carries some of
+    the bars' centre lines in the median)."""
     if support < 0.5:
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
     presence = [p for p, _ in found if not np.isnan(p)]
-    if presence and float(np.median(presence)) >= params.continuation_presence:
+    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
         return None
-    if found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
+    if whole and found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
         return None
     return frozenset(
         i for i, (p, r) in enumerate(found)
@@ -152,21 +158,32 @@ class Opening:
 
 def openings(
     bars: Bars, other: Bars, size: int, length: int, params: SegmentParams, min_partial_px: float,
-    axis: int, support: np.ndarray | None = None,
+    axis: int, support: np.ndarray | None = None, grid_ends: bool = True,
 ) -> list[Opening]:
-    """Openings across one family's bars (``axis`` 0: mullions), low to high."""
+    """Openings across one family's bars (``axis`` 0: mullions), low to high. ``grid_ends``: a border strip
+    that holds the grid's next bar's place whole, where none was found, ends the facade's panes there (on a
+    plane; on a cylinder the surface turns away across the view, its far bars are foreshortened and
+    blurred in the rectified view, and the run may stop short of bars that are there)."""
     e = bars.edges
     inside = (bars.fit.centres[0], bars.fit.centres[-1])
     across = (other.fit.centres[0], other.fit.centres[-1])
     out = []
     lo, top = e[0][0].a, e[-1][1].a
+    # the grid's next bar one pitch beyond the outermost, where it would lie whole in the view: the run and
+    # its end bays found none there, so the facade's panes do not go on across the whole strip
+    fit = bars.fit
+    w = float(np.median(fit.widths))
+    next_inside = (grid_ends and fit.centres[0] - fit.pitch - w / 2 >= 1.0,
+                   grid_ends and fit.centres[-1] + fit.pitch + w / 2 <= size - 1.0)
     if lo >= min_partial_px:
-        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params)
+        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params,
+                           not next_inside[0])
         if going is None or going:
             out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
     out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
     if size - top >= min_partial_px:
-        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params)
+        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params,
+                           not next_inside[1])
         if going is None or going:
             out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
     return out
@@ -193,11 +210,13 @@ def _supported(line: EdgeLine, lo: float, hi: float) -> float:
 
 
 def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: SegmentParams,
-                 min_partial_px: float, support: np.ndarray | None = None) -> list[Panel]:
+                 min_partial_px: float, support: np.ndarray | None = None,
+                 grid_ends: bool = True) -> list[Panel]:
     """Panels of every opening of the grid (module docstring), rows counted from the bottom; ``support``
-    [H, W] marks where the facade surface is (border strips without it hold no partial panel)."""
-    cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support)
-    rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support)  # top to bottom
+    [H, W] marks where the facade surface is (border strips without it hold no partial panel);
+    ``grid_ends``: the surface is a plane (``openings``)."""
+    cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support, grid_ends)
+    rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support, grid_ends)  # top down
     panels = []
     for i, row in enumerate(rows):
         top, bottom, cut_r = row.low, row.high, row.cut

@@ -82,7 +82,7 @@ def segment_frames(
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
         bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
-                           found.support)
+                           found.support, found.planar)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
     metrics.update({"n_mullions": len(bars_v.edges), "n_transoms": len(bars_h.edges)})
     for k in ("pitch_x_px", "pitch_y_px"):

@@ -490,6 +490,37 @@ def test_a_lit_box_clipped_near_the_frames_white_does_not_carry_them_into_a_bord
         assert not top
 
 
+@pytest.mark.parametrize("unit", [False, True])
+def test_a_border_strip_that_holds_the_grids_next_bar_takes_only_the_bars_that_continue(unit):
+    """Frames clipped white, a top strip 30 px tall (more than a pitch and a bar: the grid's next transom
+    would lie whole in it, and none is found). Glass behind the mullions there (a taller end bay): each
+    mullion continues on its own and every opening of the strip is a partial panel. The lit box of an
+    empty unit there instead, clipped to the frames' white, its cloth across the third mullion's place: the
+    other mullions' centre lines show the frames' white, which before carried all of them into the strip in
+    the median, the cloth's two openings with them; now only the openings between the bars (or a bar and
+    the border) that continue on their own hold a panel. On a cylinder (not ``planar``), whose far bars the
+    run may stop short of, the median still carries them all."""
+    d = Drawing(y0=30.0 - 2 * 23.3, cols=4, rows=4, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    lost = int(np.ceil(d.y0 + d.pitch[1] + d.bar))  # the top strip's transom: the glass below drawn over it
+    img[:lost] = img[lost : 2 * lost]
+    top_edge = int(d.y0 + 2 * d.pitch[1])  # the first transom found starts here
+    if unit:
+        noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, d.W, 3))
+        img[:top_edge] = np.clip(np.rint(255.0 + noise), 0, 255).astype(np.uint8)
+        x = d.x0 + 2 * d.pitch[0]  # the third mullion's left edge
+        cloth = slice(int(x) - 8, int(x + d.bar) + 8)
+        img[:top_edge, cloth] = np.clip(np.rint(np.array((200.0, 120.0, 120.0)) + noise[:, cloth]), 0,
+                                        255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    top = sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0)
+    assert all(not p.complete for p in seg.panels if p.corners[:, 1].min() < 1.0)
+    assert top == ([0, 3] if unit else [0, 1, 2, 3])
+    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0]) == 4 * 2
+    curved = segment_image(img, PARAMS, M_PER_PX, PITCH_M, planar=False)
+    assert sorted(p.col for p in curved.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 2, 3]
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
