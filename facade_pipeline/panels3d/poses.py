@@ -61,6 +61,11 @@ MAX_MOVE_FRACTION = 0.1
 MAX_TURN_DEG = 10.0
 
 
+def _stored(x: float) -> float:
+    """A per-view figure as the poses file stores it (6 decimals)."""
+    return round(float(x), 6)
+
+
 @dataclass(frozen=True)
 class ViewPose:
     """One frontal view's registered pose: ``cam_from_world`` [4, 4] (refined, or as imported with the
@@ -80,7 +85,7 @@ class ViewPose:
 
     def to_dict(self) -> dict:
         def num(x: float) -> float | None:
-            return round(float(x), 6) if np.isfinite(x) else None
+            return _stored(x) if np.isfinite(x) else None
 
         return {
             "stem": self.stem,
@@ -138,8 +143,12 @@ class RegisteredPoses:
         """The manifest's figures: views refined, the others' reasons, and over the views the median of each
         view's median reprojection error (px) with the imported and with the registered poses."""
         kept = {v.stem: v.reason for v in self.views if not v.refined}
-        before = [v.reprojection_imported_px for v in self.views if np.isfinite(v.reprojection_imported_px)]
-        after = [v.reprojection_px for v in self.views if np.isfinite(v.reprojection_px)]
+        # of the values as the file stores them, so that the summary of poses read back is this one (a
+        # median 0.5e-4 from a rounding boundary would otherwise round either way)
+        before = [
+            _stored(v.reprojection_imported_px) for v in self.views if np.isfinite(v.reprojection_imported_px)
+        ]
+        after = [_stored(v.reprojection_px) for v in self.views if np.isfinite(v.reprojection_px)]
         return {
             "views_refined": sum(v.refined for v in self.views),
             "views_as_imported": kept,
