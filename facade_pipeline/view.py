@@ -449,16 +449,24 @@ def headless_page(
 #: a screenshot shows the server's last render once their brightness correlates at least this well
 SHOWN_CORRELATION = 0.7
 
+#: the median filter both images pass before they are compared: more than twice as wide as the lines drawn over
+#: the render (the frustum of the camera looked through, its edges inside the compared region) and the
+#: JPEG noise of the image's way to the page, so that a dark, low-contrast render is judged by its shapes,
+#: not by a line or the codec
+SHOWN_MEDIAN_PX = 11
+
 
 def shown_correlation(png: bytes, image: np.ndarray) -> float:
     """How well a screenshot of the page (PNG bytes) shows ``image`` [H, W, 3] uint8, the server's last
-    render: the correlation of their brightness over the lower left of the canvas, where no overlay covers
-    it (the sidebar is top right, viser's buttons along the left edge, the frustums thin lines)."""
-    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(np.float64)
+    render: the correlation of their brightness, median-filtered (``SHOWN_MEDIAN_PX``), over the lower left
+    of the canvas, where no panel covers it (the sidebar is top right, viser's buttons along the left
+    edge)."""
+    shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     h, w = shot.shape[:2]
-    sent = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    sent = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)
     region = (slice(h // 2, h - 40), slice(110, w // 2))
-    a, b = shot[region].mean(axis=2).ravel(), sent[region].mean(axis=2).ravel()
+    grey = (cv2.cvtColor(shot, cv2.COLOR_BGR2GRAY), cv2.cvtColor(sent, cv2.COLOR_RGB2GRAY))
+    a, b = (cv2.medianBlur(g, SHOWN_MEDIAN_PX)[region].astype(np.float64).ravel() for g in grey)
     return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else 0.0
 
 

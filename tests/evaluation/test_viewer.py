@@ -29,6 +29,7 @@ from facade_pipeline.scene import ImportedScene
 from facade_pipeline.view import (
     MODES,
     MOVING_SECONDS,
+    SHOWN_CORRELATION,
     Scene,
     ViewCamera,
     Viewer,
@@ -39,6 +40,7 @@ from facade_pipeline.view import (
     rate_text,
     render_image,
     render_width,
+    shown_correlation,
     viser_camera,
 )
 
@@ -222,6 +224,26 @@ def test_a_browser_shows_the_facade(scene, tmp_path):
         assert img.std() > 5.0, "a blank screenshot"
     finally:
         viewer.stop()
+
+
+def test_the_screenshot_check_sees_a_dark_render_through_lines_and_jpeg():
+    """``shown_correlation`` as the browser tests meet it: a dark, low-contrast render (a barely trained
+    model) shown at the page's size through JPEG, with a frustum's bright edge drawn across the compared
+    region, counts as shown; the same render mirrored or moved by a fifth of its width does not."""
+    rng = np.random.default_rng(3)
+    blobs = cv2.GaussianBlur(rng.random((146, 256)), (0, 0), 6)
+    blobs = (blobs - blobs.min()) / np.ptp(blobs)
+    render = np.repeat((8 + 60 * blobs)[..., None], 3, axis=2).astype(np.uint8)
+    page = cv2.resize(render, (800, 457), interpolation=cv2.INTER_LINEAR)
+    _, jpeg = cv2.imencode(".jpg", page[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 60])
+    shot = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
+    cv2.line(shot, (170, 0), (170, 456), (230, 160, 60), 3)  # the frustum's edge: 5 px, light blue (BGR)
+    png = cv2.imencode(".png", shot)[1].tobytes()
+    assert shown_correlation(png, render) > SHOWN_CORRELATION
+    assert shown_correlation(png, render[:, ::-1].copy()) < SHOWN_CORRELATION
+    assert shown_correlation(png, np.roll(render, 51, axis=1)) < SHOWN_CORRELATION
+    blank = cv2.imencode(".png", np.zeros_like(shot))[1].tobytes()
+    assert shown_correlation(blank, render) == 0.0
 
 
 def test_a_building_without_a_trained_model_is_one_line(tmp_path):
