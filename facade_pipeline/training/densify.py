@@ -130,13 +130,18 @@ def densify_and_prune(
         hot[order[:budget]] = True
     clone, split = hot & ~big, hot & big
     n_before = model.n
+    # judged before a clone shares its opacity with its copy: a pair is as opaque as the splat was
+    opaque = model.opacities().detach() >= PRUNE_OPACITY
     if clone.any():
+        _halve_opacity(model, clone)
         append_rows(model, opt, {name: t.detach()[clone] for name, t in model.params().items()})
+        opaque = torch.cat([opaque, opaque[clone]])
     if split.any():
         grown = torch.cat([split, split.new_zeros(model.n - n_before)])  # clones are never split
         append_rows(model, opt, _split_rows(model, grown, SPLIT_COUNT, generator))
+        opaque = torch.cat([opaque, opaque[grown].repeat_interleave(SPLIT_COUNT)])
     split_full = torch.cat([split, split.new_zeros(model.n - n_before)])
-    keep = ~split_full & (model.opacities().detach() >= PRUNE_OPACITY)
+    keep = ~split_full & opaque
     if prune_big:
         keep &= model.scales().detach().max(dim=-1).values <= PRUNE_WORLD_SIZE_FRACTION * extent
     if not keep.any():  # never prune everything: keep the most opaque splat
@@ -144,6 +149,16 @@ def densify_and_prune(
     n_pruned = int((~keep).sum()) - int(split.sum())
     select_rows(model, opt, keep)
     return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": n_pruned}
+
+
+def _halve_opacity(model: GaussianModel, rows: Tensor) -> None:
+    """Give the splats of ``rows`` the opacity a' with 1 - (1 - a')^2 = a, so that a splat and its exact
+    copy blend to what the splat alone did: a clone changes no pixel (2DGS's copies keep a each and
+    composite to 1 - (1 - a)^2, a jump in every render at each densification, as Rota Bulo et al. 2024
+    note). Adam's moments of these rows are kept; the copies' start at zero."""
+    a = model.opacities().detach()[rows]
+    with torch.no_grad():
+        model.opacity_logits[rows] = inverse_sigmoid(1.0 - torch.sqrt(1.0 - a))
 
 
 def _split_rows(model: GaussianModel, split: Tensor, k: int, generator: torch.Generator) -> dict[str, Tensor]:

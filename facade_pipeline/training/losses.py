@@ -90,8 +90,12 @@ def high_frequency_loss(pred: Tensor, gt: Tensor, mask: Tensor, tau: float) -> T
 
 
 def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
-    """Eq. 11: mean over valid pixels of || n - n_hat ||_1 (rendered world normal vs baked normal)."""
-    return masked_mean((normal - prior).abs().sum(-1), valid)
+    """Eq. 11: mean over valid pixels of || n - n_hat ||_1, n the direction of the rendered world normal,
+    n_hat the baked one. The direction, not the alpha-blended normal itself: that one is as long as the
+    pixel's accumulated alpha, so a unit prior would also pull every splat's opacity up whatever the photos
+    show, and the training views' fit fell for a hundred steps under that pull (docs/method.md). The colour
+    terms alone set how opaque the facade is."""
+    return masked_mean((safe_normalize(normal) - prior).abs().sum(-1), valid)
 
 
 def depth_normals(points: Tensor) -> Tensor:  # [H, W, 3] surface points -> [H, W, 3]

@@ -68,6 +68,22 @@ def test_normal_prior_loss_is_mean_l1_over_valid_pixels():
     assert float(losses.normal_prior_loss(n, prior, torch.zeros_like(valid))) == 0.0
 
 
+def test_normal_prior_loss_reads_the_rendered_normal_s_direction_only():
+    """The alpha-blended normal is as long as the pixel's alpha: the prior compares its direction, so a
+    half-transparent pixel whose normal points along the prior costs nothing and pulls no opacity up."""
+    prior = torch.nn.functional.normalize(torch.randn(3, 4, 3), dim=-1)
+    valid = torch.ones(3, 4, dtype=torch.bool)
+    alpha = torch.full((3, 4, 1), 0.4, requires_grad=True)
+    loss = losses.normal_prior_loss(alpha * prior, prior, valid)
+    loss.backward()
+    assert float(loss) == pytest.approx(0.0, abs=1e-6)
+    assert float(alpha.grad.abs().max()) == pytest.approx(0.0, abs=1e-6)
+    tilted = torch.nn.functional.normalize(prior + 0.3 * torch.randn(3, 4, 3), dim=-1)
+    assert float(losses.normal_prior_loss(0.4 * tilted, prior, valid)) == pytest.approx(
+        float(losses.normal_prior_loss(tilted, prior, valid)), rel=1e-5
+    )
+
+
 def test_depth_normals_of_a_plane_face_the_camera():
     # points of a tilted plane seen by a camera at the origin looking along +z (OpenCV axes)
     ys, xs = torch.meshgrid(

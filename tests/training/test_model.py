@@ -133,6 +133,44 @@ def test_densify_clones_small_splits_large_and_prunes_transparent():
     )
 
 
+def test_a_clone_and_its_copy_blend_as_the_splat_did():
+    """A cloned splat and its copy share its opacity: they composite to the splat's own alpha and colour
+    where its Gaussian peaks, and to at most a'^2 / 4 more on its flanks (1 - (1 - a' G)^2 against a G), not
+    to 1 - (1 - a)^2 as two copies of a would; a splat left alone keeps its opacity."""
+    from facade_pipeline.splatting import render_2dgs
+
+    m = GaussianModel.create(
+        torch.tensor([[0.0, 0.0, 5.0], [0.6, 0.2, 5.5]]),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2),  # facing the camera
+        torch.tensor([[0.2, 0.15], [0.2, 0.2]]),
+        torch.tensor([[0.9, 0.2, 0.1], [0.1, 0.3, 0.8]]),
+        0.7,
+        0.3,
+        0.04,
+        1,
+    )
+    K = torch.tensor([[100.0, 0, 32.5], [0, 100.0, 24.5], [0, 0, 1]])  # the clone on pixel (32, 24)'s centre
+
+    def colour():  # in [0, 1], so that a colour moves no more than its alpha
+        return m.sh_dc[:, 0] * 0.28209479177387814 + 0.5
+
+    def draw():
+        with torch.no_grad():
+            r = render_2dgs(m.means, m.quats, m.scales(), m.opacities(), colour(), torch.eye(4), K, 64, 48)
+        return torch.cat([r.features, r.alpha.unsqueeze(-1)], -1)
+
+    before, a = draw(), float(m.opacities()[0])
+    opt = gaussian_optimizer(m, small_params(), 1.0)
+    stats = DensifyStats(torch.tensor([1.0, 0.0]), torch.ones(2))
+    counts = densify_and_prune(m, opt, stats, small_params().densify, 1000.0, False, torch.Generator())
+    assert counts["cloned"] == 1 and m.n == 3
+    a_half = 1.0 - (1.0 - a) ** 0.5
+    assert torch.allclose(m.opacities().detach(), torch.tensor([a_half, 0.7, a_half]), atol=1e-6)
+    after = draw()
+    assert float((after - before).abs().max()) <= a_half**2 / 4 + 1e-5
+    assert torch.allclose(after[24, 32], before[24, 32], atol=1e-5)  # the clone's centre pixel
+
+
 def test_densify_respects_the_splat_budget():
     p = small_params(densify_max_gaussians=5)
     m = _model(4)
