@@ -169,11 +169,12 @@ def survey_one(layout: BuildingLayout, view: View, params: Params
 def find_one(
     layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster, unit_m: float,
     pitch_m: dict[str, tuple[float, float]] | None = None, bar_max_m: dict[str, float] | None = None,
+    predicted: bool = False,
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """The rectification of one view and the frame bars in it (None for a view rectify skipped), and the
     seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is; ``unit_m``: the
     building's pitch, ``building.survey_unit_m``; ``pitch_m``: the pitches sought and ``bar_max_m`` the
-    widest bars, per family, ``frames.find_frames``)."""
+    widest bars, per family, and ``predicted``: those pitches are the building's, ``frames.find_frames``)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
@@ -189,7 +190,7 @@ def find_one(
     support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance * unit_m)
     planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
     found = find_frames(image, params, rect.metres_per_px, unit_m, valid, parallax, support, planar, pitch_m,
-                        bar_max_m)
+                        bar_max_m, predicted)
     return rect, found, time.perf_counter() - t0
 
 
@@ -226,7 +227,7 @@ def with_building_grid(
             spent = []
 
             def seek(ranges, view=view, spent=spent):
-                _, again, more = find_one(layout, view, params, mesh, unit_m, ranges, bar_max_m)
+                _, again, more = find_one(layout, view, params, mesh, unit_m, ranges, bar_max_m, True)
                 spent.append(more)
                 return again
 

@@ -176,6 +176,7 @@ class Gradients:
 def bar_evidence(
     grad: Gradients, rows: slice, params: GridParams, sizes: PixelSizes,
     weak_edge_floors: tuple[float, ...] = (0.0,), pool: Executor | None = None,
+    unknown_floor: float = 0.0,
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Gradient bar evidence E_g [M] on the lattice (mean over ``rows``) and the best width [M] (px), one
     pair per floor of ``weak_edge_floors`` (the edges and their agreement are computed once for all).
@@ -190,9 +191,17 @@ def bar_evidence(
     larger of |gL||gR| and of m (f m) over the two edges' magnitudes m: rounding is monotone, so that is
     the product the plain expression rounds to, with m (f m) made once per position for every width.
     With a ``pool``, the wider half of the widths is evaluated on it while the caller takes the narrower
-    (numpy lets go of the GIL); the best width is then taken over the widths in order as without it."""
+    (numpy lets go of the GIL); the best width is then taken over the widths in order as without it.
+
+    An edge between two clipped pixels (``Gradients.known``) is unknown, not absent: where one of a bar's
+    edges is, its known edge counts as a one-sided bar's, the unknown one at least ``unknown_floor`` of
+    it, whatever the floor (a frame clipped with the glass beside it meets a background of its own
+    colour there, as an outer frame may meet the sky)."""
     g = grad.on_lattice[rows]
     mag = norm_last(g)
+    unknown = None
+    if unknown_floor > 0 and grad.known_on_lattice is not None:
+        unknown = (1.0 - grad.known_on_lattice[rows], mag * (unknown_floor * mag))
     channels = []  # [rows, M] each, laid out as the magnitudes (the lattice runs along the rows)
     for c in range(g.shape[2]):
         channels.append(np.empty_like(mag))
@@ -204,7 +213,7 @@ def bar_evidence(
     widths = [w for w in range(sizes.min_bar, sizes.max_bar + 1) if 2 * w < M]  # w: half width in steps
 
     def evidence(ws: list[int]) -> list[list[np.ndarray]]:
-        return [_width_evidence(mag, channels, floored, w) for w in ws]
+        return [_width_evidence(mag, channels, floored, w, unknown) for w in ws]
 
     half = (len(widths) + 1) // 2
     wide = pool.submit(evidence, widths[half:]) if pool is not None else None
@@ -220,8 +229,10 @@ def bar_evidence(
 
 
 def _width_evidence(mag: np.ndarray, channels: list[np.ndarray], floored: list[np.ndarray | None],
-                    h: int) -> list[np.ndarray]:
-    """E_g [M] at one width of ``bar_evidence`` (h: its half width in lattice steps), per floor."""
+                    h: int, unknown: tuple[np.ndarray, np.ndarray] | None = None) -> list[np.ndarray]:
+    """E_g [M] at one width of ``bar_evidence`` (h: its half width in lattice steps), per floor;
+    ``unknown``: how unknown each edge is (1 - ``Gradients.known``) and its floored product, where an edge
+    may be."""
     M = mag.shape[1]
     left, right = slice(0, M - 2 * h), slice(2 * h, M)
     product = mag[:, left] * mag[:, right]
@@ -232,6 +243,13 @@ def _width_evidence(mag: np.ndarray, channels: list[np.ndarray], floored: list[n
         dot += c[:, left] * c[:, right]
     cos = np.divide(dot, np.maximum(product, 1e-12), out=dot)
     disagree = np.clip(np.subtract(1.0, cos, out=cos), 0.0, 2.0, out=cos)
+    one_sided = None
+    if unknown is not None:
+        # the known edge's own floored product where its partner is unknown; the unknown edge's polarity is
+        # unknown too (1 - cos averages 1 over its directions): a few levels' difference between clipped
+        # pixels has no direction to speak of
+        u, uq = unknown
+        one_sided = np.maximum(u[:, left] * uq[:, right], u[:, right] * uq[:, left])
     out = []
     for q in floored:
         # an outer frame may border a background of its own colour on one side. e2 is laid out in memory
@@ -242,6 +260,8 @@ def _width_evidence(mag: np.ndarray, channels: list[np.ndarray], floored: list[n
         else:
             np.maximum(product, np.maximum(q[:, left], q[:, right]), out=e2)
             e2 *= disagree
+        if one_sided is not None:
+            np.maximum(e2, one_sided, out=e2)
         e2 /= 2
         out.append(np.pad(np.sqrt(e2, out=e2).mean(axis=0), (h, h)))
     return out

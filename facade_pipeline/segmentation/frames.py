@@ -69,16 +69,20 @@ def _family(
     frame_colour: np.ndarray | None = None,
     pool: Executor | None = None,
     surface: np.ndarray | None = None,
+    unknown_floor: float = 0.0,
 ) -> FamilyFit | None:
     """MAP bars of one family (axis 0: mullions; ``grad`` its gradients) with evidence taken over ``span``
     along the bars; with ``frame_colour`` [3] (the other family's bars), bars of another colour are
     penalised. ``segments`` (the family's LSD segments) may be a function that waits for them: they are
     needed only once the gradient evidence is made. With a ``pool``, the uniformity and part of the bar
     evidence are computed on it. ``surface`` [L, N] (the family's layout; None: everywhere): where the
-    facade surface is, for the bars the grid places where the view shows nothing (``clipped_place``)."""
+    facade surface is, for the bars the grid places where the view shows nothing (``clipped_place``).
+    ``unknown_floor``: a bar's edge between two clipped pixels counts at least this fraction of its other
+    edge (``evidence.bar_evidence``; 0: as absent)."""
     uniformity = pool.submit(grad.uniformity, span) if pool is not None else None
     (e_grad, widths), (e_out, w_out) = bar_evidence(grad, span, params.grid, sizes,
-                                                    (0.0, params.grid.outer_edge_floor), pool)
+                                                    (0.0, params.grid.outer_edge_floor), pool,
+                                                    unknown_floor)
     uniformity = uniformity.result() if uniformity is not None else grad.uniformity(span)
     if callable(segments):
         segments = segments()
@@ -203,6 +207,7 @@ def find_bars(
     parallax: ParallaxField | None = None,
     planar: bool = True,
     support: np.ndarray | None = None,
+    predicted: bool = False,
 ) -> tuple[Bars | None, Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
@@ -210,7 +215,15 @@ def find_bars(
     beyond either end placed by the grid (``with_clipped_ends``), then sub-pixel edges, with their frames'
     parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a
     field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the
-    mullions and the transoms; ``support`` [H, W]: where the facade surface is (None: everywhere)."""
+    mullions and the transoms; ``support`` [H, W]: where the facade surface is (None: everywhere).
+    ``predicted``: the mullions' pitches sought are the building's (``sizes_v``), which predicts where each
+    of them lies: an edge between two clipped pixels there is unknown, not absent, and the bar's other
+    edge counts as an outer frame's does (``outer_edge_floor``): a frame clipped with what lies beside it
+    meets a background of its own colour. Without that prediction, a one-sided edge beside a clip (a
+    reflection's) would take a bar's place at any pitch. Mullions only, as for the bars placed where they
+    clip (``with_clipped_ends``): a horizontal edge beside a clip is as often an empty unit's lit ceiling
+    or shelf, seen through its open frame, as a transom."""
+    floor_v = params.grid.outer_edge_floor if predicted else 0.0
     sizes_v, sizes_h = sizes
     H, W = image.shape[:2]
     # numpy and OpenCV let go of the GIL: threads share a view's work among the cores. LSD runs beside the
@@ -242,7 +255,8 @@ def find_bars(
         vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
         for done in ahead:
             done.result()
-        v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool, surface=support)
+        v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool, surface=support,
+                    unknown_floor=floor_v)
         # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
         # they run the facade's full height, while the long straight lines that reflections bring (horizon,
         # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
@@ -341,6 +355,7 @@ def find_frames(
     planar: bool = True,
     pitch_m: dict[str, tuple[float, float]] | None = None,
     bar_max_m: dict[str, float] | None = None,
+    predicted: bool = False,
 ) -> FrameBars:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
     found at the working scale (``work_bar_px``); ``unit_m`` is the building's panel pitch (m), the unit of
@@ -351,7 +366,9 @@ def find_frames(
     ``pitch_m`` narrows the pitches (m) sought across the mullions ("x") or the transoms ("y") to a range
     (the building's grid, ``building.pitch_range_m``; the grid model's range where None); ``bar_max_m``
     widens the bars sought across the mullions ("x") or the transoms ("y") to at least that width (m; the
-    widths the survey saw where wider than the grid model's, ``building.surveyed_bar_max_m``)."""
+    widths the survey saw where wider than the grid model's, ``building.surveyed_bar_max_m``); with
+    ``predicted``, the ranges of ``pitch_m`` are the building's grid, which predicts where the bars lie
+    (``find_bars``: the mullions, where ``pitch_m`` holds theirs)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px, unit_m)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -378,8 +395,9 @@ def find_frames(
         for name, z in zip(("x", "y"), family_sizes, strict=True)
     )
     image = normalise_exposure(image, valid)
-    bars_v, bars_h, metrics, fits, grads = find_bars(image, params, family_sizes, valid, parallax, planar,
-                                                     support)
+    bars_v, bars_h, metrics, fits, grads = find_bars(
+        image, params, family_sizes, valid, parallax, planar, support,
+        predicted and "x" in (pitch_m or {}))
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m,
                      planar)

@@ -29,7 +29,9 @@ MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) 
 frames: a facade's outer frame may meet a background of its own colour (paving, sky), so it shows only its
 glass-side edge. The run is then extended by one bar at either end where l(c) computed with the weaker edge
 counted at least ``outer_edge_floor`` of the stronger (a one-sided bar) pays for the line, one pitch beyond
-the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection. End bays: a
+the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection, but for mullions
+sought at the building's pitch whose other edge lies between two clipped pixels, unknown rather than
+absent (``frames.find_bars``' ``predicted``). End bays: a
 facade's last column or row often has a pitch of its own (a wider end bay, a taller ground floor); where no
 outer frame ends the run, it is extended by the best two-sided bar between half and twice the pitch beyond
 its end, if that bar pays for two lines (``_with_end_bays``); where the grid's own place one pitch beyond

@@ -244,6 +244,46 @@ def test_bar_evidence_is_the_loop_over_rows_positions_and_widths(seed):
     assert got[0][0].max() > 0 and np.any(got[1][0] > got[0][0])  # the floor counts the one-sided edges
 
 
+def test_an_unknown_edge_counts_the_known_one_as_a_one_sided_bars():
+    """Where a bar's edge lies between two clipped pixels (``Gradients.known``), the known edge alone
+    gives sqrt(s (f s) / 2) (an unknown polarity: 1 - cos averages 1) with s its magnitude and f the
+    floor, whichever the larger with the two-sided product; where neither edge is unknown, as before."""
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 200, (8, 30, 3)).astype(np.uint8)
+    image[:5, 6:14] = 255  # a frame clipped with a lit box beside it over five rows
+    image[:, 14] = 40  # the glass beside the frame
+    grad = Gradients.of(image, 0)
+    params = GridParams(min_pitch=0.5, max_pitch=5.0, sigma_frac=0.1, line_cost=1.0, min_bar=0.02,
+                        max_bar=0.06, lsd_weight=0.5, outer_edge_floor=0.4, uniformity_scale=0.05,
+                        frame_colour_scale=0.1)
+    sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=5)
+    rows = slice(0, 8)
+    g, known = grad.on_lattice[rows], grad.known_on_lattice[rows]
+    L, M, _ = g.shape
+    for floors in ((0.0,), (0.0, 0.4)):
+        (plain, _), *_ = bar_evidence(grad, rows, params, sizes, floors)
+        got = bar_evidence(grad, rows, params, sizes, floors, None, 0.5)
+        for floor, (e, width) in zip(floors, got, strict=True):
+            best, ref_w = np.zeros(M), np.zeros(M)
+            for w in range(2, 6):
+                for c in range(w, M - w):
+                    total = 0.0
+                    for row in range(L):
+                        gl, gr = g[row, c - w], g[row, c + w]
+                        ml, mr = np.linalg.norm(gl), np.linalg.norm(gr)
+                        cos = float(gl @ gr) / max(ml * mr, 1e-12)
+                        weak = max(min(ml, mr), floor * max(ml, mr))
+                        two = max(ml, mr) * weak * min(max(1 - cos, 0.0), 2.0)
+                        one = max((1 - known[row, c - w]) * 0.5 * mr * mr,
+                                  (1 - known[row, c + w]) * 0.5 * ml * ml)
+                        total += np.sqrt(max(two, one) / 2)
+                    if total / L > best[c]:
+                        best[c], ref_w[c] = total / L, w
+            assert np.allclose(e, best, rtol=1e-6, atol=1e-9) and np.array_equal(width, ref_w)
+        # the frame's right edge (at 14 px) with its left edge unknown: more evidence than as absent
+        assert got[0][0][2 * 12] > plain[2 * 12]
+
+
 def _bar_evidence_plain(g: np.ndarray, min_bar: int, max_bar: int,
                         floor: float) -> tuple[np.ndarray, np.ndarray]:
     """The reference to the bit: the plain expressions over arrays of rows, sqrt(s max(w, f s) (1 - cos)

@@ -166,7 +166,7 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 
 
 #: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do). At +0.5 EV 15 of
-#: 15 whole panes, mask IoU median 0.82, min 0.63; at +1 EV 12 of 15, 0.77 / 0.00 (benchmarks/RESULTS.md; the
+#: 15 whole panes, mask IoU median 0.82, min 0.63; at +1 EV 12 of 15, 0.77 / 0.56 (benchmarks/RESULTS.md; the
 #: empty unit clipped pink, near the frames' white, no longer carries the mullions into a border strip:
 #: ``EdgeLine.short``; img042's top transom, clipped with the sky beside it, is placed by the grid at its
 #: pitch, not at the empty unit's lit ceiling a quarter of a pitch lower: ``grid._with_end_bays``; img060's
@@ -174,12 +174,13 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 #: continue on their own, not the two whose centre lines cross the unit's ceiling clipped to the frames'
 #: white: ``openings.openings``).
 #: What is lost at +1 EV: the frames and the bright glass beside them meet at full scale, where no edge is
-#: left to find (img041 finds no grid at any pitch: its second mullion is taken on the grey glass beside the
-#: frame, and its white transoms then fail the colour prior against the two mullions' median); the empty
-#: unit's shelves clip to the frames' white, pass the transoms' colour prior, and its cell is taken for a
-#: pane (img060); and the frames' lit side faces merge with their clipped front faces, a parallax of 7 mm that
-#: the photos as taken do not show (without the parallax correction corners go from 5.5 to 3.4 px at +1 EV,
-#: the IoU stays)
+#: left to find (img041's second mullion, clipped with the empty unit's lit box beside it, is found only at
+#: the building's pitch, where an edge between two clipped pixels counts as unknown: the view's own search
+#: takes the grey glass beside the frame; whole panes of img042, img043 and img060 are not found); the
+#: empty unit's shelves clip to the frames' white, pass the transoms' colour prior, and its cell is taken
+#: for a pane (img060); and the frames' lit side faces merge with their clipped front faces, a parallax of
+#: 7 mm that the photos as taken do not show (without the parallax correction corners go from 5.5 to 3.4 px
+#: at +1 EV, the IoU stays)
 OVEREXPOSED = pytest.mark.xfail(strict=True, reason="frames clipped against bright glass lose their edges; "
                                 "the empty unit clips to the frames' colour")
 #: what does not hold yet, by exposure: +1 EV, ``OVEREXPOSED``. At -0.5 EV one of img042's whole panes
@@ -239,6 +240,18 @@ def test_a_transom_clipped_with_the_sky_beside_it_is_placed_by_the_grid(gcw, exp
     src, data = exposed["+0.5 EV"]
     brighter = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
     assert {s: r["n_found"] for s, r in brighter.items()} == {s: r["n_found"] for s, r in per_photo.items()}
+
+
+def test_a_mullion_clipped_with_the_lit_unit_beside_it_is_found_at_the_buildings_pitch(gcw, exposed):
+    """A stop brighter than taken, img041's second mullion clips with the empty unit's lit box beside it
+    over most of its length: its edge on that side is unknown, and freely sought the grid takes the grey
+    glass beside the frame for the mullion, and no transoms pass the colour prior against it. Sought again
+    at the building's pitch across the mullions, where an edge between two clipped pixels is unknown, not
+    absent, the frame is found, and the photo as much of its glass as taken."""
+    _, per_photo = gcw
+    src, data = exposed["+1 EV"]
+    brighter = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+    assert brighter["img041"]["mask_iou"] >= per_photo["img041"]["mask_iou"] - 0.05
 
 
 def test_views_off_the_wall_grid_are_listed_with_the_reason(gcw):

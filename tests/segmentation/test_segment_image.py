@@ -769,6 +769,37 @@ def test_a_view_whose_mullions_hold_the_buildings_pitch_alone_takes_its_transoms
     assert centres == pytest.approx(d.x0 + 2.4 + 54.8 * np.array([1, 2]), abs=0.5)
 
 
+def test_a_mullion_clipped_with_a_lit_box_beside_it_is_found_at_the_buildings_pitch():
+    """Two mullions of clipped white in view; the second meets a lit box beside it, clipped with it, over
+    three quarters of its length (an empty unit at a brighter exposure), so that its edge on that side is
+    unknown there, and beside its other side lies a dark strip of glass, a bar's width, up to a ragged
+    edge of brighter glass. Sought at the building's pitch across the mullions, an unknown edge taken as
+    absent leaves the frame one edge and the strip of glass two: the grid takes the strip for the
+    mullion. Counted as unknown where the pitch predicts the bar (``find_frames``' ``predicted``: the
+    known edge as an outer frame's), the frame is found."""
+    from facade_pipeline.segmentation.frames import find_frames
+
+    d = Drawing(**{**FINE, "W": 120, "x0": -40.0}, frame_colour=(1.3, 1.3, 1.3))
+    img = d.render()
+    xl, yl = d._lines(0), d._lines(1)
+    img[: int(yl[-1] - 0.25 * d.pitch[1]), int(np.floor(xl[1] + d.bar)) - 1 : int(np.ceil(xl[2])) + 1] = 255
+    rng = np.random.default_rng(1)
+    r = int(round(xl[2] + d.bar))
+    for y in range(int(yl[0] + d.bar), int(yl[-1])):
+        row = img[y, r:]
+        glass, x = row.max(axis=1) < 250, np.arange(len(row))
+        edge = 5 + int(rng.integers(-1, 2))
+        row[glass & (x < edge)] = 60
+        row[glass & (x >= edge)] = 95
+    true = xl[2] + d.bar / 2
+    pitch = 54.8 * FINE_M_PER_PX
+    ranges = {"x": (0.88 * pitch, 1.12 * pitch)}
+    found = {p: find_frames(img, PARAMS, FINE_M_PER_PX, PITCH_M, pitch_m=ranges, predicted=p).bars_v.fit
+             for p in (False, True)}
+    assert found[False].centres[1] > true + 3.0  # the strip of glass beside the frame
+    assert found[True].centres == pytest.approx([xl[1] + d.bar / 2, true], abs=0.75)
+
+
 def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
     (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
