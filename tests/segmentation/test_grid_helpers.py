@@ -198,11 +198,14 @@ def test_map_family_is_the_search_with_the_relaxation_in_full(seed):
         assert len(fit.centres) >= 3
 
 
-def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int,
-                       floor: float) -> tuple[np.ndarray, np.ndarray]:
+def _bar_evidence_loop(
+    g: np.ndarray, min_bar: int, max_bar: int, floor: float, known: np.ndarray | None = None,
+    unknown_floor: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """The reference: at each lattice position and width in turn, the mean over the rows of
     sqrt(max(|gL|, |gR|) * max(min(|gL|, |gR|), floor * max(|gL|, |gR|)) * (1 - cos) / 2), the first best
-    width kept."""
+    width kept. With ``known`` (1 where an edge is readable), an edge that is not stands aside for the
+    other one's sqrt(unknown_floor s^2 / 2), s its magnitude, where that is the larger."""
     L, M, _ = g.shape
     best, width = np.zeros(M), np.zeros(M)
     for w in range(min_bar, max_bar + 1):
@@ -215,7 +218,12 @@ def _bar_evidence_loop(g: np.ndarray, min_bar: int, max_bar: int,
                 ml, mr = np.linalg.norm(gl), np.linalg.norm(gr)
                 cos = float(gl @ gr) / max(ml * mr, 1e-12)
                 weak = max(min(ml, mr), floor * max(ml, mr))
-                total += np.sqrt(max(ml, mr) * weak * min(max(1 - cos, 0.0), 2.0) / 2)
+                two = max(ml, mr) * weak * min(max(1 - cos, 0.0), 2.0)
+                one = 0.0
+                if known is not None:
+                    one = max((1 - known[row, c - w]) * unknown_floor * mr * mr,
+                              (1 - known[row, c + w]) * unknown_floor * ml * ml)
+                total += np.sqrt(max(two, one) / 2)
             if total / L > best[c]:
                 best[c], width[c] = total / L, w
     return best, width
@@ -259,26 +267,11 @@ def test_an_unknown_edge_counts_the_known_one_as_a_one_sided_bars():
     sizes = PixelSizes(min_pitch=5.0, max_pitch=20.0, min_bar=2, max_bar=5)
     rows = slice(0, 8)
     g, known = grad.on_lattice[rows], grad.known_on_lattice[rows]
-    L, M, _ = g.shape
     for floors in ((0.0,), (0.0, 0.4)):
         (plain, _), *_ = bar_evidence(grad, rows, params, sizes, floors)
         got = bar_evidence(grad, rows, params, sizes, floors, None, 0.5)
         for floor, (e, width) in zip(floors, got, strict=True):
-            best, ref_w = np.zeros(M), np.zeros(M)
-            for w in range(2, 6):
-                for c in range(w, M - w):
-                    total = 0.0
-                    for row in range(L):
-                        gl, gr = g[row, c - w], g[row, c + w]
-                        ml, mr = np.linalg.norm(gl), np.linalg.norm(gr)
-                        cos = float(gl @ gr) / max(ml * mr, 1e-12)
-                        weak = max(min(ml, mr), floor * max(ml, mr))
-                        two = max(ml, mr) * weak * min(max(1 - cos, 0.0), 2.0)
-                        one = max((1 - known[row, c - w]) * 0.5 * mr * mr,
-                                  (1 - known[row, c + w]) * 0.5 * ml * ml)
-                        total += np.sqrt(max(two, one) / 2)
-                    if total / L > best[c]:
-                        best[c], ref_w[c] = total / L, w
+            best, ref_w = _bar_evidence_loop(g, 2, 5, floor, known, 0.5)
             assert np.allclose(e, best, rtol=1e-6, atol=1e-9) and np.array_equal(width, ref_w)
         # the frame's right edge (at 14 px) with its left edge unknown: more evidence than as absent
         assert got[0][0][2 * 12] > plain[2 * 12]
