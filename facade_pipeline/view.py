@@ -449,8 +449,8 @@ def headless_page(
 #: a screenshot shows the server's last render once their brightness correlates at least this well
 SHOWN_CORRELATION = 0.7
 
-#: the median filter both images pass before they are compared: more than twice as wide as the lines drawn over
-#: the render (the frustum of the camera looked through, its edges inside the compared region) and the
+#: the median filter both images pass before they are compared: more than twice as wide as the lines drawn
+#: over the render (the frustum of the camera looked through, its edges inside the compared region) and the
 #: JPEG noise of the image's way to the page, so that a dark, low-contrast render is judged by its shapes,
 #: not by a line or the codec
 SHOWN_MEDIAN_PX = 11
