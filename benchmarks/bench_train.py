@@ -201,6 +201,12 @@ def main() -> None:
         help="train with [run] compile on (torch.compile of a step's shading, losses and densification "
         "statistics) whatever the building's [run] says",
     )
+    ap.add_argument(
+        "--fp32-mlp",
+        action="store_true",
+        help="the reflection MLP's matrix products in float32 on CUDA too (the reference of their bfloat16 "
+        "there: shading.reflection.CUDA_MATMUL_DTYPE)",
+    )
     ap.add_argument("--save-bundle", default="", help="write the training data to this .npz and stop")
     ap.add_argument("--bundle", default="", help="train on this .npz (from --save-bundle) instead")
     ap.add_argument(
@@ -266,6 +272,7 @@ def main() -> None:
         # per variant: the paper's has 2DGS's low-pass sigma whatever the building's
         raster = training_rasterizer(cfg.run.raster_backend, p.lowpass_sigma_px, device)
         tr = build_trainer(p, data, raster, device, compile)
+        mlp_dtype(tr, a)
         stopped = None
         try:
             train(tr, progress=lambda it, total, out, n=name: print(f"\r{n}: {it}/{total}", end=""),
@@ -296,6 +303,12 @@ def main() -> None:
     report(a, base, align, prior, data, rows, device)
 
 
+def mlp_dtype(tr, a) -> None:
+    """``--fp32-mlp``: the trainer's reflection MLP computes in float32 on CUDA too."""
+    if a.fp32_mlp and hasattr(tr.state.reflection, "cuda_matmul_dtype"):
+        tr.state.reflection.cuda_matmul_dtype = None
+
+
 def speed(a, base: TrainParams, data: TrainData, backend: str, device, compile: bool) -> None:
     """ms per iteration and the device's peak memory of each variant (``--speed``)."""
     import torch
@@ -310,6 +323,7 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device, compile: 
             continue
         p = dataclasses.replace(p, iterations=a.warmup + a.speed + a.profile)
         tr = build_trainer(p, data, training_rasterizer(backend, p.lowpass_sigma_px, device), device, compile)
+        mlp_dtype(tr, a)
         train(tr, stop_at=a.warmup)
         sync()
         if device.type == "cuda":
@@ -335,6 +349,7 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device, compile: 
         f"{base.supersample} x {base.supersample} samples per pixel, at most {base.densify.max_gaussians} "
         "splats"
         + ("; compiled (`--compile`)" if compile else "")
+        + ("; the reflection MLP in float32 (`--fp32-mlp`)" if a.fp32_mlp else "")
         + (f"; set with `--set`: {', '.join(f'`{x}`' for x in a.set)}" if a.set else "")
         + ".\n",
         "| variant | ms per iteration | peak device memory GiB | splats |",

@@ -39,6 +39,14 @@ from facade_pipeline.training.params import facade_size
 #: Standard deviation of the proxy feature maps' initial values.
 PROXY_INIT_STD = 0.1
 
+#: On CUDA the reflection MLP's matrix products run in this type (autocast: its parameters, its inputs, the
+#: proxy's features and R stay float32, and the backward's products follow the forward's). In float32 they
+#: are the largest share of a GPU step's device time, on no tensor core (benchmarks/RESULTS.md, "The GPU
+#: check"). bfloat16 keeps float32's exponent range, so no activation or gradient over- or underflows, and
+#: its 8-bit mantissa rounds a layer's output by about one 8-bit photo step. None: float32. The CPU always
+#: computes in float32.
+CUDA_MATMUL_DTYPE: torch.dtype | None = torch.bfloat16
+
 
 class EnvMapModule(nn.Module):
     """R(w_r) = sigmoid(bilinear lookup of a [3, H, W] texture at (azimuth, w_r.z))."""
@@ -109,6 +117,7 @@ class ReflectionMLPModule(nn.Module):
         self.first = nn.ModuleList(first)
         self.second = nn.ModuleList(second)
         self.out = nn.Linear(cfg.width, 3)
+        self.cuda_matmul_dtype = CUDA_MATMUL_DTYPE
         # He initialisation of the ReLU layers: with torch's default (variance 1/(3 fan_in)) the signal
         # shrinks about 3x per layer, so the 8-layer MLP starts as a constant R whose gradients vanish, and
         # Adam then drives the output bias into the sigmoid's flat end (R = 1 everywhere within 20 steps on
@@ -120,17 +129,21 @@ class ReflectionMLPModule(nn.Module):
     def forward(self, x_norm: Tensor, w_r: Tensor) -> Tensor:  # [P, 3] in [-1, 1], [P, 3] unit -> [P, 3]
         gx = fourier_features(x_norm, self.cfg.fourier_levels)  # [P, 6L]
         gw = fourier_features(w_r, self.cfg.fourier_levels)  # [P, 6L]
-        h = gx
-        for layer in self.first:
-            h = F.relu(layer(h))
-        mid = [h, gw, gx] if self.cfg.skip else [h, gw]
+        feats = None
         if self.proxy is not None:
             x = self.bounds_lo + 0.5 * (x_norm + 1.0) * (self.bounds_hi - self.bounds_lo)
-            mid.append(self.proxy(x, w_r))
-        h = torch.cat(mid, dim=-1)
-        for layer in self.second:
-            h = F.relu(layer(h))
-        return torch.sigmoid(self.out(h))
+            feats = self.proxy(x, w_r)
+        low = self.cuda_matmul_dtype is not None and x_norm.is_cuda
+        with torch.autocast("cuda", dtype=self.cuda_matmul_dtype or torch.float32, enabled=low):
+            h = gx
+            for layer in self.first:
+                h = F.relu(layer(h))
+            mid = [h, gw, gx] if self.cfg.skip else [h, gw]
+            h = torch.cat(mid if feats is None else [*mid, feats], dim=-1)
+            for layer in self.second:
+                h = F.relu(layer(h))
+            logits = self.out(h)
+        return torch.sigmoid(logits.float())
 
 
 def build_reflection_module(

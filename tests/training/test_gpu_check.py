@@ -62,6 +62,7 @@ def test_speed_from_a_bundle_on_the_cpu_and_its_summary(tmp_path):
     assert "| speed, gpu budget compiled | no result (speed_gpu_compiled.log) |" in text
     assert "| 21.50 (60000) at 100 / 24.90 (140000) at 500 / 24.10 (151000) at 1000 |" in text
     assert "| mlp, 1000 iterations: stopped | the run stopped |" in text
-    assert text.count("\n| ") == 15  # header, rule, 13 rows
+    assert "| speed, gpu budget, float32 MLP | no result (speed_gpu_fp32.log) |" in text
+    assert text.count("\n| ") == 16  # header, rule, 14 rows
     svg = gpu.plot(tmp_path)
     assert svg.startswith("<svg") and "facade, 1000 iterations" in svg and "glass, 1000 iterations" in svg
