@@ -310,8 +310,12 @@ def mlp_dtype(tr, a) -> None:
 
 
 def speed(a, base: TrainParams, data: TrainData, backend: str, device, compile: bool) -> None:
-    """ms per iteration and the device's peak memory of each variant (``--speed``)."""
+    """ms per iteration and the device's peak memory of each variant (``--speed``), and how many graphs
+    ``torch.compile`` made while it was timed (compiled: a first run through the same iterations compiles
+    every specialisation the timed one meets, the normal terms' start among them, so that the figure is a
+    step's and not the compiler's)."""
     import torch
+    from torch._dynamo.utils import counters
 
     def sync() -> None:
         if device.type == "cuda":
@@ -322,21 +326,30 @@ def speed(a, base: TrainParams, data: TrainData, backend: str, device, compile: 
         if a.only and name not in a.only.split(","):
             continue
         p = dataclasses.replace(p, iterations=a.warmup + a.speed + a.profile)
-        tr = build_trainer(p, data, training_rasterizer(backend, p.lowpass_sigma_px, device), device, compile)
+        raster = training_rasterizer(backend, p.lowpass_sigma_px, device)
+        if compile:
+            first = build_trainer(p, data, raster, device, compile)
+            mlp_dtype(first, a)
+            train(first, stop_at=a.warmup + a.speed)
+            del first
+        tr = build_trainer(p, data, raster, device, compile)
         mlp_dtype(tr, a)
         train(tr, stop_at=a.warmup)
         sync()
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
+        graphs = counters["stats"]["unique_graphs"]
         t0 = time.perf_counter()
         train(tr, stop_at=a.warmup + a.speed)
         sync()
         ms = 1000.0 * (time.perf_counter() - t0) / a.speed
+        graphs = counters["stats"]["unique_graphs"] - graphs
         if a.profile > 0:
             profile(tr, name, device, sync)
         mem = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else float("nan")
         rows.append((name, ms, mem, tr.state.model.n))
-        print(f"{name}: {ms:.1f} ms per iteration, peak {mem:.2f} GiB, {tr.state.model.n} splats", flush=True)
+        print(f"{name}: {ms:.1f} ms per iteration, peak {mem:.2f} GiB, {tr.state.model.n} splats, "
+              f"{graphs} graphs compiled while timed", flush=True)  # fmt: skip
     where = machine()
     if device.type == "cuda":
         where += f" GPU: {torch.cuda.get_device_name(device)} (torch {torch.__version__})."

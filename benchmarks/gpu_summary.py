@@ -23,8 +23,8 @@ from facade_pipeline.evaluation.report import svg_scatter  # noqa: E402
 
 TARGET_MS = {"mlp": 12.0, "sh": 8.0}
 SPEED = re.compile(r"^(\w[\w ,]*): ([\d.]+) ms per iteration, peak ([\d.na]+) GiB, (\d+) splats", re.M)
-#: the speed logs, by what they time: the GPU budget, with the reflection MLP in float32 (``--fp32-mlp``), again
-#: compiled (``--compile``), the CPU budget
+#: the speed logs, by what they time: the GPU budget, with the reflection MLP in float32 (``--fp32-mlp``),
+#: again compiled (``--compile``), the CPU budget
 SPEED_LOGS = {
     "gpu": "gpu budget",
     "gpu_fp32": "gpu budget, float32 MLP",

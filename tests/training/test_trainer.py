@@ -492,7 +492,8 @@ def test_a_densification_that_clones_leaves_the_fit_where_it_was(data64):
     of copies that each keep the opacity and composite to 1 - (1 - a)^2."""
     from facade_pipeline.training.densify import DensifyStats, densify_and_prune
 
-    tr = build_trainer(small_params(iterations=200, densify_interval=0, densify_max_gaussians=10_000), data64, RASTER)
+    p = small_params(iterations=200, densify_interval=0, densify_max_gaussians=10_000)
+    tr = build_trainer(p, data64, RASTER)
     train(tr, stop_at=30)
     s, n = tr.state, tr.state.model.n
     before = monitor.whole_view_psnr(tr)
