@@ -1,6 +1,6 @@
 """``torch_compiled``: a function of a training step through ``torch.compile`` (``[run] compile``). On a GPU a
 step of eager torch is launch-bound: about 1,800 kernel launches, each a few microseconds of the host, for
-26 ms of device work (benchmarks/RESULTS.md, "The GPU check"); compiled, the element-wise chains of the
+17 ms of device work (benchmarks/RESULTS.md, "The GPU check"); compiled, the element-wise chains of the
 shading, the losses and their backward become a few fused kernels. The functions compiled take tensors and
 flags only, with shapes that do not depend on the values, so that nothing in them waits for the device."""
 
