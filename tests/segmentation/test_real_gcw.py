@@ -254,6 +254,17 @@ def test_a_mullion_clipped_with_the_lit_unit_beside_it_is_found_at_the_buildings
     assert brighter["img041"]["mask_iou"] >= per_photo["img041"]["mask_iou"] - 0.05
 
 
+
+def test_a_mullion_clipped_and_cut_by_the_views_border_keeps_its_pane(gcw, exposed):
+    """A stop brighter than taken, img043's last mullion clips white, and the view's border slants across
+    it: its far edge lies outside the view or between two clipped pixels in every row. Unknown, not
+    absent (``edges.bar_edges``), it is placed at the bar's width from the near edge, and the pane beside
+    the bar is whole, as in the photo as taken."""
+    _, per_photo = gcw
+    src, data = exposed["+1 EV"]
+    brighter = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+    assert brighter["img043"]["n_found"] == per_photo["img043"]["n_found"] == 2
+
 def test_views_off_the_wall_grid_are_listed_with_the_reason(gcw):
     """Nothing silent: every photo whose grid's pitch is not the wall's (0.1032 x 0.1532 m, the truth's;
     a shelf behind an empty unit taken for a transom) is listed in the manifest with its pitch, after the
