@@ -102,15 +102,38 @@ def fit_edge(grad: Gradients, position: float, sign: float, rows: slice, search_
 
 
 def bar_edges(
-    grad: Gradients, centre: float, width: float, rows: slice, search_px: float
+    grad: Gradients, centre: float, width: float, rows: slice, search_px: float, place_unknown: bool = True
 ) -> tuple[EdgeLine, EdgeLine] | None:
     """The (low, high) edges of the bar centred at ``centre`` with ``width`` (px), or None. Each edge takes
-    the polarity of the mean gradient at its expected position."""
+    the polarity of the mean gradient at its expected position. With ``place_unknown``, an edge not fitted
+    whose place is unknown in every row (``unknown_place``: a frame clipped with what lies beside it, or
+    cut by the view's border) is no evidence against the bar: it is placed ``width`` from the other edge,
+    parallel to it, with no strength."""
     low = fit_edge(grad, centre - width / 2, 1.0, rows, search_px)
     high = fit_edge(grad, centre + width / 2, 1.0, rows, search_px)
+    if place_unknown and (low is None) != (high is None):
+        seen, side = (high, -1.0) if low is None else (low, 1.0)
+        if unknown_place(grad, centre + side * width / 2, rows, search_px):
+            placed = EdgeLine(seen.a + side * float(width), seen.b, seen.mid, np.zeros_like(seen.strength))
+            low, high = (placed, high) if low is None else (low, placed)
     if low is None or high is None or high.a <= low.a:
         return None
     return low, high
+
+
+def unknown_place(grad: Gradients, position: float, rows: slice, search_px: float) -> bool:
+    """Whether no boundary within ``search_px`` of ``position`` (px; ``fit_edge``'s search) is known in any
+    of ``rows``: each lies between two clipped pixels (``Gradients.known``) or beside a pixel outside the
+    view, where an edge may be as well as not."""
+    n = grad.d.shape[1]
+    lo = int(max(0, np.floor(position - 1.0 - search_px)))
+    hi = int(min(n, np.ceil(position - 1.0 + search_px) + 1))
+    if hi - lo < 1:
+        return True
+    known = grad.valid[rows, lo:hi] & grad.valid[rows, lo + 1 : hi + 1]
+    if grad.known is not None:
+        known &= grad.known[rows, lo:hi] > 0
+    return not known.any()
 
 
 def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,

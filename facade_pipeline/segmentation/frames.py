@@ -171,10 +171,12 @@ def extent(fit: FamilyFit | None, size: int) -> slice:
 
 def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> Bars | None:
     """The edges of each bar of ``fit``; a bar placed by the grid (``FamilyFit.placed``) whose edges are
-    not found keeps the straight edges of its place."""
+    not both found keeps the straight edges of its place: it clips with the glass beside it, and the one
+    edge found there is as often where the clip ends in the glass (``bar_edges``' ``place_unknown`` is
+    for the bars the grid found by their edges)."""
     found = [
-        bar_edges(grad, c, w, span, EDGE_SEARCH_PX)
-        for c, w in zip(fit.centres, fit.widths, strict=True)
+        bar_edges(grad, c, w, span, EDGE_SEARCH_PX, k not in fit.placed)
+        for k, (c, w) in enumerate(zip(fit.centres, fit.widths, strict=True))
     ]
     edges = []
     mid = 0.5 * (span.indices(grad.img.shape[0])[0] + span.indices(grad.img.shape[0])[1])

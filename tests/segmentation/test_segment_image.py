@@ -800,6 +800,50 @@ def test_a_mullion_clipped_with_a_lit_box_beside_it_is_found_at_the_buildings_pi
     assert found[True].centres == pytest.approx([xl[1] + d.bar / 2, true], abs=0.75)
 
 
+
+def test_a_mullion_clipped_white_and_cut_by_the_views_border_keeps_its_panes_whole():
+    """Frames clipped white, the view's right border slanting across the last mullion (2-3.5 px into its
+    4.8): its far edge lies outside the view or between two clipped pixels in every row, unknown, not
+    absent. The grid finds the bar by its near edge; that edge alone is fitted and the far one placed at
+    the bar's width, so that the last column's panes are whole, their corners on the drawn ones. Taken
+    as absent, the bar would be dropped and those panes cut by the border."""
+    d = Drawing(**FINE, frame_colour=(1.3, 1.3, 1.3))
+    img = d.render()
+    H, W = img.shape[:2]
+    near = d._lines(0)[-1]
+    cut = near + 2.0 + 1.5 * (np.arange(H)[:, None] + 0.5) / H  # the border's position in each row
+    valid = np.arange(W)[None] + 1.0 <= cut
+    img[~valid] = 0  # as rectify leaves the outside of the view
+    seg = segment_image(img, PARAMS, FINE_M_PER_PX, PITCH_M, valid)
+    assert sum(p.complete for p in seg.panels) == len(d.glass_rects) == 9
+    err = corner_errors(seg, d.corners(), W, H)
+    assert len(err) == 36 and err.max() < 0.5
+
+
+@pytest.mark.parametrize("clipped", [True, False])
+def test_an_edge_unknown_in_every_row_is_placed_at_the_bars_width_and_one_known_absent_is_not(clipped):
+    """A bar (columns 20-28) between dark glass and a region of its own colour beyond it: clipped white
+    (255), the edge between bar and region lies between two clipped pixels in every row, unknown, and
+    the bar keeps its fitted edge with the other placed at its width, parallel, with no strength; just
+    below clipping (240) the same picture shows that no edge is there, and the bar has none."""
+    from facade_pipeline.segmentation.edges import bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    rng = np.random.default_rng(5)
+    img = np.clip(rng.normal(60, 3, (50, 40, 3)), 0, 255)
+    img[:, 20:] = 255 if clipped else 240
+    grad = Gradients.of(np.rint(img).astype(np.uint8), 0)
+    e = bar_edges(grad, 24.0, 8.0, slice(0, 50), EDGE_SEARCH_PX)
+    if not clipped:
+        assert e is None
+        return
+    low, high = e
+    assert abs(low.a - 20.0) < 0.2 and low.strength.min() > 0
+    assert high.a == low.a + 8.0 and high.b == low.b and not high.strength.any()
+    # the grid's own placing of a bar (``FamilyFit.placed``) does not take the one edge
+    assert bar_edges(grad, 24.0, 8.0, slice(0, 50), EDGE_SEARCH_PX, place_unknown=False) is None
+
 def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
     (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
