@@ -55,6 +55,7 @@ class ViewTensors:
     image: Tensor  # [H, W, 3]
     mask: Tensor  # [H, W] bool: facade mask (all True when not masking)
     glass: Tensor  # [H, W] bool
+    facade: Tensor  # [H, W] bool: facade mask (also when not masking)
     prior: Tensor  # [H, W, 3]
     prior_valid: Tensor  # [H, W] bool
     clipped: Tensor | None = None  # [H, W, 3] bool: channels the photo clipped; None: none
@@ -75,6 +76,7 @@ def views_on_device(
             t(v.image),
             t(v.facade_mask if mask_by_facade else np.ones_like(v.facade_mask), torch.bool),
             t(v.glass_mask, torch.bool),
+            t(v.facade_mask, torch.bool),
             t(v.normal_prior),
             t(v.normal_valid, torch.bool),
             None if v.clipped is None else t(v.clipped, torch.bool),

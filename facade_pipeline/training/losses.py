@@ -1,8 +1,9 @@
 """Training losses (Eq. 11-13) over a masked image window, and ``compute_losses``, their weighted sum for
-one rendered window (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf, with L_c = 0.8 L1
-+ 0.2 D-SSIM, the 2DGS normal consistency L_n, the normal prior L_np (Eq. 11) and the high-frequency loss
-L_hf (Eq. 12), all over the facade mask. Images are [H, W, 3] in [0, 1]; masks [H, W] bool. Every mean is
-over the pixels of its mask and returns 0 (not NaN) on an empty mask."""
+one rendered window (Eq. 13): L = L_c + lambda_n L_n + lambda_np L_np + lambda_hf L_hf + lambda_o L_o, with
+L_c = 0.8 L1 + 0.2 D-SSIM, the 2DGS normal consistency L_n, the normal prior L_np (Eq. 11), the
+high-frequency loss L_hf (Eq. 12) and the facade's pull toward opaque L_o (ours), all over the facade mask.
+Images are [H, W, 3] in [0, 1]; masks [H, W] bool. Every mean is over the pixels of its mask and returns 0
+(not NaN) on an empty mask."""
 
 from __future__ import annotations
 
@@ -93,9 +94,16 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, valid: Tensor) -> Tensor:
     """Eq. 11: mean over valid pixels of || n - n_hat ||_1, n the direction of the rendered world normal,
     n_hat the baked one. The direction, not the alpha-blended normal itself: that one is as long as the
     pixel's accumulated alpha, so a unit prior would also pull every splat's opacity up whatever the photos
-    show, and the training views' fit fell for a hundred steps under that pull (docs/method.md). The colour
-    terms alone set how opaque the facade is."""
+    show, and the training views' fit fell for a hundred steps under that pull (docs/method.md). The pull
+    toward opaque is a term of its own, ``opacity_loss``, with its own weight."""
     return masked_mean((safe_normalize(normal) - prior).abs().sum(-1), valid)
+
+
+def opacity_loss(alpha: Tensor, facade: Tensor) -> Tensor:
+    """Mean over the facade's pixels of 1 - A, A the pixel's accumulated alpha: the facade is an opaque
+    surface in every view, and a pixel left transparent shows the black of the masked photos, which dark
+    glass matches about as well as the glass itself. Pixels off the facade are not pulled."""
+    return masked_mean(1.0 - alpha, facade)
 
 
 def depth_normals(points: Tensor) -> Tensor:  # [H, W, 3] surface points -> [H, W, 3]
@@ -173,6 +181,9 @@ def compute_losses(
         total = total + p.lambda_normal * terms["normal"]
     if with_prior:
         total = total + p.lambda_normal_prior * terms["normal_prior"]
+    if p.lambda_opacity > 0:  # eager: the accumulated alpha needs no shading
+        terms["opacity"] = opacity_loss(r.alpha, vt.facade)
+        total = total + p.lambda_opacity * terms["opacity"]
     tau = step_schedule(p.hf_tau_start, p.hf_tau_end, p.hf_steps, iteration, p.iterations)
     lam = step_schedule(p.lambda_hf_start, p.lambda_hf_end, p.hf_steps, iteration, p.iterations)
     if lam > 0:  # eager: its threshold changes along the run, which would recompile a compiled graph

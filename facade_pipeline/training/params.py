@@ -92,6 +92,8 @@ class TrainParams:
     mask_by_facade: bool
     lambda_normal: NonNeg
     lambda_normal_prior: NonNeg
+    lambda_opacity: NonNeg
+    """weight of the opacity term (``losses.opacity_loss``): the facade's pixels pulled toward opaque"""
     lambda_hf_start: NonNeg
     lambda_hf_end: NonNeg
     hf_tau_start: NonNeg

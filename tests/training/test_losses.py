@@ -148,3 +148,18 @@ def test_a_clipped_channel_pulls_a_darker_render_up_and_lets_a_brighter_one_be()
     assert pred.grad[0, 0, 1] > 0.0  # unclipped, too bright: pulled down
     assert pred.grad[0, 0, 2] < 0.0  # clipped, darker: pulled up
     assert losses.recorded(pred, gt, None) is pred
+
+
+def test_opacity_loss_pulls_facade_pixels_up_and_leaves_the_rest_alone():
+    """Mean of 1 - A over the facade's pixels: its gradient is -1 / (facade pixels) on each of them and
+    exactly 0 off the facade, so a pixel outside the facade is never pulled toward opaque."""
+    alpha = torch.rand(5, 6, generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    facade = torch.zeros(5, 6, dtype=torch.bool)
+    facade[1:4, 2:5] = True
+    a = alpha.clone().requires_grad_()
+    loss = losses.opacity_loss(a, facade)
+    loss.backward()
+    values = [1.0 - float(alpha[y, x]) for y in range(5) for x in range(6) if facade[y, x]]
+    assert float(loss) == pytest.approx(sum(values) / len(values), rel=1e-12)
+    assert torch.all(a.grad[facade] == -1.0 / 9.0) and torch.all(a.grad[~facade] == 0.0)
+    assert float(losses.opacity_loss(alpha, torch.zeros_like(facade))) == 0.0

@@ -21,6 +21,7 @@ from facade_pipeline.training.exposure import ExposureParams
 from facade_pipeline.training.losses import compute_losses
 from facade_pipeline.training.params import facade_size
 from facade_pipeline.training.render import Camera, random_subset, render_view, splatting_rasterizer
+from facade_pipeline.training.schedule import step_schedule
 from facade_pipeline.training.trainer import (
     TrainingDivergedError,
     build_trainer,
@@ -634,3 +635,31 @@ def test_the_step_psnr_only_in_logged_steps_trains_the_same(data64):
     ):
         assert ka == kb and torch.equal(va, vb), ka
     assert torch.equal(every.state.generator.get_state(), none.state.generator.get_state())
+
+
+def test_opacity_term_adds_its_own_pull_and_lambda_zero_is_the_loss_without_it(data64):
+    """``lambda_opacity`` 0 leaves the loss as it was (no term, the same total); a weight adds exactly
+    lambda times the facade's mean 1 - alpha, whose gradient raises splats' opacities and lowers none;
+    a view without facade pixels gets no pull at all."""
+    p0 = small_params(lambda_opacity=0.0)
+    tr = build_trainer(p0, data64, RASTER)
+    r, vt = render_window(tr, 1, (8, 8, 40, 40))
+    assert bool(vt.facade.any()) and not bool(vt.facade.all())
+    t0 = compute_losses(p0, r, vt, p0.iterations - 1)
+    assert "opacity" not in t0
+    it = p0.iterations - 1
+    lam_hf = step_schedule(p0.lambda_hf_start, p0.lambda_hf_end, p0.hf_steps, it, p0.iterations)
+    old = t0["color"] + p0.lambda_normal * t0["normal"] + p0.lambda_normal_prior * t0["normal_prior"]
+    old = old + lam_hf * t0["hf"]
+    assert float(t0["loss"]) == float(old)
+    lam = 0.5
+    t1 = compute_losses(dataclasses.replace(p0, lambda_opacity=lam), r, vt, p0.iterations - 1)
+    a, f = r.alpha.detach().double(), vt.facade
+    pull = float((1.0 - a[f]).sum() / f.sum())
+    assert float(t1["opacity"]) == pytest.approx(pull, rel=1e-6)
+    assert float(t1["loss"] - t0["loss"]) == pytest.approx(lam * pull, rel=1e-5)
+    logits = tr.state.model.opacity_logits
+    (g,) = torch.autograd.grad(losses.opacity_loss(r.alpha, vt.facade), logits, retain_graph=True)
+    assert float(g.max()) <= 0.0 and float(g.min()) < 0.0
+    (g,) = torch.autograd.grad(losses.opacity_loss(r.alpha, torch.zeros_like(vt.facade)), logits)
+    assert torch.all(g == 0)
