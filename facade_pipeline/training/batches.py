@@ -71,18 +71,19 @@ def views_on_device(
     def t(a: np.ndarray, dtype=torch.float32) -> Tensor:
         return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
 
-    return tuple(
-        ViewTensors(
+    def on_device(v: TrainView) -> ViewTensors:
+        facade = t(v.facade_mask, torch.bool)
+        return ViewTensors(
             t(v.image),
-            t(v.facade_mask if mask_by_facade else np.ones_like(v.facade_mask), torch.bool),
+            facade if mask_by_facade else torch.ones_like(facade),  # one facade mask on the device
             t(v.glass_mask, torch.bool),
-            t(v.facade_mask, torch.bool),
+            facade,
             t(v.normal_prior),
             t(v.normal_valid, torch.bool),
             None if v.clipped is None else t(v.clipped, torch.bool),
         )
-        for v in views
-    )
+
+    return tuple(on_device(v) for v in views)
 
 
 def view_tensors(view: ViewTensors, window: Window, clipped: np.ndarray | None) -> ViewTensors:
