@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from facade_pipeline.training.model import GaussianModel, inverse_sigmoid, quat_to_rotmat
 from facade_pipeline.training.params import DensifyParams
+from facade_pipeline.training.schedule import at_fraction
 
 # 2DGS's densification numbers (its training defaults, those of 3DGS; DESIGN.md), never tuned here: they are
 # fractions of the scene extent or of the run, so they carry over to any facade and budget. What a budget
@@ -171,6 +172,22 @@ def _split_rows(model: GaussianModel, split: Tensor, k: int, generator: torch.Ge
     rows["means"] = rows["means"] + (R[:, :, :2] @ eps.unsqueeze(-1)).squeeze(-1)
     rows["log_scales"] = (s / (0.8 * k)).log()
     return rows
+
+
+def densify_window(iterations: int) -> tuple[int, int]:
+    """(start, end): densification, and the opacity resets with it, run at the iterations ``it`` with
+    start < it <= end of a run of ``iterations``."""
+    return at_fraction(DENSIFY_START_FRACTION, iterations), at_fraction(DENSIFY_END_FRACTION, iterations)
+
+
+def last_opacity_reset(d: DensifyParams, iterations: int, iteration: int) -> int:
+    """The last iteration at or before ``iteration`` at which a run of ``iterations`` reset its opacities
+    (0: none yet): a multiple of ``d.opacity_reset_interval`` inside ``densify_window``."""
+    if d.opacity_reset_interval <= 0:
+        return 0
+    start, end = densify_window(iterations)
+    last = min(iteration, end) // d.opacity_reset_interval * d.opacity_reset_interval
+    return last if last > start else 0
 
 
 def reset_opacity(model: GaussianModel, opt: torch.optim.Optimizer, value: float) -> None:

@@ -39,12 +39,12 @@ from facade_pipeline.training.compiling import torch_compiled
 from facade_pipeline.training.corrections import ViewCorrections
 from facade_pipeline.training.data import ExposureEstimate, TrainData
 from facade_pipeline.training.densify import (
-    DENSIFY_END_FRACTION,
-    DENSIFY_START_FRACTION,
     OPACITY_RESET_VALUE,
     DensifyStats,
     accumulate,
     densify_and_prune,
+    densify_window,
+    last_opacity_reset,
     reset_opacity,
     view_space_grad,
 )
@@ -70,7 +70,7 @@ from facade_pipeline.training.render import (
     random_subset,
     render_view,
 )
-from facade_pipeline.training.schedule import active_sh_degree, at_fraction
+from facade_pipeline.training.schedule import active_sh_degree
 
 log = logging.getLogger(__name__)
 #: A splat this many scene extents from the facade means the run diverged: a sanity bound, far beyond any
@@ -358,7 +358,7 @@ def step(tr: Trainer, psnr: bool = True) -> dict[str, Tensor]:
         if tr.state.corrections is not None:
             grads |= {f"view_{n}": t.grad for n, t in tr.state.corrections.named_parameters()}
         _check_finite(tr, "gradients", grads)
-    densify_end = at_fraction(DENSIFY_END_FRACTION, p.iterations)
+    densify_end = densify_window(p.iterations)[1]
     if tr.state.iteration < densify_end and tr.state.model.means.grad is not None:
         grad_of = torch_compiled(view_space_grad, True) if tr.shading.compiled else view_space_grad
         g, vis = grad_of(
@@ -395,7 +395,7 @@ def check_state(tr: Trainer) -> None:
 
 def _densify_if_due(tr: Trainer) -> None:
     p, d, it = tr.params, tr.params.densify, tr.state.iteration
-    start, end = (at_fraction(f, p.iterations) for f in (DENSIFY_START_FRACTION, DENSIFY_END_FRACTION))
+    start, end = densify_window(p.iterations)
     if not start < it <= end:
         return
     if d.interval > 0 and it % d.interval == 0:
@@ -404,7 +404,7 @@ def _densify_if_due(tr: Trainer) -> None:
         counts = densify_and_prune(s.model, s.opt, s.stats, d, tr.extent, prune_big, s.generator)
         tr.state.stats = DensifyStats.zeros(tr.state.model.n, tr.device)
         log.debug("iteration %d: densified %s -> %d splats", it, counts, tr.state.model.n)
-    if d.opacity_reset_interval > 0 and it % d.opacity_reset_interval == 0:
+    if last_opacity_reset(d, p.iterations, it) == it:
         reset_opacity(tr.state.model, tr.state.opt, OPACITY_RESET_VALUE)
 
 

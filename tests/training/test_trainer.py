@@ -13,7 +13,7 @@ import torch
 
 from facade_pipeline.errors import PipelineError
 from facade_pipeline.splatting.types import NEAR_M
-from facade_pipeline.training import exposure, losses, monitor
+from facade_pipeline.training import densify, exposure, losses, monitor
 from facade_pipeline.training import trainer as trainer_module
 from facade_pipeline.training.batches import camera
 from facade_pipeline.training.checkpoints import save_checkpoint
@@ -559,6 +559,49 @@ def test_a_whole_view_psnr_far_below_its_best_stops_training(data64, monkeypatch
     monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: math.nan)
     with pytest.raises(TrainingDivergedError, match="NaN"):
         monitor.monitored(tr, {"iteration": 15})
+
+
+def test_the_checks_after_an_opacity_reset_are_judged_against_each_other(data64, monkeypatch):
+    """A reset clamps every opacity to 0.01: the views go nearly black by design, so a check at or after it
+    is not a divergence against the checks before it; against those after it, it is."""
+    p = small_params(iterations=40, densify_opacity_reset_interval=10)
+    tr = build_trainer(p, data64, RASTER)
+    assert densify.last_opacity_reset(p.densify, p.iterations, 15) == 10
+    tr.state.log = [{"iteration": 5, "view_psnr": 24.0}]
+    tr.state.iteration = 10  # the check of the reset's own step
+    monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 6.0)
+    tr.state.log.append(monitor.monitored(tr, {"iteration": 10}))
+    tr.state.iteration = 15
+    monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 20.0)
+    tr.state.log.append(monitor.monitored(tr, {"iteration": 15}))
+    tr.state.iteration = 20  # the next reset: again nothing before it counts
+    monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 6.5)
+    tr.state.log.append(monitor.monitored(tr, {"iteration": 20}))
+    tr.state.iteration = 25  # densification, and the resets with it, ended at 20: 6.5 dB is the best since
+    monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 18.0)
+    tr.state.log.append(monitor.monitored(tr, {"iteration": 25}))
+    tr.state.iteration = 30
+    monkeypatch.setattr(monitor, "whole_view_psnr", lambda tr: 18.0 - monitor.DIVERGENCE_DROP_DB - 0.1)
+    with pytest.raises(TrainingDivergedError, match="at iteration 30"):
+        monitor.monitored(tr, {"iteration": 30})
+
+
+def test_the_last_opacity_reset_is_where_training_made_it(data64, monkeypatch):
+    """``last_opacity_reset`` (what the divergence check counts from) against the iterations at which a run
+    actually reset its opacities, recorded as it trains."""
+    made: list[int] = []
+    real = trainer_module.reset_opacity
+    for interval, iterations in ((4, 30), (7, 30), (10, 19), (0, 20)):
+        made.clear()
+        p = small_params(iterations=iterations, densify_interval=3, densify_opacity_reset_interval=interval)
+        tr = build_trainer(p, data64, RASTER)
+        monkeypatch.setattr(trainer_module, "reset_opacity",
+                            lambda m, o, v, tr=tr: (made.append(tr.state.iteration), real(m, o, v)))
+        train(tr)
+        assert (interval == 0) == (not made)
+        for it in range(iterations + 1):
+            expected = max((r for r in made if r <= it), default=0)
+            assert densify.last_opacity_reset(p.densify, iterations, it) == expected, (interval, it)
 
 
 def test_training_is_the_same_on_the_same_scene_at_1_to_25(data64):
