@@ -5,9 +5,11 @@
 # host (benchmarks/RESULTS.md, the GPU check), so runs side by side share the device well until its own work
 # per step adds up to the wall time.
 #
-#   benchmarks/gpu_ladder.sh BUNDLE WHEELS OUT BUILDING JOB...     JOB: VARIANT:ITERATIONS[:LOG_EVERY]
+#   benchmarks/gpu_ladder.sh BUNDLE WHEELS OUT BUILDING JOB...
 #
-# e.g. benchmarks/gpu_ladder.sh gcw.npz wheels out gcw_dev mlp:1000 mlp:5000:500 sh:5000:500
+# JOB is VARIANT:ITERATIONS[:LOG_EVERY[:KEY=VALUE,...]], the keys [train_gs] keys for that run (bench_train's
+# --set), e.g. benchmarks/gpu_ladder.sh gcw.npz wheels out gcw_dev mlp:1000 sh:5000:500
+# mlp:4000:500:densify.opacity_reset_interval=1000
 # OUT receives each run's log (its last line "result: {...}", bench_train's figures) and the CUDA tests' log.
 # Environment: TORCH_CUDA_ARCH_LIST (default 9.0), JOB_S (each run's time limit, default 460 s),
 # FACADE_LPIPS_DIR (as gpu_check.sh), TESTS=0 to skip the CUDA tests run beside the jobs.
@@ -41,11 +43,14 @@ export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
 
 pids=()
 for job in "$@"; do
-  IFS=: read -r variant iters every <<< "$job"
-  log="$OUT/${variant}_${iters}.log"
+  IFS=: read -r variant iters every keys <<< "$job"
+  sets=()
+  IFS=, read -ra pairs <<< "${keys:-}"
+  for kv in "${pairs[@]}"; do sets+=(--set "$kv"); done
+  log="$OUT/${variant}_${iters}${keys:+_${keys//[^A-Za-z0-9]/_}}.log"
   OMP_NUM_THREADS=2 timeout "$JOB_S" "$PY" benchmarks/bench_train.py --bundle "$BUNDLE" --building "$BUILDING" \
     --device cuda --patch-px 0 --no-write --lpips --only "$variant" --iterations "$iters" \
-    --log-every "${every:-$(( iters / 10 ))}" > "$log" 2>&1 &
+    --log-every "${every:-$(( iters / 10 ))}" "${sets[@]}" > "$log" 2>&1 &
   pids+=($!)
 done
 if [ "${TESTS:-1}" != 0 ]; then
