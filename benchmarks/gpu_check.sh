@@ -41,23 +41,13 @@ cd "$ROOT"
 T0=$(date +%s)
 step() { echo "== $(( $(date +%s) - T0 )) s: $*"; }
 
-# gsplat: installed from the wheel into a folder of its own, then its CUDA code built (JIT) once
-SITE="$OUT/site"
 GSPLAT_BUILD_S=-
 if [ "$DEVICE" = cuda ]; then
   "$PY" -c "import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)" \
     || { echo "gpu_check: expected a CUDA device, found none (DEVICE=cpu for a dry run)" >&2; exit 2; }
-  if ! "$PY" -c "import gsplat" 2>/dev/null; then
-    WHEEL=$(ls "$WHEELS"/gsplat-*.whl 2>/dev/null | head -1) \
-      || { echo "gpu_check: $WHEELS: expected gsplat's wheel, found none" >&2; exit 2; }
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$SITE" "$WHEEL"
-    export PYTHONPATH="$SITE${PYTHONPATH:+:$PYTHONPATH}"
-  fi
   step "building gsplat for sm_${TORCH_CUDA_ARCH_LIST/./}"
-  B0=$(date +%s)
-  MAX_JOBS=${MAX_JOBS:-16} "$PY" -c "from gsplat.cuda._backend import _C; assert _C is not None" \
-    > "$OUT/gsplat_build.log" 2>&1 || { tail -30 "$OUT/gsplat_build.log"; exit 1; }
-  GSPLAT_BUILD_S=$(( $(date +%s) - B0 ))
+  . benchmarks/gsplat_build.sh
+  build_gsplat "$WHEELS" "$OUT" || exit 1
 fi
 export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
 

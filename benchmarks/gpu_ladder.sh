@@ -29,15 +29,8 @@ cd "$ROOT"
 [ -f "$BUNDLE" ] || { echo "gpu_ladder: $BUNDLE: expected a bundle (bench_train.py --save-bundle), found no file" >&2; exit 2; }
 T0=$(date +%s)
 
-if ! "$PY" -c "import gsplat" 2>/dev/null; then
-  WHEEL=$(ls "$WHEELS"/gsplat-*.whl 2>/dev/null | head -1) \
-    || { echo "gpu_ladder: $WHEELS: expected gsplat's wheel, found none" >&2; exit 2; }
-  "$PY" -m pip install -q --no-index --no-deps --no-compile --target "$OUT/site" "$WHEEL"
-  export PYTHONPATH="$OUT/site${PYTHONPATH:+:$PYTHONPATH}"
-fi
-# built once before the runs start, so that they do not race for the build's lock
-MAX_JOBS=${MAX_JOBS:-16} "$PY" -c "from gsplat.cuda._backend import _C; assert _C is not None" \
-  > "$OUT/gsplat_build.log" 2>&1 || { tail -30 "$OUT/gsplat_build.log"; exit 1; }
+. benchmarks/gsplat_build.sh
+build_gsplat "$WHEELS" "$OUT" || exit 1
 echo "== $(( $(date +%s) - T0 )) s: gsplat built; ${#@} runs side by side"
 export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
 
