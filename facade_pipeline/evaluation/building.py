@@ -51,7 +51,7 @@ from facade_pipeline.manifest import read_manifest
 from facade_pipeline.meshing.correct import FRAME, read_labels
 from facade_pipeline.panels3d.model import PanelSet
 from facade_pipeline.scene import ImportedScene, View
-from facade_pipeline.training.data import block_reduce, pixel_budget_factor, scaled_camera
+from facade_pipeline.training.data import block_reduce, clipped_channels, pixel_budget_factor, scaled_camera
 from facade_pipeline.training.params import flat_params
 from facade_pipeline.training.trained import PIPELINE_MODEL, TrainedModelFiles
 
@@ -122,12 +122,14 @@ def load_eval_view(layout: BuildingLayout, view: View, max_pixels: int = 0) -> E
             layout.root / view.image, f"an image of {facade.shape} px (its masks)", f"{truth.shape[:2]}"
         )
     cam = view.camera
+    clipped = clipped_channels(truth).any(axis=-1)
     f = pixel_budget_factor(cam.width, cam.height, max_pixels)
-    if f > 1:
+    if f > 1:  # as training's views (``downscale_view``): a pixel clipped where any of its block is
         truth = block_reduce(truth, f)
         facade, glass = (block_reduce(np.asarray(m, np.float32), f) >= 0.5 for m in (facade, glass))
+        clipped = block_reduce(clipped, f, "any")
     facade, glass = np.asarray(facade, bool), np.asarray(glass, bool)
-    return EvalView(view.stem, scaled_camera(cam, f), truth, facade, glass)
+    return EvalView(view.stem, scaled_camera(cam, f), truth, facade, glass, clipped=clipped)
 
 
 def lpips_status(params: EvaluateParams) -> dict[str, str]:

@@ -28,7 +28,8 @@ from facade_pipeline.training.params import AlignParams
 @dataclass(frozen=True)
 class EvalView:
     """A view to measure: its camera, its photo [H, W, 3] in [0, 1], the facade and glass masks [H, W]
-    bool and, optionally, the normal prior [H, W, 3] (world, unit) with its validity [H, W] bool."""
+    bool and, optionally, the normal prior [H, W, 3] (world, unit) with its validity [H, W] bool and the
+    photo's clipped pixels [H, W] bool (any channel: ``image_eval.region_masks``'s ``unclipped``)."""
 
     stem: str
     camera: PinholeCamera
@@ -37,13 +38,16 @@ class EvalView:
     glass_mask: np.ndarray
     normal_prior: np.ndarray | None = None
     normal_valid: np.ndarray | None = None
+    clipped: np.ndarray | None = None
 
     @classmethod
     def of_train_view(cls, v: TrainView, mask_by_facade: bool = True) -> EvalView:
         """A training data view, measured over its facade mask (over the whole image when training did not
-        mask by the facade, as it then learnt the whole image)."""
+        mask by the facade, as it then learnt the whole image); its clipped channels (None: none) as
+        clipped pixels."""
         facade = v.facade_mask if mask_by_facade else np.ones_like(v.facade_mask, dtype=bool)
-        return cls(v.stem, v.camera, v.image, facade, v.glass_mask, v.normal_prior, v.normal_valid)
+        clipped = np.zeros_like(facade) if v.clipped is None else np.asarray(v.clipped).any(axis=-1)
+        return cls(v.stem, v.camera, v.image, facade, v.glass_mask, v.normal_prior, v.normal_valid, clipped)
 
 
 def views_of(data: TrainData, indices: Sequence[int], mask_by_facade: bool = True) -> list[EvalView]:
@@ -81,7 +85,7 @@ def measure_view(
         render, alignment = a.render, a.alignment.summary()
     else:
         render, alignment = render_trained(tm, view.camera, view.facade_mask), None
-    masks = region_masks(view.facade_mask, view.glass_mask)
+    masks = region_masks(view.facade_mask, view.glass_mask, view.clipped)
     row: dict[str, Any] = {"view": view.stem, "metrics": view_metrics(render.rgb, view.image, masks, setting)}
     if view.normal_prior is not None:
         row["normal_error_glass_deg"] = normal_error_glass_deg(render.normal, view)
@@ -109,8 +113,9 @@ def evaluate_views(
 
 
 def headline(result: dict[str, Any]) -> dict[str, Any]:
-    """The figures quoted beside a training run: mean PSNR and SSIM over the facade, PSNR on glass and on
-    its interior, and the normal error on glass (None where no view had the region or a prior)."""
+    """The figures quoted beside a training run: mean PSNR and SSIM over the facade, PSNR on glass, on
+    its interior and on the facade's unclipped pixels, and the normal error on glass (None where no view
+    had the region or a prior)."""
     mean = result["mean"]
 
     def get(region: str, key: str) -> Any:
@@ -121,5 +126,6 @@ def headline(result: dict[str, Any]) -> dict[str, Any]:
         "ssim": get("facade", "ssim"),
         "psnr_glass": get("glass", "psnr"),
         "psnr_glass_interior": get("glass_interior", "psnr"),
+        "psnr_unclipped": get("unclipped", "psnr"),
         "normal_error_glass_deg": mean.get("normal_error_glass_deg"),
     }

@@ -2,8 +2,11 @@
 
 Regions (bool masks [H, W]): ``facade`` (the baked facade mask), ``glass`` (facade and glass),
 ``glass_interior`` (the glass pixels at least ``INTERIOR_MARGIN_PX`` from the glass region's edge and from
-the image border: the frames' edges, where a pixel mixes glass and frame, left out) and ``frames`` (facade
-but not glass). Each region gets PSNR, SSIM (``metrics.py``: 11x11 Gaussian window, sigma 1.5,
+the image border: the frames' edges, where a pixel mixes glass and frame, left out), ``frames`` (facade
+but not glass) and ``unclipped`` (the facade's pixels whose photo has no channel clipped,
+``training.data.CLIP_LEVEL``: a clipped channel records only that the light was at least that bright, so a
+render darker than it is wrong by at least the difference and one brighter is right; where the view
+carries no clipped mask, none). Each region gets PSNR, SSIM (``metrics.py``: 11x11 Gaussian window, sigma 1.5,
 statistics renormalised over the mask) and LPIPS (``lpips.py``) under every configured convention. A
 region without a pixel gets ``None`` (JSON null), never a number; LPIPS without weights is the string
 ``"unavailable"``.
@@ -21,7 +24,7 @@ from facade_pipeline.evaluation.lpips import LpipsUnavailable, lpips_score
 from facade_pipeline.evaluation.metrics import psnr, ssim
 from facade_pipeline.evaluation.params import LpipsSetting
 
-REGIONS = ("facade", "glass", "glass_interior", "frames")
+REGIONS = ("facade", "glass", "glass_interior", "frames", "unclipped")
 #: pixels nearer than this to the edge of a view's glass region are left out of ``glass_interior``
 INTERIOR_MARGIN_PX = 2
 UNAVAILABLE = "unavailable"
@@ -29,16 +32,22 @@ UNAVAILABLE = "unavailable"
 _RAMP = np.array([[0, 0, 4], [87, 16, 110], [188, 55, 84], [249, 142, 9], [252, 255, 164]], np.float64) / 255
 
 
-def region_masks(facade: np.ndarray, glass: np.ndarray) -> dict[str, np.ndarray]:
-    """The evaluation regions (``REGIONS``) from the facade and glass masks [H, W] bool."""
+def region_masks(
+    facade: np.ndarray, glass: np.ndarray, clipped: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
+    """The evaluation regions (``REGIONS``) from the facade and glass masks [H, W] bool and the photo's
+    clipped pixels [H, W] bool (any channel; None: no ``unclipped`` region)."""
     facade, glass = np.asarray(facade, bool), np.asarray(glass, bool)
     on_glass = facade & glass
-    return {
+    masks = {
         "facade": facade,
         "glass": on_glass,
         "glass_interior": erode(on_glass, INTERIOR_MARGIN_PX),
         "frames": facade & ~glass,
     }
+    if clipped is not None:
+        masks["unclipped"] = facade & ~np.asarray(clipped, bool)
+    return masks
 
 
 def erode(mask: np.ndarray, px: int) -> np.ndarray:  # [H, W] bool -> [H, W] bool

@@ -14,15 +14,18 @@ import pytest
 import torch
 
 from facade_pipeline.config import default_run_settings
+from facade_pipeline.evaluation import building as eval_building
 from facade_pipeline.evaluation import metrics
 from facade_pipeline.evaluation.building import evaluate_split
-from facade_pipeline.evaluation.core import evaluate_views, headline, views_of
+from facade_pipeline.evaluation.core import EvalView, evaluate_views, headline, views_of
 from facade_pipeline.evaluation.image_eval import INTERIOR_MARGIN_PX, LpipsSetting, erode, region_masks
 from facade_pipeline.evaluation.render_views import from_trainer
 from facade_pipeline.geometry.camera import PinholeCamera
+from facade_pipeline.io.images import read_image
 from facade_pipeline.scene import ImportedScene
 from facade_pipeline.splatting.types import NEAR_M
 from facade_pipeline.training.corrections import align_view, so3_exp
+from facade_pipeline.training.data import CLIP_LEVEL, TrainView
 from facade_pipeline.training.params import AlignParams
 from facade_pipeline.training.render import Camera, render_view, splatting_rasterizer
 from facade_pipeline.training.schedule import active_sh_degree
@@ -66,6 +69,7 @@ def _ref_view(tr, index: int, align: AlignParams | None) -> dict:
                  v.camera.width, v.camera.height)  # fmt: skip
     image, facade = torch.as_tensor(v.image), torch.as_tensor(v.facade_mask)
     glass, prior = torch.as_tensor(v.glass_mask) & facade, torch.as_tensor(v.normal_prior)
+    clipped = torch.as_tensor(v.image >= CLIP_LEVEL).any(-1)  # the photo's own clipped pixels, any channel
 
     def render(cam_from_world):
         posed = Camera(cam.K, cam_from_world, cam.width, cam.height)
@@ -91,12 +95,14 @@ def _ref_view(tr, index: int, align: AlignParams | None) -> dict:
         "ssim": metrics.ssim(rgb.numpy(), v.image, v.facade_mask, border="renormalize"),
         "psnr_glass": _ref_psnr(rgb, image, glass),
         "psnr_glass_interior": _ref_psnr(rgb, image, _ref_erode(glass, INTERIOR_MARGIN_PX)),
+        "psnr_unclipped": _ref_psnr(rgb, image, facade & ~clipped),
         "normal_error_glass_deg": float(ang.mean()) if len(ang) else None,
     }
 
 
 def _close(row: dict, ref: dict) -> None:
-    regions = {"psnr": "facade", "psnr_glass": "glass", "psnr_glass_interior": "glass_interior"}
+    regions = {"psnr": "facade", "psnr_glass": "glass", "psnr_glass_interior": "glass_interior",
+               "psnr_unclipped": "unclipped"}  # fmt: skip
     for key, region in regions.items():
         m = row["metrics"][region]
         assert (m is None) == (ref[key] is None), key
@@ -117,7 +123,7 @@ def test_core_equals_the_trainer_formulas_for_both_callers(tiny, align):
         _close(row, ref)
         assert row["normal_error_glass_deg"] == pytest.approx(ref["normal_error_glass_deg"], abs=1e-4)
     means = headline(result)
-    for key in ("psnr", "psnr_glass", "psnr_glass_interior", "normal_error_glass_deg"):
+    for key in ("psnr", "psnr_glass", "psnr_glass_interior", "psnr_unclipped", "normal_error_glass_deg"):
         vals = [r[key] for r in refs if r[key] is not None]
         assert means[key] == pytest.approx(float(np.mean(vals)), abs=2e-4), key
     assert means["ssim"] == pytest.approx(float(np.mean([r["ssim"] for r in refs])), abs=1e-6)
@@ -153,6 +159,43 @@ def test_glass_interior_region_is_the_eroded_glass():
     expected = np.zeros((12, 12), bool)
     expected[2:10, 2:10] = True  # a mask reaching the border loses the border too
     assert np.array_equal(erode(np.ones((12, 12), bool), 2), expected)
+
+
+def test_the_unclipped_region_leaves_out_every_pixel_with_a_clipped_channel():
+    """``unclipped`` is the facade less the pixels the photo clipped in any channel; a view that carries
+    no clipped mask has no such region, and a training view whose clipped channels are None (none clipped)
+    has all of its facade in it."""
+    rng = np.random.default_rng(5)
+    facade, glass = rng.random((16, 20)) > 0.2, rng.random((16, 20)) > 0.5
+    channels = rng.random((16, 20, 3)) > 0.8
+    m = region_masks(facade, glass, channels.any(-1))
+    expected = np.array([[f and not channels[y, x].any() for x, f in enumerate(row)] for y, row in
+                         enumerate(facade)])  # fmt: skip
+    assert np.array_equal(m["unclipped"], expected) and "unclipped" not in region_masks(facade, glass)
+    cam = PinholeCamera(np.array([[20.0, 0, 10], [0, 20.0, 8], [0, 0, 1]]), np.eye(4), 20, 16)
+    image = rng.random((16, 20, 3)).astype(np.float32)
+    normals = np.zeros((16, 20, 3), np.float32)
+    view = TrainView("v", cam, image, facade, glass, normals, np.zeros((16, 20), bool), channels)
+    assert np.array_equal(EvalView.of_train_view(view).clipped, channels.any(-1))
+    none = EvalView.of_train_view(dataclasses.replace(view, clipped=None))
+    assert np.array_equal(region_masks(none.facade_mask, none.glass_mask, none.clipped)["unclipped"], facade)
+
+
+def test_a_photo_measured_at_a_pixel_budget_is_clipped_where_any_pixel_of_its_block_is(tiny, monkeypatch):
+    """The evaluate stage's view: the photo's clipped pixels (a channel at 250 or more, of 255), and at a
+    pixel budget a measured pixel clipped where any photo pixel of its block is, as training's views."""
+    layout, _, _ = tiny
+    view = ImportedScene.load(layout).uav_views[0]
+    photo = np.array(read_image(layout.root / view.image))
+    photo[:3, :3] = (255, 40, 40)  # one channel clipped
+    photo[6, 9] = (10, 251, 10)  # one pixel of a block
+    monkeypatch.setattr(eval_building, "read_image", lambda path: photo)
+    full = eval_building.load_eval_view(layout, view)
+    assert np.array_equal(full.clipped, (photo >= 250).any(-1)) and full.clipped.sum() >= 10
+    h, w = photo.shape[:2]
+    half = eval_building.load_eval_view(layout, view, max_pixels=(w // 2) * (h // 2))
+    blocks = (photo[: h // 2 * 2, : w // 2 * 2] >= 250).any(-1).reshape(h // 2, 2, w // 2, 2)
+    assert np.array_equal(half.clipped, blocks.any(axis=(1, 3))) and half.clipped[3, 4]
 
 
 def test_core_aligns_a_held_out_view_whose_pose_is_off(data64):  # noqa: F811
