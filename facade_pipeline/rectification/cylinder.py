@@ -33,7 +33,6 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
-import scipy.linalg
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -324,25 +323,27 @@ def point_parts(points: np.ndarray, knn: int) -> np.ndarray:
     return connected_components(near.multiply(near.T), directed=False)[1]
 
 
-def _circle_cost(moments: np.ndarray, z: np.ndarray, band: float) -> float:
-    """Truncated squared distance of cross-section points ``z`` [K, 4] (rows (s^2 + w^2, s, w, 1)) to the
-    line or circle ``A (s^2 + w^2) + B s + C w + D = 0`` that Pratt's fit takes from their moments
-    ``moments`` [4, 4] (``z^T z``): the algebraic least squares under ``B^2 + C^2 - 4 A D = 1``, which holds
-    lines (A = 0) and circles alike. Each point's distance, ``2 f / (1 + sqrt(1 + 4 A f))`` with f the
-    algebraic value (exact for both), counts at most ``band`` squared: a point beyond is no evidence of
-    the surface's shape."""
-    pratt = np.array([[0.0, 0, 0, -2], [0, 1, 0, 0], [0, 0, 1, 0], [-2, 0, 0, 0]])
-    _, vecs = scipy.linalg.eig(moments, pratt)
-    vecs = np.real(vecs)
-    norm = np.einsum("ij,ik,kj->j", vecs, pratt, vecs)
-    ok = norm > 1e-12
-    if not ok.any():
-        return np.inf
-    vecs = vecs[:, ok] / np.sqrt(norm[ok])
-    v = vecs[:, int(np.argmin(np.einsum("ij,ik,kj->j", vecs, moments, vecs)))]
-    f = z @ v
-    d = 2.0 * f / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * v[0] * f, 0.0)))
-    return float(np.minimum(d * d, band * band).sum())
+#: Pratt's constraint B^2 + C^2 - 4 A D on a line or circle A (s^2 + w^2) + B s + C w + D = 0, as a matrix
+_PRATT = np.array([[0.0, 0, 0, -2], [0, 1, 0, 0], [0, 0, 1, 0], [-2, 0, 0, 0]])
+
+
+def _circle_costs(moments: np.ndarray, z: np.ndarray, left: np.ndarray, band: float) -> np.ndarray:
+    """Truncated squared distances [C], summed, of cross-section points ``z`` [K, 4] (rows (s^2 + w^2, s, w,
+    1)) in ``left`` [C, K] (each row one set) to the line or circle ``A (s^2 + w^2) + B s + C w + D = 0``
+    that Pratt's fit takes from the set's moments ``moments`` [C, 4, 4] (``z^T z`` over it): the algebraic
+    least squares under ``B^2 + C^2 - 4 A D = 1``, which holds lines (A = 0) and circles alike. Each point's
+    distance, ``2 f / (1 + sqrt(1 + 4 A f))`` with f the algebraic value (exact for both), counts at most
+    ``band`` squared: a point beyond is no evidence of the surface's shape."""
+    _, vecs = np.linalg.eig(np.linalg.solve(_PRATT, moments))  # M v = eta P v
+    vecs = np.real(vecs)  # [C, 4, 4], columns
+    norm = np.einsum("cij,ik,ckj->cj", vecs, _PRATT, vecs)
+    vecs = vecs / np.sqrt(np.where(norm > 1e-12, norm, 1.0))[:, None, :]
+    err = np.where(norm > 1e-12, np.einsum("cij,cik,ckj->cj", vecs, moments, vecs), np.inf)
+    v = np.take_along_axis(vecs, np.argmin(err, axis=1)[:, None, None], axis=2)[:, :, 0]  # [C, 4]
+    f = v @ z.T  # [C, K]
+    d = 2.0 * f / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * v[:, :1] * f, 0.0)))
+    cost = np.where(left, np.minimum(d * d, band * band), 0.0).sum(axis=1)
+    return np.where(np.isfinite(err).any(axis=1), cost, np.inf)
 
 
 def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, unit_m: float,
@@ -354,7 +355,7 @@ def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, u
     Only the points within ``ransac_threshold`` of ``surface`` take part (far outliers drop out as in the
     fit). They are taken in cross-section across ``surface``'s axis (a plane's two in-plane directions both
     tried), split at ``candidates`` places that leave ``min_points`` on each side, and each side fitted by a
-    line or circle (``_circle_cost``, its residuals truncated at the inlier band, 3 ``inlier_scale``); the
+    line or circle (``_circle_costs``, its residuals truncated at the inlier band, 3 ``inlier_scale``); the
     split of least total cost wins. The mask holds every point on the winning side, so that the surface's
     robust fit there (``_fit_points``) sees that side's outliers as the whole fit does."""
     band = params.ransac_threshold * unit_m
@@ -365,6 +366,7 @@ def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, u
     directions = [surface.binormal] if surface.curvature_per_m != 0.0 else [surface.binormal, surface.axis]
     q = points - points[near].mean(0)
     w = q @ surface.normal
+    ks = np.unique(np.linspace(params.min_points, n - params.min_points, candidates).astype(int))
     best, best_cost = np.ones(len(points), bool), np.inf
     for u in directions:
         s = q @ u
@@ -372,12 +374,14 @@ def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, u
         ss, ww = s[near][order] / unit_m, w[near][order] / unit_m  # unit scale keeps the moments conditioned
         z = np.stack([ss * ss + ww * ww, ss, ww, np.ones(n)], 1)
         cum = np.cumsum(z[:, :, None] * z[:, None, :], axis=0)
-        for k in np.unique(np.linspace(params.min_points, n - params.min_points, candidates).astype(int)):
-            cost = (_circle_cost(cum[k - 1], z[:k], 3.0 * params.inlier_scale)
-                    + _circle_cost(cum[-1] - cum[k - 1], z[k:], 3.0 * params.inlier_scale))
-            if cost < best_cost:
-                cut = 0.5 * (ss[k - 1] + ss[k]) * unit_m
-                best_cost, best = cost, (s < cut) if 2 * k >= n else (s >= cut)
+        left = np.arange(n)[None, :] < ks[:, None]  # [C, n]: the points before each split
+        cost = (_circle_costs(cum[ks - 1], z, left, 3.0 * params.inlier_scale)
+                + _circle_costs(cum[-1] - cum[ks - 1], z, ~left, 3.0 * params.inlier_scale))
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            k = int(ks[j])
+            cut = 0.5 * (ss[k - 1] + ss[k]) * unit_m
+            best_cost, best = float(cost[j]), (s < cut) if 2 * k >= n else (s >= cut)
     return best
 
 
@@ -473,15 +477,17 @@ def _turn_fit(surface: Surface, keep: np.ndarray, fitted: np.ndarray, points: np
     if other.sum() < params.min_points:
         return surface, keep, fitted
     try:
-        main_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, True)
         other_surface, keep_other = _fit_points(points[other], viewpoint, params, unit_m, source, True)
+        on_other = points[other][keep_other]
+        stray = _rms(surface, on_other)
+        if not stray > MAX_PART_RMS_RATIO * _rms(other_surface, on_other):
+            return surface, keep, fitted  # within the other side's own scatter: one surface
+        main_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, True)
     except SurfaceFitError:  # a side's points cannot define a surface alone: no second surface
         return surface, keep, fitted
     if len({s.curvature_per_m == 0.0 for s in (surface, main_surface, other_surface)}) == 1:
         return surface, keep, fitted  # planes alone or cylinders alone: no plane meets a cylinder here
-    on_main, on_other = points[main][keep_main], points[other][keep_other]
-    scatter = max(_rms(main_surface, on_main), _rms(other_surface, on_other))
-    if not _rms(surface, on_other) > MAX_PART_RMS_RATIO * scatter:
+    if not stray > MAX_PART_RMS_RATIO * _rms(main_surface, points[main][keep_main]):
         return surface, keep, fitted  # it fits the other side within the points' own scatter: one surface
     keep = np.zeros(len(points), bool)
     keep[np.flatnonzero(main)[keep_main]] = True
