@@ -20,7 +20,10 @@ kappa (minus the other eigenvalue); (4) least squares on ``d(x)`` over (frame ro
 kappa) with a soft-L1 loss; (5) when the fit's inliers lie on two or more separate parts of the points
 (``point_parts``), the view frames two surfaces side by side (a curved part's end beside a planar part):
 one surface bent through both fits neither, and the fit is redone on the part holding most inliers, unless
-the fit over all fits that part about as well as its own (one surface with a gap).
+the fit over all fits that part about as well as its own (one surface with a gap); (6) a plane and a
+cylinder meeting with no gap between them (a flat wall continued by a curved corner, tangentially or at a
+kink) are one part: the points are split where two surfaces fit them best (``turn_split``), and the fit is
+redone on the side holding most where the fit over all strays from the other side (``_turn_fit``).
 """
 
 from __future__ import annotations
@@ -55,7 +58,8 @@ MIN_SAGITTA_RMS = 3.0
 #: hides) where its RMS residual over the main part's inliers is within this factor of the main part's own
 #: fit's; a surface bent through two (a curved part's end beside a planar part) fits the main part worse:
 #: 1.00 on a drawn plane or cylinder with a gap, 1.4-8 on drawn surfaces side by side, 1.9 on oblique's
-#: frontal_0000 (-)
+#: frontal_0000. The same factor tells a plane and a cylinder meeting with no gap (``_turn_fit``: the fit
+#: over both against the other side's inliers, over the worse side's own fit): 1.6-5 on drawn ones (-)
 MAX_PART_RMS_RATIO = 1.2
 
 
@@ -319,6 +323,68 @@ def point_parts(points: np.ndarray, knn: int) -> np.ndarray:
     return connected_components(near.multiply(near.T), directed=False)[1]
 
 
+#: Pratt's constraint B^2 + C^2 - 4 A D on a line or circle A (s^2 + w^2) + B s + C w + D = 0, as a matrix
+_PRATT = np.array([[0.0, 0, 0, -2], [0, 1, 0, 0], [0, 0, 1, 0], [-2, 0, 0, 0]])
+
+
+def _circle_costs(moments: np.ndarray, z: np.ndarray, left: np.ndarray, band: float) -> np.ndarray:
+    """Truncated squared distances [C], summed, of cross-section points ``z`` [K, 4] (rows (s^2 + w^2, s, w,
+    1)) in ``left`` [C, K] (each row one set) to the line or circle ``A (s^2 + w^2) + B s + C w + D = 0``
+    that Pratt's fit takes from the set's moments ``moments`` [C, 4, 4] (``z^T z`` over it): the algebraic
+    least squares under ``B^2 + C^2 - 4 A D = 1``, which holds lines (A = 0) and circles alike. Each point's
+    distance, ``2 f / (1 + sqrt(1 + 4 A f))`` with f the algebraic value (exact for both), counts at most
+    ``band`` squared: a point beyond is no evidence of the surface's shape."""
+    _, vecs = np.linalg.eig(np.linalg.solve(_PRATT, moments))  # M v = eta P v
+    vecs = np.real(vecs)  # [C, 4, 4], columns
+    norm = np.einsum("cij,ik,ckj->cj", vecs, _PRATT, vecs)
+    vecs = vecs / np.sqrt(np.where(norm > 1e-12, norm, 1.0))[:, None, :]
+    err = np.where(norm > 1e-12, np.einsum("cij,cik,ckj->cj", vecs, moments, vecs), np.inf)
+    v = np.take_along_axis(vecs, np.argmin(err, axis=1)[:, None, None], axis=2)[:, :, 0]  # [C, 4]
+    f = v @ z.T  # [C, K]
+    d = 2.0 * f / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * v[:, :1] * f, 0.0)))
+    cost = np.where(left, np.minimum(d * d, band * band), 0.0).sum(axis=1)
+    return np.where(np.isfinite(err).any(axis=1), cost, np.inf)
+
+
+def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, unit_m: float,
+               candidates: int = 64) -> np.ndarray:
+    """Mask [N] of the side holding most of ``points`` [N, 3] of the best split of them into two surfaces
+    meeting along a line across ``surface`` (a flat wall continued by a curved corner, tangentially or at a
+    kink, with no gap between them: one part for ``point_parts``).
+
+    Only the points within ``ransac_threshold`` of ``surface`` take part (far outliers drop out as in the
+    fit). They are taken in cross-section across ``surface``'s axis (a plane's two in-plane directions both
+    tried), split at ``candidates`` places that leave ``min_points`` on each side, and each side fitted by a
+    line or circle (``_circle_costs``, its residuals truncated at the inlier band, 3 ``inlier_scale``); the
+    split of least total cost wins. The mask holds every point on the winning side, so that the surface's
+    robust fit there (``_fit_points``) sees that side's outliers as the whole fit does."""
+    band = params.ransac_threshold * unit_m
+    near = np.abs(surface.signed_distance(points)) < band
+    n = int(near.sum())
+    if n < 2 * params.min_points:
+        return np.ones(len(points), bool)
+    directions = [surface.binormal] if surface.curvature_per_m != 0.0 else [surface.binormal, surface.axis]
+    q = points - points[near].mean(0)
+    w = q @ surface.normal
+    ks = np.unique(np.linspace(params.min_points, n - params.min_points, candidates).astype(int))
+    best, best_cost = np.ones(len(points), bool), np.inf
+    for u in directions:
+        s = q @ u
+        order = np.argsort(s[near])
+        ss, ww = s[near][order] / unit_m, w[near][order] / unit_m  # unit scale keeps the moments conditioned
+        z = np.stack([ss * ss + ww * ww, ss, ww, np.ones(n)], 1)
+        cum = np.cumsum(z[:, :, None] * z[:, None, :], axis=0)
+        left = np.arange(n)[None, :] < ks[:, None]  # [C, n]: the points before each split
+        cost = (_circle_costs(cum[ks - 1], z, left, 3.0 * params.inlier_scale)
+                + _circle_costs(cum[-1] - cum[ks - 1], z, ~left, 3.0 * params.inlier_scale))
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            k = int(ks[j])
+            cut = 0.5 * (ss[k - 1] + ss[k]) * unit_m
+            best_cost, best = float(cost[j]), (s < cut) if 2 * k >= n else (s >= cut)
+    return best
+
+
 def _rms(surface: Surface, points: np.ndarray) -> float:
     return float(np.sqrt(np.mean(surface.signed_distance(points) ** 2)))
 
@@ -355,7 +421,8 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     ``min_points`` or more on each of two separate parts of the points (``point_parts`` over
     ``normal_knn`` neighbours) is redone on the part holding most of them (``SurfaceFit.part``), unless the
     fit over all fits that part within ``MAX_PART_RMS_RATIO`` of its own fit (one surface with a gap); the
-    other is left to the views that frame it.
+    other is left to the views that frame it. A plane and a cylinder on one part (no gap between them) are
+    split the same way where the fit over both strays from the side holding fewer points (``_turn_fit``).
 
     The params' lengths are fractions of ``unit_m``, the frontal views' footprint
     (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
@@ -372,6 +439,7 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     check_points(points, params, unit_m, source)
     viewpoint = np.asarray(viewpoint, float)
     surface, keep = _fit_points(points, viewpoint, params, unit_m, source, curved)
+    fitted = np.ones(len(points), bool)  # the points the surface is fitted to
     parts = point_parts(points, params.normal_knn)
     held = np.bincount(parts[keep])
     if np.count_nonzero(held >= params.min_points) > 1:  # fitted across two parts: fit the main one
@@ -379,10 +447,48 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
         part_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
         on_main = points[main][keep_main]
         if _rms(surface, on_main) > MAX_PART_RMS_RATIO * _rms(part_surface, on_main):  # bent through both
+            surface, fitted = part_surface, main
             keep = np.zeros(len(points), bool)
             keep[np.flatnonzero(main)[keep_main]] = True
-            d = part_surface.signed_distance(points[keep])
-            return SurfaceFit(part_surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()),
-                              points[keep])
+    if curved:  # two surfaces meeting on one part (no gap between them): fit the side holding most
+        surface, keep, fitted = _turn_fit(surface, keep, fitted, points, viewpoint, params, unit_m, source)
     d = surface.signed_distance(points[keep])
-    return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()))
+    return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()),
+                      None if fitted.all() else points[keep])
+
+
+def _turn_fit(surface: Surface, keep: np.ndarray, fitted: np.ndarray, points: np.ndarray,
+              viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
+              source: str | Path | None) -> tuple[Surface, np.ndarray, np.ndarray]:
+    """(surface, inlier mask [N], fitted mask [N]): ``surface`` (inliers ``keep`` among ``points`` [N, 3],
+    fitted to those in ``fitted`` [N]) refitted on the side holding most of the best split of its points
+    into two surfaces (``turn_split``), else as given. It is refitted where a plane and a cylinder take
+    part (the surface, the two sides' own fits: not all planes, not all cylinders) and the surface fits the
+    other side's inliers more than ``MAX_PART_RMS_RATIO`` times worse (RMS) than the worse of the two
+    sides' own fits fits its own: bent through both, it keeps to the side holding most and strays from the
+    other. Not the main side's ratio, as across separate parts: a cylinder bent through a curved corner and
+    the flat wall it continues tangentially strays little over the corner, and a side of few points fitted
+    alone (tilt and offset free) takes up some of the points' own error, so that its fit is no measure of
+    their scatter alone."""
+    main = np.zeros(len(points), bool)
+    main[fitted] = turn_split(points[fitted], surface, params, unit_m)
+    # the other side's points near the surface alone (as the split saw them): beyond it lie other things
+    other = fitted & ~main & (np.abs(surface.signed_distance(points)) < params.ransac_threshold * unit_m)
+    if other.sum() < params.min_points:
+        return surface, keep, fitted
+    try:
+        other_surface, keep_other = _fit_points(points[other], viewpoint, params, unit_m, source, True)
+        on_other = points[other][keep_other]
+        stray = _rms(surface, on_other)
+        if not stray > MAX_PART_RMS_RATIO * _rms(other_surface, on_other):
+            return surface, keep, fitted  # within the other side's own scatter: one surface
+        main_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, True)
+    except SurfaceFitError:  # a side's points cannot define a surface alone: no second surface
+        return surface, keep, fitted
+    if len({s.curvature_per_m == 0.0 for s in (surface, main_surface, other_surface)}) == 1:
+        return surface, keep, fitted  # planes alone or cylinders alone: no plane meets a cylinder here
+    if not stray > MAX_PART_RMS_RATIO * _rms(main_surface, points[main][keep_main]):
+        return surface, keep, fitted  # it fits the other side within the points' own scatter: one surface
+    keep = np.zeros(len(points), bool)
+    keep[np.flatnonzero(main)[keep_main]] = True
+    return main_surface, keep, main

@@ -165,3 +165,49 @@ def test_one_surface_with_a_gap_is_fitted_over_both_sides(radius):
     assert len(set(point_parts(pts, FIT.normal_knn))) == 2
     assert fit.part is None and fit.n_inliers >= 790
     assert fit.surface.radius_m == pytest.approx(radius, rel=0.05)
+
+
+def plane_continued_by_cylinder(plane_m, arc_m, turn_deg, radius=9.0, noise=0.03, density=25.0, height=6.0,
+                                seed=6):
+    """Points on a plane y = 0 over x in [-``plane_m``, 0] continued at x = 0, with no gap and no step, by a
+    convex cylinder of ``arc_m`` of arc whose tangent there turns from the plane's by ``turn_deg`` (0: the
+    two meet tangentially; else at a kink), and the cylinder's axis point."""
+    rng = np.random.default_rng(seed)
+    n = int(plane_m * height * density)
+    plane = np.stack([rng.uniform(-plane_m, 0.0, n), np.zeros(n), rng.uniform(0, height, n)], 1)
+    m = int(arc_m * height * density)
+    theta = np.radians(turn_deg)
+    phi = theta + rng.uniform(0.0, arc_m / radius, m)
+    cyl = np.stack([radius * (np.sin(phi) - np.sin(theta)), radius * (np.cos(phi) - np.cos(theta)),
+                    rng.uniform(0, height, m)], 1)
+    axis_point = np.array([-radius * np.sin(theta), -radius * np.cos(theta)])
+    return np.vstack([plane, cyl]) + rng.normal(0, noise, (n + m, 3)), n, axis_point
+
+
+@pytest.mark.parametrize("turn_deg", [0.0, 15.0])
+@pytest.mark.parametrize("framed", ["cylinder", "plane"])
+def test_a_plane_continued_by_a_cylinder_without_a_gap_fits_the_part_it_frames(turn_deg, framed):
+    """A curved corner continuing a flat wall, tangentially or at a kink, with no gap or step between them:
+    one part of the points, and one surface bent through both fits neither. The view fits the surface it
+    frames (the one holding most of the points), its radius and axis those drawn. The cylinder beside the
+    framed plane bulges 0.125 m over its 3 m of arc, more than its points' scatter can hide (a shorter arc
+    is a plane to them, and planes alone are not split)."""
+    plane_m, arc_m = (2.0, 5.5) if framed == "cylinder" else (6.0, 3.0)
+    pts, n_plane, axis_point = plane_continued_by_cylinder(plane_m, arc_m, turn_deg)
+    eye = np.array([pts[:, 0].mean(), 7.0, 3.0])
+    fit = fit_surface(pts, eye, FIT, FOOTPRINT_M, toward_camera=np.array([0.0, 1.0, 0.0]))
+    assert len(set(point_parts(pts, FIT.normal_knn))) == 1
+    s = fit.surface
+    main = np.arange(len(pts)) < n_plane if framed == "plane" else np.arange(len(pts)) >= n_plane
+    if framed == "plane":
+        assert np.isinf(s.radius_m)
+        assert abs(s.normal @ [0, 1, 0]) > np.cos(np.radians(1.0))
+    else:
+        assert s.radius_m == pytest.approx(9.0, rel=0.05)
+        assert abs(s.axis @ [0, 0, 1]) > np.cos(np.radians(1.0))
+        centre = s.origin - s.normal / s.curvature_per_m
+        assert np.linalg.norm(centre[:2] - axis_point) < 0.05 * 9.0
+    # where two surfaces meet tangentially they part by less than the points' scatter near the line: the
+    # fitted side ends within a metre of it (6 m high at 25 points a square metre: 150 points)
+    assert fit.part is not None and abs(fit.n_inliers - main.sum()) < 150
+    assert np.sqrt(np.mean(s.signed_distance(pts[main]) ** 2)) < 0.04
