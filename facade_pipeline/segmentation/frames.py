@@ -244,10 +244,12 @@ def find_bars(
     """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
     mullions' colour, ``frame_colour_scale``), a mullion clipped white with the glass beside it one pitch
-    beyond either end placed by the grid (``with_clipped_ends``), then sub-pixel edges, with their frames'
-    parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a
-    field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the
-    mullions and the transoms; ``support`` [H, W]: where the facade surface is (None: everywhere).
+    beyond either end placed by the grid (``with_clipped_ends``; a transom only where its place is cut by
+    the view's border and the mullions go on across the strip beyond), then sub-pixel edges, with their
+    frames' parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none
+    without a field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's
+    sizes of the mullions and the transoms; ``support`` [H, W]: where the facade surface is (None:
+    everywhere).
     ``predicted``: the mullions' pitches sought are the building's (``sizes_v``), which predicts where each
     of them lies: an edge between two clipped pixels there is unknown, not absent, and the bar's other
     edge counts as an outer frame's does (``outer_edge_floor``): a frame clipped with what lies beside it
@@ -312,8 +314,8 @@ def find_bars(
         # an end bay's bar was found off the grid's clipped place (``grid._with_end_bays``), or where the
         # grid's place is cut by the view's border, clipped where it shows, and the mullions go on across
         # the whole strip beyond the run (``openings._continues``, as a border strip's panels are judged):
-        # the facade goes on beyond the run there. A lit box clipped behind an empty unit's open frame
-        # carries the mullions' colour over part of the strip, not the median of them
+        # the facade goes on beyond the run there. Where an empty unit's lit box fills the strip, the
+        # mullions do not go on across it in the median, and no transom makes its cell a pane
         v = with_clipped_ends(v, gv, extent(h, H), support)
         cut = with_clipped_ends(h, gh, extent(v, W), support_h, cut=True)
         edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
