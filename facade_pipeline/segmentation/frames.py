@@ -30,6 +30,7 @@ from facade_pipeline.segmentation.grid import (
     pitch_hypotheses,
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
+from facade_pipeline.segmentation.openings import _continues, _strip_support
 from facade_pipeline.segmentation.parallax import (
     PARALLAX_MIN_BARS,
     Parallax,
@@ -106,29 +107,38 @@ def _family(
 
 def clipped_place(grad: Gradients, span: slice, c: float, width: float,
                   support: np.ndarray | None = None) -> bool:
-    """Whether a bar centred at ``c`` of ``width`` (px, lying whole in the view) shows nothing either way
-    over ``span``: its edges known (``Gradients.known``) over at most ``CLIPPED_BAR_KNOWN`` of it (the
-    frame clipped with the glass beside it), on the facade surface over at least half of it (``support``
-    [L, N] in the family's layout, None: everywhere; the sky beyond a facade's end clips too)."""
+    """Whether a bar centred at ``c`` of ``width`` (px) shows nothing either way over ``span``: its edges
+    known (``Gradients.known``) over at most ``CLIPPED_BAR_KNOWN`` of it (the frame clipped with the glass
+    beside it; of a bar cut by the view's border, the edge in the view), on the facade surface over at
+    least half of it (``support`` [L, N] in the family's layout, None: everywhere; the sky beyond a
+    facade's end clips too)."""
     known = grad.known_on_lattice
     if known is None:
         return False
     known = known[span]
     M = known.shape[1]
-    i, j = (int(np.clip(np.rint(x / STEP_PX), 0, M - 1)) for x in (c - width / 2, c + width / 2))
+    # an edge beyond the view's border is unknown: a bar cut by the border is judged by its edge inside
+    inside = [x for x in (c - width / 2, c + width / 2) if 1.0 <= x <= grad.size - 1.0]
+    if not inside:
+        return False
+    i, j = (int(np.clip(np.rint(x / STEP_PX), 0, M - 1)) for x in (inside[0], inside[-1]))
+    both = known[:, i] * known[:, j] if len(inside) == 2 else known[:, i]
+    if len(inside) == 1:  # the middle of the bar's part in the view
+        c = 0.5 * (max(c - width / 2, 1.0) + min(c + width / 2, grad.size - 1.0))
     col = int(np.clip(np.floor(c), 0, grad.size - 1))
     seen = grad.valid[span, col]
-    if not seen.any() or float((known[:, i] * known[:, j])[seen].mean()) > CLIPPED_BAR_KNOWN:
+    if not seen.any() or float(both[seen].mean()) > CLIPPED_BAR_KNOWN:
         return False
     return support is None or float(support[span, col].mean()) >= 0.5
 
 
 def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
-                      support: np.ndarray | None = None) -> FamilyFit:
+                      support: np.ndarray | None = None, cut: bool = False) -> FamilyFit:
     """``fit`` extended by one bar at either end, one pitch beyond it at the run's median width, where
     that bar lies whole in the view and its place shows nothing either way (``clipped_place``: clipped
     with the glass beside it, no evidence either way, and the grid places it), the bars so placed added to
-    ``FamilyFit.placed``."""
+    ``FamilyFit.placed``. With ``cut``, only where that bar is cut by the view's border instead, its edge
+    toward the run in the view."""
     if grad.known_on_lattice is None:
         return fit
     width = float(np.median(fit.widths))
@@ -136,7 +146,10 @@ def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
     added = 0
     for sign in (1.0, -1.0):
         c = (centres[-1] if sign > 0 else centres[0]) + sign * fit.pitch
-        if c - width / 2 < 1.0 or c + width / 2 > grad.size - 1.0:
+        whole = c - width / 2 >= 1.0 and c + width / 2 <= grad.size - 1.0
+        if cut and (whole or not 1.0 <= c - sign * width / 2 <= grad.size - 1.0):
+            continue
+        if not cut and not whole:
             continue
         if not clipped_place(grad, span, c, width, support):
             continue
@@ -152,6 +165,23 @@ def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
     if not added:
         return fit
     return FamilyFit(np.array(centres), np.array(widths), fit.pitch, fit.score, frozenset(placed))
+
+
+def _goes_on(bars_v: Bars | None, bars_h: Bars | None, h: FamilyFit, cut: FamilyFit, H: int,
+             support: np.ndarray | None, params: SegmentParams) -> bool:
+    """Whether the facade goes on across the whole border strip beyond each end of the transoms ``h``
+    where ``cut`` adds a bar (``openings._continues`` of the mullions into it, whole)."""
+    if bars_v is None or bars_h is None:
+        return False
+    inside = (h.centres[0], h.centres[-1])
+    across = (bars_v.fit.centres[0], bars_v.fit.centres[-1])
+    strips = []
+    if cut.centres[0] != h.centres[0]:
+        strips.append((0.0, bars_h.edges[0][0].a))
+    if cut.centres[-1] != h.centres[-1]:
+        strips.append((bars_h.edges[-1][1].a, float(H)))
+    return all(_continues(bars_v, lo, hi, inside, _strip_support(support, 1, lo, hi, across), params) is None
+               for lo, hi in strips)
 
 
 def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
@@ -214,10 +244,12 @@ def find_bars(
     """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
     mullions' colour, ``frame_colour_scale``), a mullion clipped white with the glass beside it one pitch
-    beyond either end placed by the grid (``with_clipped_ends``), then sub-pixel edges, with their frames'
-    parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none without a
-    field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's sizes of the
-    mullions and the transoms; ``support`` [H, W]: where the facade surface is (None: everywhere).
+    beyond either end placed by the grid (``with_clipped_ends``; a transom only where its place is cut by
+    the view's border and the mullions go on across the strip beyond), then sub-pixel edges, with their
+    frames' parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none
+    without a field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's
+    sizes of the mullions and the transoms; ``support`` [H, W]: where the facade surface is (None:
+    everywhere).
     ``predicted``: the mullions' pitches sought are the building's (``sizes_v``), which predicts where each
     of them lies: an edge between two clipped pixels there is unknown, not absent, and the bar's other
     edge counts as an outer frame's does (``outer_edge_floor``): a frame clipped with what lies beside it
@@ -279,14 +311,23 @@ def find_bars(
             return None, None, metrics, {}, (gv, gh)
         # mullions only: a clipped horizontal stretch beyond the transoms is as often the lit ceiling or
         # shelf of an empty unit seen through its open frame as a transom. A transom is placed only where
-        # an end bay's bar was found off the grid's clipped place (``grid._with_end_bays``): the facade
-        # goes on beyond the run there
+        # an end bay's bar was found off the grid's clipped place (``grid._with_end_bays``), or where the
+        # grid's place is cut by the view's border, clipped where it shows, and the mullions go on across
+        # the whole strip beyond the run (``openings._continues``, as a border strip's panels are judged):
+        # the facade goes on beyond the run there. Where an empty unit's lit box fills the strip, the
+        # mullions do not go on across it in the median, and no transom makes its cell a pane
         v = with_clipped_ends(v, gv, extent(h, H), support)
-        metrics["bars_placed_x"] = len(v.placed)
-        metrics["bars_placed_y"] = len(h.placed)
+        cut = with_clipped_ends(h, gh, extent(v, W), support_h, cut=True)
         edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
         bars_v = _edges(v, gv, extent(h, H), params)
         bars_h = edges_h.result()
+        if cut is not h and _goes_on(bars_v, bars_h, h, cut, H, support, params):
+            h = cut
+            edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
+            bars_v = _edges(v, gv, extent(h, H), params)
+            bars_h = edges_h.result()
+        metrics["bars_placed_x"] = len(v.placed)
+        metrics["bars_placed_y"] = len(h.placed)
     metrics.update(
         {"pitch_x_px": v.pitch, "pitch_y_px": h.pitch, "map_score_x": v.score, "map_score_y": h.score}
     )

@@ -951,3 +951,35 @@ def test_a_curved_views_panels_hold_when_its_rectification_moves_by_a_hair():
     ca = np.array([p.corners for p in a.panels]) * s + t
     cb = np.array([p.corners for p in b.panels])
     assert np.abs(ca - cb).max() < 0.3
+
+
+@pytest.mark.parametrize("lit", [None, (255, 238, 238)])
+def test_a_transom_cut_by_the_views_border_and_clipped_with_the_glass_is_placed_where_the_mullions_go_on(lit):
+    """Frames clipped white, the view's top border across the top transom (its top edge outside the view)
+    and the sky reflected clipped in the glass below it, so that its bottom edge lies between two clipped
+    pixels: the view shows nothing of it either way. The mullions go on across the strip beyond the
+    transoms found (their white between glass of another colour lower down), the facade with them: the
+    grid places the transom at its pitch and the top row's panes are whole, their corners on the drawn
+    ones. The same strip filled with the lit box of an empty unit instead (clipped in its red channel,
+    within ``frame_colour_tol`` of the frames' white) shows no mullion going on: nothing is placed and the
+    strip holds no panel."""
+    d = Drawing(y0=-1.5, cols=3, rows=3, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    sky = int(d.y0 + d.bar) + 10  # the glass below the top transom clipped down to here
+    glass = np.zeros(img.shape[:2], bool)
+    for x0, y0, x1, y1 in d.glass_rects:
+        glass[int(np.floor(y0)) : int(np.ceil(y1)), int(np.floor(x0)) : int(np.ceil(x1))] = True
+    img[:sky][glass[:sky]] = 255
+    if lit is not None:
+        first = int(d.y0 + d.pitch[1])  # the second transom starts here
+        noise = np.random.default_rng(1).normal(0.0, 2.0, (first, d.W, 3))
+        img[:first] = np.clip(np.rint(np.array(lit) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    top = [p for p in seg.panels if p.corners[:, 1].min() < d.y0 + d.pitch[1]]
+    if lit is None:
+        assert seg.metrics["bars_placed_y"] == 1
+        assert sum(p.complete for p in seg.panels) == len(d.glass_rects) == 9
+        err = corner_errors(seg, d.corners(), d.W, d.H)
+        assert len(err) == 36 and np.median(err) < 0.5 and err.max() < 1.5
+    else:
+        assert seg.metrics["bars_placed_y"] == 0 and not top
