@@ -30,7 +30,7 @@ from facade_pipeline.segmentation.grid import (
     pitch_hypotheses,
 )
 from facade_pipeline.segmentation.lines import detect_segments, group_segments, support_profile
-from facade_pipeline.segmentation.openings import _continues, _strip_support
+from facade_pipeline.segmentation.openings import continues, strip_support
 from facade_pipeline.segmentation.parallax import (
     PARALLAX_MIN_BARS,
     Parallax,
@@ -170,7 +170,7 @@ def with_clipped_ends(fit: FamilyFit, grad: Gradients, span: slice,
 def _goes_on(bars_v: Bars | None, bars_h: Bars | None, h: FamilyFit, cut: FamilyFit, H: int,
              support: np.ndarray | None, params: SegmentParams) -> bool:
     """Whether the facade goes on across the whole border strip beyond each end of the transoms ``h``
-    where ``cut`` adds a bar (``openings._continues`` of the mullions into it, whole)."""
+    where ``cut`` adds a bar (``openings.continues`` of the mullions into it, whole)."""
     if bars_v is None or bars_h is None:
         return False
     inside = (h.centres[0], h.centres[-1])
@@ -180,7 +180,7 @@ def _goes_on(bars_v: Bars | None, bars_h: Bars | None, h: FamilyFit, cut: Family
         strips.append((0.0, bars_h.edges[0][0].a))
     if cut.centres[-1] != h.centres[-1]:
         strips.append((bars_h.edges[-1][1].a, float(H)))
-    return all(_continues(bars_v, lo, hi, inside, _strip_support(support, 1, lo, hi, across), params) is None
+    return all(continues(bars_v, lo, hi, inside, strip_support(support, 1, lo, hi, across), params) is None
                for lo, hi in strips)
 
 
@@ -313,7 +313,7 @@ def find_bars(
         # shelf of an empty unit seen through its open frame as a transom. A transom is placed only where
         # an end bay's bar was found off the grid's clipped place (``grid._with_end_bays``), or where the
         # grid's place is cut by the view's border, clipped where it shows, and the mullions go on across
-        # the whole strip beyond the run (``openings._continues``, as a border strip's panels are judged):
+        # the whole strip beyond the run (``openings.continues``, as a border strip's panels are judged):
         # the facade goes on beyond the run there. Where an empty unit's lit box fills the strip, the
         # mullions do not go on across it in the median, and no transom makes its cell a pane
         v = with_clipped_ends(v, gv, extent(h, H), support)

@@ -8,7 +8,7 @@ intersections of the four bar edges that face it, ordered bottom-left, bottom-ri
 Panels cut by the image border: the strip between the outermost bar and the border holds a partial panel
 (``complete = False``) when it is at least ``min_partial`` (of the building's pitch) wide and the bars of the
 other family continue into it (by their frame colour or their edges, where the facade surface is there:
-``_continues``; a clipped frame colour is matched only by a centre line clipped where it is,
+``continues``; a clipped frame colour is matched only by a centre line clipped where it is,
 ``EdgeLine.short``); otherwise the facade ends at that bar, except beside the bars that continue on their own
 (a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the
 border, is a partial panel. A strip that holds the place of its family's next bar whole (one pitch beyond
@@ -86,7 +86,7 @@ def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
     return presence, ratio
 
 
-def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
+def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
                params: SegmentParams, whole: bool = True) -> frozenset[int] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
     across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
@@ -120,7 +120,7 @@ def _continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], s
     )
 
 
-def _strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
+def strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
                    across: tuple[float, float]) -> float:
     """Mean of ``support`` [H, W] over a border strip: [lo, hi) along ``axis`` (0: x), ``across`` on the
     other axis (the other family's outer bars); 1 without a support mask. Along the strip, a gap with the
@@ -176,13 +176,13 @@ def openings(
     next_inside = (grid_ends and fit.centres[0] - fit.pitch - w / 2 >= 1.0,
                    grid_ends and fit.centres[-1] + fit.pitch + w / 2 <= size - 1.0)
     if lo >= min_partial_px:
-        going = _continues(other, 0, lo, inside, _strip_support(support, axis, 0, lo, across), params,
+        going = continues(other, 0, lo, inside, strip_support(support, axis, 0, lo, across), params,
                            not next_inside[0])
         if going is None or going:
             out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
     out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
     if size - top >= min_partial_px:
-        going = _continues(other, top, size, inside, _strip_support(support, axis, top, size, across), params,
+        going = continues(other, top, size, inside, strip_support(support, axis, top, size, across), params,
                            not next_inside[1])
         if going is None or going:
             out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
