@@ -106,6 +106,21 @@ def opacity_loss(alpha: Tensor, facade: Tensor) -> Tensor:
     return masked_mean(1.0 - alpha, facade)
 
 
+def clipped_floor_loss(
+    diffuse: Tensor, refl: Tensor, gt: Tensor, clipped: Tensor, off_glass: Tensor, mask: Tensor
+) -> Tensor:
+    """Mean over the loss pixels ``mask`` [H, W] and channels of max(0, photo - (1 - r) D) where the photo
+    ``gt`` [H, W, 3] clipped the channel (``clipped`` [H, W, 3]) off the glass (``off_glass`` [H, W]): a
+    frame or wall clipped white is a diffuse surface at least that bright from every direction, so its
+    view-independent part (1 - r) D (``refl`` [H, W], ``diffuse`` [H, W, 3]) must reach the photo without the
+    reflection term, which on a view no training view had renders it darker (benchmarks/RESULTS.md, gcw_dev:
+    "Where `mlp` loses to `sh`"). Glass is left out: what it shows clipped is a reflection, view-dependent.
+    0 where nothing off the glass clipped."""
+    floor = (gt - (1.0 - refl).unsqueeze(-1) * diffuse).clamp(min=0.0)
+    where = clipped & (off_glass & mask).unsqueeze(-1)
+    return (floor * where).sum() / (3.0 * mask.sum()).clamp_min(1.0)
+
+
 def depth_normals(points: Tensor) -> Tensor:  # [H, W, 3] surface points -> [H, W, 3]
     """Normals of the surface given by per-pixel points, from central differences (the 2DGS 'surface
     normal'); unit, oriented like the image axes' cross product (toward the camera for OpenCV axes);
@@ -181,6 +196,13 @@ def compute_losses(
         total = total + p.lambda_normal * terms["normal"]
     if with_prior:
         total = total + p.lambda_normal_prior * terms["normal_prior"]
+    # at the L1's weight: the photometric term's lower bound, moved to D; with no reflection term (sh)
+    # (1 - r) D is the render, which the photometric term bounds already
+    if vt.clipped is not None and p.reflection.model != "sh":
+        terms["clipped_floor"] = clipped_floor_loss(
+            r.diffuse, r.refl, vt.image, vt.clipped, vt.facade & ~vt.glass, loss_mask
+        )
+        total = total + (1.0 - LAMBDA_DSSIM) * terms["clipped_floor"]
     if p.lambda_opacity > 0:  # eager: the accumulated alpha needs no shading
         terms["opacity"] = opacity_loss(r.alpha, vt.facade)
         total = total + p.lambda_opacity * terms["opacity"]

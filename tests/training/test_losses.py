@@ -163,3 +163,34 @@ def test_opacity_loss_pulls_facade_pixels_up_and_leaves_the_rest_alone():
     assert float(loss) == pytest.approx(sum(values) / len(values), rel=1e-12)
     assert torch.all(a.grad[facade] == -1.0 / 9.0) and torch.all(a.grad[~facade] == 0.0)
     assert float(losses.opacity_loss(alpha, torch.zeros_like(facade))) == 0.0
+
+
+def test_clipped_floor_pulls_the_view_independent_part_of_clipped_pixels_off_the_glass():
+    """Against a loop: in a channel the photo clipped off the glass, max(0, photo - (1 - r) D), summed and
+    divided by the loss pixels' channels; nothing on the glass, unclipped or outside the loss mask counts,
+    and only a view-independent part below the photo is pulled (up, through D and down through r)."""
+    g = torch.Generator().manual_seed(11)
+    h, w = 6, 7
+    diffuse = torch.rand(h, w, 3, generator=g, dtype=torch.float64) * 1.2
+    refl = torch.rand(h, w, generator=g, dtype=torch.float64)
+    gt = torch.rand(h, w, 3, generator=g, dtype=torch.float64)
+    clipped = torch.rand(h, w, 3, generator=g) > 0.5
+    gt[clipped] = 1.0
+    glass = torch.rand(h, w, generator=g) > 0.6
+    mask = torch.rand(h, w, generator=g) > 0.2
+    d, r = diffuse.clone().requires_grad_(), refl.clone().requires_grad_()
+    loss = losses.clipped_floor_loss(d, r, gt, clipped, ~glass, mask)
+    total = 0.0
+    for y in range(h):
+        for x in range(w):
+            for c in range(3):
+                if clipped[y, x, c] and mask[y, x] and not glass[y, x]:
+                    total += max(0.0, float(gt[y, x, c]) - (1 - float(refl[y, x])) * float(diffuse[y, x, c]))
+    assert float(loss) == pytest.approx(total / (3 * int(mask.sum())), rel=1e-12) and total > 0
+    loss.backward()
+    base = (1 - refl).unsqueeze(-1) * diffuse
+    pulled = clipped & (mask & ~glass).unsqueeze(-1) & (base < gt)
+    assert torch.all(d.grad[pulled] < 0) and torch.all(d.grad[~pulled] == 0)
+    assert torch.all(r.grad[pulled.any(-1)] > 0) and torch.all(r.grad[~pulled.any(-1)] == 0)
+    none = torch.zeros_like(clipped)
+    assert float(losses.clipped_floor_loss(diffuse, refl, gt, none, ~glass, mask)) == 0.0
