@@ -360,25 +360,30 @@ def _bend_directions(points: np.ndarray, plane: Surface, scale_m: float) -> list
 
 
 def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, unit_m: float,
-               candidates: int = 64) -> np.ndarray:
+               curved: bool = True, candidates: int = 64) -> np.ndarray:
     """Mask [N] of the side holding most of ``points`` [N, 3] of the best split of them into two surfaces
     meeting along a line across ``surface`` (a flat wall continued by a curved corner, tangentially or at a
     kink, or by a second flat wall at a kink, with no gap between them: one part for ``point_parts``).
 
     Only the points within ``ransac_threshold`` of ``surface`` take part (far outliers drop out as in the
-    fit). They are taken in cross-section across ``surface``'s axis (for a plane, across and along the
-    direction they bend most, ``_bend_directions``, both tried), split at ``candidates`` places that leave
-    ``min_points`` on each side, and each side fitted by a line or circle (``_circle_costs``, its residuals
-    truncated at the inlier band, 3 ``inlier_scale``); the split of least total cost wins. The mask holds
-    every point on the winning side, so that the surface's robust fit there (``_fit_points``) sees that side's
-    outliers as the whole fit does."""
+    fit). They are taken in cross-section across ``surface``'s axis (a plane's two in-plane directions both
+    tried: its own axes where a cylinder was allowed, ``curved``, which found the points' bend within their
+    scatter; else, a plane fitted over any bend, across and along the way they bend most,
+    ``_bend_directions``), split at ``candidates`` places that leave ``min_points`` on each side, and each
+    side fitted by a line or circle (``_circle_costs``, its residuals truncated at the inlier band, 3
+    ``inlier_scale``); the split of least total cost wins. The mask holds every point on the winning side, so
+    that the surface's robust fit there (``_fit_points``) sees that side's outliers as the whole fit does."""
     band = params.ransac_threshold * unit_m
     near = np.abs(surface.signed_distance(points)) < band
     n = int(near.sum())
     if n < 2 * params.min_points:
         return np.ones(len(points), bool)
-    directions = [surface.binormal] if surface.curvature_per_m != 0.0 else _bend_directions(
-        points[near], surface, params.inlier_scale * unit_m)
+    if surface.curvature_per_m != 0.0:
+        directions = [surface.binormal]
+    elif curved:
+        directions = [surface.binormal, surface.axis]
+    else:
+        directions = _bend_directions(points[near], surface, params.inlier_scale * unit_m)
     q = points - points[near].mean(0)
     w = q @ surface.normal
     ks = np.unique(np.linspace(params.min_points, n - params.min_points, candidates).astype(int))
@@ -488,7 +493,7 @@ def _turn_fit(surface: Surface, keep: np.ndarray, fitted: np.ndarray, points: np
     alone (tilt and offset free) takes up some of the points' own error, so that its fit is no measure of
     their scatter alone."""
     main = np.zeros(len(points), bool)
-    main[fitted] = turn_split(points[fitted], surface, params, unit_m)
+    main[fitted] = turn_split(points[fitted], surface, params, unit_m, curved)
     # the other side's points near the surface alone (as the split saw them): beyond it lie other things
     other = fitted & ~main & (np.abs(surface.signed_distance(points)) < params.ransac_threshold * unit_m)
     if other.sum() < params.min_points:
