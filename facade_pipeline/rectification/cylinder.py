@@ -22,8 +22,9 @@ kappa) with a soft-L1 loss; (5) when the fit's inliers lie on two or more separa
 one surface bent through both fits neither, and the fit is redone on the part holding most inliers, unless
 the fit over all fits that part about as well as its own (one surface with a gap); (6) a plane and a
 cylinder meeting with no gap between them (a flat wall continued by a curved corner, tangentially or at a
-kink) are one part: the points are split where two surfaces fit them best (``turn_split``), and the fit is
-redone on the side holding most where the fit over all strays from the other side (``_turn_fit``).
+kink), or two planes meeting at a kink (a building's corner, a folded bay), are one part: the points are
+split where two surfaces fit them best (``turn_split``), and the fit is redone on the side holding most
+where the fit over all strays from the other side (``_turn_fit``); a fit of planes only, too.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ MIN_SAGITTA_RMS = 3.0
 #: fit's; a surface bent through two (a curved part's end beside a planar part) fits the main part worse:
 #: 1.00 on a drawn plane or cylinder with a gap, 1.4-8 on drawn surfaces side by side, 1.9 on oblique's
 #: frontal_0000. The same factor tells a plane and a cylinder meeting with no gap (``_turn_fit``: the fit
-#: over both against the other side's inliers, over the worse side's own fit): 1.6-5 on drawn ones (-)
+#: over both against the other side's inliers, over the worse side's own fit): 1.6-5 on drawn ones, and
+#: two planes at a kink of 10-40 degrees: 1.4-8 bent through both as a cylinder, 4.6-9 as a plane (-)
 MAX_PART_RMS_RATIO = 1.2
 
 
@@ -346,24 +348,42 @@ def _circle_costs(moments: np.ndarray, z: np.ndarray, left: np.ndarray, band: fl
     return np.where(np.isfinite(err).any(axis=1), cost, np.inf)
 
 
+def _bend_directions(points: np.ndarray, plane: Surface, scale_m: float) -> list[np.ndarray]:
+    """The two in-plane directions [3] of ``plane`` across which world points [N, 3] near it bend most and
+    least (the principal directions of their robust quadric height field, ``quadric_init``): two walls
+    meeting at a kink bend across the line where they meet, whatever way the plane's own in-plane axes
+    (the points' spreads) lie."""
+    bent = quadric_init(points, plane.origin + plane.normal, scale_m)
+    across = bent.binormal - (bent.binormal @ plane.normal) * plane.normal
+    across /= np.linalg.norm(across)
+    return [across, np.cross(plane.normal, across)]
+
+
 def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, unit_m: float,
-               candidates: int = 64) -> np.ndarray:
+               curved: bool = True, candidates: int = 64) -> np.ndarray:
     """Mask [N] of the side holding most of ``points`` [N, 3] of the best split of them into two surfaces
     meeting along a line across ``surface`` (a flat wall continued by a curved corner, tangentially or at a
-    kink, with no gap between them: one part for ``point_parts``).
+    kink, or by a second flat wall at a kink, with no gap between them: one part for ``point_parts``).
 
     Only the points within ``ransac_threshold`` of ``surface`` take part (far outliers drop out as in the
     fit). They are taken in cross-section across ``surface``'s axis (a plane's two in-plane directions both
-    tried), split at ``candidates`` places that leave ``min_points`` on each side, and each side fitted by a
-    line or circle (``_circle_costs``, its residuals truncated at the inlier band, 3 ``inlier_scale``); the
-    split of least total cost wins. The mask holds every point on the winning side, so that the surface's
-    robust fit there (``_fit_points``) sees that side's outliers as the whole fit does."""
+    tried: its own axes where a cylinder was allowed, ``curved``, which found the points' bend within their
+    scatter; else, a plane fitted over any bend, across and along the way they bend most,
+    ``_bend_directions``), split at ``candidates`` places that leave ``min_points`` on each side, and each
+    side fitted by a line or circle (``_circle_costs``, its residuals truncated at the inlier band, 3
+    ``inlier_scale``); the split of least total cost wins. The mask holds every point on the winning side, so
+    that the surface's robust fit there (``_fit_points``) sees that side's outliers as the whole fit does."""
     band = params.ransac_threshold * unit_m
     near = np.abs(surface.signed_distance(points)) < band
     n = int(near.sum())
     if n < 2 * params.min_points:
         return np.ones(len(points), bool)
-    directions = [surface.binormal] if surface.curvature_per_m != 0.0 else [surface.binormal, surface.axis]
+    if surface.curvature_per_m != 0.0:
+        directions = [surface.binormal]
+    elif curved:
+        directions = [surface.binormal, surface.axis]
+    else:
+        directions = _bend_directions(points[near], surface, params.inlier_scale * unit_m)
     q = points - points[near].mean(0)
     w = q @ surface.normal
     ks = np.unique(np.linspace(params.min_points, n - params.min_points, candidates).astype(int))
@@ -422,7 +442,8 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     ``normal_knn`` neighbours) is redone on the part holding most of them (``SurfaceFit.part``), unless the
     fit over all fits that part within ``MAX_PART_RMS_RATIO`` of its own fit (one surface with a gap); the
     other is left to the views that frame it. A plane and a cylinder on one part (no gap between them) are
-    split the same way where the fit over both strays from the side holding fewer points (``_turn_fit``).
+    split the same way where the fit over both strays from the side holding fewer points (``_turn_fit``),
+    and so are two planes meeting at a kink, ``curved = False`` too.
 
     The params' lengths are fractions of ``unit_m``, the frontal views' footprint
     (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
@@ -450,8 +471,9 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
             surface, fitted = part_surface, main
             keep = np.zeros(len(points), bool)
             keep[np.flatnonzero(main)[keep_main]] = True
-    if curved:  # two surfaces meeting on one part (no gap between them): fit the side holding most
-        surface, keep, fitted = _turn_fit(surface, keep, fitted, points, viewpoint, params, unit_m, source)
+    # two surfaces meeting on one part (no gap between them): fit the side holding most
+    surface, keep, fitted = _turn_fit(surface, keep, fitted, points, viewpoint, params, unit_m, source,
+                                      curved)
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()),
                       None if fitted.all() else points[keep])
@@ -459,34 +481,34 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
 
 def _turn_fit(surface: Surface, keep: np.ndarray, fitted: np.ndarray, points: np.ndarray,
               viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
-              source: str | Path | None) -> tuple[Surface, np.ndarray, np.ndarray]:
+              source: str | Path | None, curved: bool) -> tuple[Surface, np.ndarray, np.ndarray]:
     """(surface, inlier mask [N], fitted mask [N]): ``surface`` (inliers ``keep`` among ``points`` [N, 3],
-    fitted to those in ``fitted`` [N]) refitted on the side holding most of the best split of its points
-    into two surfaces (``turn_split``), else as given. It is refitted where a plane and a cylinder take
-    part (the surface, the two sides' own fits: not all planes, not all cylinders) and the surface fits the
-    other side's inliers more than ``MAX_PART_RMS_RATIO`` times worse (RMS) than the worse of the two
-    sides' own fits fits its own: bent through both, it keeps to the side holding most and strays from the
-    other. Not the main side's ratio, as across separate parts: a cylinder bent through a curved corner and
-    the flat wall it continues tangentially strays little over the corner, and a side of few points fitted
+    fitted to those in ``fitted`` [N]) refitted on the side holding most of the best split of its points into
+    two surfaces (``turn_split``), else as given (the sides fitted as ``curved`` says, as the surface was). It
+    is refitted where a plane takes part (the surface or a side's own fit: not cylinders alone) and the
+    surface fits the other side's inliers more than ``MAX_PART_RMS_RATIO`` times worse (RMS) than the worse of
+    the two sides' own fits fits its own: bent through both, it keeps to the side holding most and strays from
+    the other. Not the main side's ratio, as across separate parts: a cylinder bent through a curved corner
+    and the flat wall it continues tangentially strays little over the corner, and a side of few points fitted
     alone (tilt and offset free) takes up some of the points' own error, so that its fit is no measure of
     their scatter alone."""
     main = np.zeros(len(points), bool)
-    main[fitted] = turn_split(points[fitted], surface, params, unit_m)
+    main[fitted] = turn_split(points[fitted], surface, params, unit_m, curved)
     # the other side's points near the surface alone (as the split saw them): beyond it lie other things
     other = fitted & ~main & (np.abs(surface.signed_distance(points)) < params.ransac_threshold * unit_m)
     if other.sum() < params.min_points:
         return surface, keep, fitted
     try:
-        other_surface, keep_other = _fit_points(points[other], viewpoint, params, unit_m, source, True)
+        other_surface, keep_other = _fit_points(points[other], viewpoint, params, unit_m, source, curved)
         on_other = points[other][keep_other]
         stray = _rms(surface, on_other)
         if not stray > MAX_PART_RMS_RATIO * _rms(other_surface, on_other):
             return surface, keep, fitted  # within the other side's own scatter: one surface
-        main_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, True)
+        main_surface, keep_main = _fit_points(points[main], viewpoint, params, unit_m, source, curved)
     except SurfaceFitError:  # a side's points cannot define a surface alone: no second surface
         return surface, keep, fitted
-    if len({s.curvature_per_m == 0.0 for s in (surface, main_surface, other_surface)}) == 1:
-        return surface, keep, fitted  # planes alone or cylinders alone: no plane meets a cylinder here
+    if all(s.curvature_per_m != 0.0 for s in (surface, main_surface, other_surface)):
+        return surface, keep, fitted  # cylinders alone: no plane meets a cylinder or a plane here
     if not stray > MAX_PART_RMS_RATIO * _rms(main_surface, points[main][keep_main]):
         return surface, keep, fitted  # it fits the other side within the points' own scatter: one surface
     keep = np.zeros(len(points), bool)

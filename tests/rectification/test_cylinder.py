@@ -211,3 +211,60 @@ def test_a_plane_continued_by_a_cylinder_without_a_gap_fits_the_part_it_frames(t
     # fitted side ends within a metre of it (6 m high at 25 points a square metre: 150 points)
     assert fit.part is not None and abs(fit.n_inliers - main.sum()) < 150
     assert np.sqrt(np.mean(s.signed_distance(pts[main]) ** 2)) < 0.04
+
+
+def planes_at_kink(first_m, second_m, kink_deg, noise=0.03, density=25.0, height=6.0, seed=6):
+    """Points on a plane y = 0 over x in [-``first_m``, 0] continued at x = 0, with no gap and no step, by a
+    plane of ``second_m`` width turned from it by ``kink_deg`` about the vertical line where they meet (> 0:
+    away from +y, a building's corner; < 0: toward it, a folded bay), the number of the first plane's
+    points, and the second plane's unit normal toward +y."""
+    rng = np.random.default_rng(seed)
+    n = int(first_m * height * density)
+    first = np.stack([rng.uniform(-first_m, 0.0, n), np.zeros(n), rng.uniform(0, height, n)], 1)
+    m = int(second_m * height * density)
+    theta = np.radians(kink_deg)
+    s = rng.uniform(0.0, second_m, m)
+    second = np.stack([s * np.cos(theta), -s * np.sin(theta), rng.uniform(0, height, m)], 1)
+    return np.vstack([first, second]) + rng.normal(0, noise, (n + m, 3)), n, np.array([np.sin(theta),
+                                                                                       np.cos(theta), 0.0])
+
+
+@pytest.mark.parametrize("curved", [True, False])
+@pytest.mark.parametrize("kink_deg", [10.0, 40.0, -40.0])
+@pytest.mark.parametrize("framed", ["first", "second"])
+def test_two_planes_at_a_kink_fit_the_plane_the_view_frames(framed, kink_deg, curved):
+    """A view framing a building's corner or a folded bay: two flat walls meeting at a kink with no gap,
+    one part of the points. One plane through both fits neither (a facade declared flat took one 1-8 deg
+    off either wall); the view fits the plane it frames (the one holding about two thirds of the points),
+    its normal that wall's, its inliers ending near the line where the walls meet."""
+    first_m, second_m = (5.5, 3.0) if framed == "first" else (3.0, 5.5)
+    pts, n_first, second_normal = planes_at_kink(first_m, second_m, kink_deg)
+    main = np.arange(len(pts)) < n_first if framed == "first" else np.arange(len(pts)) >= n_first
+    normal = np.array([0.0, 1.0, 0.0]) if framed == "first" else second_normal
+    eye = pts[main].mean(0) + 7.0 * normal
+    fit = fit_surface(pts, eye, FIT, FOOTPRINT_M, toward_camera=normal, curved=curved)
+    assert len(set(point_parts(pts, FIT.normal_knn))) == 1
+    s = fit.surface
+    assert np.isinf(s.radius_m)
+    assert s.normal @ normal > np.cos(np.radians(1.0))
+    # within half a metre of the line where they meet (75 points) the walls part by less than 3 times the
+    # points' scatter at 10 degrees
+    assert fit.part is not None and abs(fit.n_inliers - main.sum()) < 75
+    assert np.sqrt(np.mean(s.signed_distance(pts[main]) ** 2)) < 0.04
+
+
+@pytest.mark.parametrize(("radius", "curved"), [(np.inf, True), (np.inf, False), (9.0, True)])
+def test_one_surface_with_the_coarse_points_scatter_is_not_split(radius, curved):
+    """A single plane (fitted as a plane or a cylinder) or a single cylinder whose points scatter as the
+    coarse cloud's (3 cm) is one surface: no split of it into two fits the other side better than the
+    whole surface does."""
+    rng = np.random.default_rng(8)
+    s, z = rng.uniform(-4.0, 4.0, 1200), rng.uniform(0.0, 6.0, 1200)
+    phi = s / radius
+    pts = np.stack([radius * np.sin(phi), radius * (np.cos(phi) - 1.0), z], 1) if np.isfinite(radius) else \
+        np.stack([s, np.zeros_like(s), z], 1)
+    pts += rng.normal(0, 0.03, pts.shape)
+    fit = fit_surface(pts, np.array([0.0, 7.0, 3.0]), FIT, FOOTPRINT_M, toward_camera=np.array([0.0, 1, 0]),
+                      curved=curved)
+    assert fit.part is None and fit.n_inliers >= 0.99 * len(pts)
+    assert fit.surface.radius_m == pytest.approx(radius, rel=0.05)
