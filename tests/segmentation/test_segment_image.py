@@ -897,6 +897,26 @@ def test_bars_wider_than_the_grid_models_widest_are_found_at_the_widths_the_surv
             assert len(at_model) < 4 or np.abs(at_model / M_PER_PX - bar).max() > 1.0
 
 
+def test_the_survey_takes_no_width_from_a_bar_placed_in_the_clipped_sky():
+    """A facade's end against the sky clipped white: the survey, which has no facade surface (its
+    tolerance is of the pitch the survey measures), cannot tell the sky from a clipped frame, and the grid
+    places a mullion there, one pitch beyond the last. Its width is no frame's: the widths the survey
+    gives (``surveyed_bar_max_m``'s) are the drawn mullions' alone, as without the sky."""
+    from facade_pipeline.segmentation.frames import survey_frames
+
+    d = Drawing(W=240, cols=4)
+    plain = d.render()
+    sky = plain.copy()
+    end = d.x0 + d.cols * d.pitch[0] + d.bar  # the last mullion's right edge (px)
+    sky[:, int(end + 10) :] = 255
+    survey = survey_frames(sky, PARAMS, M_PER_PX)
+    assert survey.metrics["bars_placed_x"] == 1
+    assert survey.bars_v.fit.centres[-1] > end
+    widths = survey.bar_widths_m()
+    assert len(widths["x"]) == d.cols + 1 == len(survey_frames(plain, PARAMS, M_PER_PX).bar_widths_m()["x"])
+    assert np.abs(np.array(widths["x"]) / M_PER_PX - d.bar).max() < 0.5
+
+
 def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
     """A highlight that clips the last mullion and what lies on both sides of it to white over the whole
     height leaves no edge to find there: the bar is placed one pitch beyond the run the rest of the view
