@@ -342,7 +342,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             found = map_views(functools.partial(_find_view, layout, params, unit, bar_max), views,
                               settings.view_workers, lambda _: bar.update())
         found = [(r, f, s + t) for (r, f, s), (_, _, t) in zip(found, surveyed, strict=True)]
-    depth, sides = building_frame_parallax_m([f for _, f, _ in found])
+    depth, sides = building_frame_parallax_m([f for _, f, _ in found], params.parallax_max_slope)
     width = building_bar_width_m([f for _, f, _ in found])
     # the views off the building's grid are sought again here, one after another (few, and they need the
     # building's figures, known only now)

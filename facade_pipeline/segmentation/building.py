@@ -31,7 +31,7 @@ SURVEYED_BAR_QUANTILES = (0.25, 0.75)
 
 
 def building_frame_parallax_m(
-    found: list[FrameBars | None],
+    found: list[FrameBars | None], max_slope: float,
 ) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:
     """The depth (m) the mullions ("x") and the transoms ("y") stand proud of the glass: per family, the
     median of what the views' own parallax fits give (``FrameBars.frame_depths_m``); a family without any
@@ -41,13 +41,14 @@ def building_frame_parallax_m(
     small view) join the median where they agree with one another (``parallax.agreeing``). A family that
     no view's fit gives a depth for is fitted over the bars of every view at once
     (``parallax.pooled_depth_m``: close-ups of one unit show two bars a family each, too few for a view's
-    own fit). Returned with, for each family so fitted, its two sides' own depths (P < 0, P > 0): a side
-    whose widths do not grow has the near edges of its bars displaced as well (``Parallax.with_slope``),
-    which no view measured on its own. A family that neither gives a depth for while the other has one
-    takes the other's: a facade's transoms butt into its mullions, their faces about one plane before the
-    glass, so the other family's depth is near the truth where 0 (frames flush with the glass) is surely
-    wrong; a family's bars show no depth where the side faces the views see of it are shaded like the
-    glass (its widths do not grow) or where its few bars lie near the cameras' feet."""
+    own fit), within the largest slope a view's own fit accepts (``max_slope``). Returned with, for each
+    family so fitted, its two sides' own depths (P < 0, P > 0): a side whose widths do not grow has the
+    near edges of its bars displaced as well (``Parallax.with_slope``), which no view measured on its own.
+    A family that neither gives a depth for while the other has one takes the other's: a facade's
+    transoms butt into its mullions, their faces about one plane before the glass, so the other family's
+    depth is near the truth where 0 (frames flush with the glass) is surely wrong; a family's bars show no
+    depth where the side faces the views see of it are shaded like the glass (its widths do not grow) or
+    where its few bars lie near the cameras' feet."""
     depths: dict[str, list[float]] = {}
     exact: dict[str, list[float]] = {}
     for f in found:
@@ -64,7 +65,7 @@ def building_frame_parallax_m(
         if name not in out:
             views = [(bars, f.parallax, f.metres_per_px) for f in found if f is not None
                      and f.parallax is not None and (bars := f.bars_v if axis == 0 else f.bars_h) is not None]
-            d, sides_m = pooled_depth_m(views, axis, PARALLAX_MIN_BARS)
+            d, sides_m = pooled_depth_m(views, axis, PARALLAX_MIN_BARS, max_slope)
             if d > 0.0:
                 out[name], sides[name] = d, sides_m
     if len(out) == 1:  # one family measured: the other stands as proud (the docstring's last sentence)

@@ -220,6 +220,16 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     return Bars(edges, fit) if edges else None
 
 
+def placed_bars(bars: Bars) -> set[int]:
+    """Which of ``bars.edges`` are the bars the grid placed (``FamilyFit.placed``): each the one whose
+    centre is nearest a placed bar's (``_edges`` leaves out the bars it finds no edges for, never a placed
+    one, so the edges are not indexed as the fit's bars)."""
+    if bars.fit is None or not bars.fit.placed or not bars.edges:
+        return set()
+    centres = np.array([0.5 * (lo.a + hi.a) for lo, hi in bars.edges])
+    return {int(np.argmin(np.abs(centres - bars.fit.centres[k]))) for k in bars.fit.placed}
+
+
 def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
                   params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
@@ -367,9 +377,17 @@ class FrameBars:
     """Whether the surface is a plane (``find_bars``)."""
 
     def bar_widths_m(self) -> dict[str, list[float]]:
-        """The widths (m) of the bars found, per family ("x": mullions, "y": transoms)."""
-        return {name: [(hi.a - lo.a) * self.metres_per_px for lo, hi in bars.edges]
-                for name, bars in (("x", self.bars_v), ("y", self.bars_h)) if bars is not None}
+        """The widths (m) of the bars found, per family ("x": mullions, "y": transoms), but for the bars the
+        grid placed where the view shows nothing either way (``placed_bars``): a clip shows no frame's
+        width, and without the facade surface (the survey's, made before the pitch that sets its
+        tolerance is known) the sky beyond a facade's end is such a place too."""
+        widths = {}
+        for name, bars in (("x", self.bars_v), ("y", self.bars_h)):
+            if bars is not None:
+                placed = placed_bars(bars)
+                widths[name] = [(hi.a - lo.a) * self.metres_per_px for k, (lo, hi) in enumerate(bars.edges)
+                                if k not in placed]
+        return widths
 
     def pitches_m(self) -> dict[str, float]:
         """The pitch (m) of the grid found, per family ("x": across the mullions, "y": the transoms); none

@@ -251,7 +251,7 @@ def agreeing(depths: list[float]) -> bool:
 
 
 def pooled_depth_m(
-    views: list[tuple[Bars, ParallaxField, float]], axis: int, min_bars: int
+    views: list[tuple[Bars, ParallaxField, float]], axis: int, min_bars: int, max_slope: float
 ) -> tuple[float, tuple[float, float]]:
     """The frame depth d (m) of one family fitted over the bars of many views at once, 0 where they do not
     show one. Each view (its ``Bars`` at the working scale, its ``ParallaxField`` with the camera's distance
@@ -265,10 +265,11 @@ def pooled_depth_m(
     is over the views (the cluster-robust one, G / (G - 1) for G views). Bars narrower than half their
     view's median (cut by the border), views without a distance and views with one bar left are left out;
     d is the larger side's, kept where it stands ``PARALLAX_MIN_T`` standard errors above 0, from at least
-    ``min_bars`` bars and more bars than unknowns (else 0). Returned with each side's own d (P < 0, P > 0;
-    NaN: not measured there): a side's faces shaded like the glass show as a side whose widths do not grow
-    (``Parallax.with_slope``)."""
-    w, x, px, view = [], [], [], []
+    ``min_bars`` bars and more bars than unknowns, and where its slope in the nearest of the views fitted
+    (``slope_of``: the largest of theirs) is within ``max_slope``, the largest a view's own fit accepts
+    (``fit_parallax``); else 0. Returned with each side's own d (P < 0, P > 0; NaN: not measured there):
+    a side's faces shaded like the glass show as a side whose widths do not grow (``Parallax.with_slope``)."""
+    w, x, px, view, distances = [], [], [], [], []
     for i, (bars, field, m) in enumerate(views):
         if not np.isfinite(field.distance_m) or not bars.edges:
             continue
@@ -277,6 +278,7 @@ def pooled_depth_m(
                 if width >= 0.5 * float(np.median(widths))]
         if len(kept) < 2:
             continue
+        distances.append(field.distance_m)
         for lo, hi, width in kept:
             s = np.maximum([-_coord(field, axis, lo), _coord(field, axis, hi)], 0.0)
             w.append(width * m)
@@ -301,6 +303,6 @@ def pooled_depth_m(
     scores = [A[own[:, g] > 0].T @ residual[own[:, g] > 0] for g in range(len(ids))]
     cov = len(ids) / (len(ids) - 1) * inv @ sum(np.outer(q, q) for q in scores) @ inv
     error = float(np.sqrt(max(cov[len(ids) + sides.index(side), len(ids) + sides.index(side)], 0.0)))
-    if d < PARALLAX_MIN_T * error:
+    if d < PARALLAX_MIN_T * error or slope_of(d, min(distances)) > max_slope:
         return none
     return d, (float(slopes.get(0, np.nan)), float(slopes.get(1, np.nan)))

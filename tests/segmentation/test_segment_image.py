@@ -293,11 +293,11 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
 
     k = lambda d: d / (10.0 - d)  # noqa: E731
     agree = [view(k(0.12), True), view(k(0.125), True), view(k(0.118), True)]
-    assert building_frame_parallax_m(agree)[0]["x"] == pytest.approx(0.12)
+    assert building_frame_parallax_m(agree, PARAMS.parallax_max_slope)[0]["x"] == pytest.approx(0.12)
     scatter = [view(k(0.06), True), view(k(0.005), True), view(k(0.2), True)]
-    assert building_frame_parallax_m(scatter)[0] == {}
+    assert building_frame_parallax_m(scatter, PARAMS.parallax_max_slope)[0] == {}
     judged = scatter + [view(k(0.1), False)]
-    assert building_frame_parallax_m(judged)[0]["x"] == pytest.approx(0.1)
+    assert building_frame_parallax_m(judged, PARAMS.parallax_max_slope)[0]["x"] == pytest.approx(0.1)
 
 
 @pytest.mark.parametrize("shaded_high", [False, True])
@@ -307,7 +307,8 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
     bars' widths give it, and the corrected edges lie where the glass meets the frames. Where the side
     faces seen beyond the camera's foot (P > 0) are shaded like the glass, the edges found there are the
     front face's on both sides of a bar: that side's widths do not grow, and the pooled sides say so.
-    Flush frames, their edges found with the same scatter, give no depth."""
+    Flush frames, their edges found with the same scatter, give no depth; nor do frames so deep that the
+    nearest view's slope is past the largest a view's own fit accepts (``parallax_max_slope``)."""
     from facade_pipeline.segmentation.edges import Bars, EdgeLine
     from facade_pipeline.segmentation.frames import FrameBars
     from facade_pipeline.segmentation.parallax import (
@@ -347,7 +348,7 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
         return out
 
     proud = views(0.12)
-    depth, sides = building_frame_parallax_m([f for f, _ in proud])
+    depth, sides = building_frame_parallax_m([f for f, _ in proud], PARAMS.parallax_max_slope)
     # no transoms at all: they take the mullions' depth, which nothing here corrects
     assert depth.keys() == {"x", "y"} and depth["x"] == pytest.approx(0.12, abs=0.005) == depth["y"]
     assert sides["x"][0] == pytest.approx(0.12, abs=0.005)
@@ -357,7 +358,10 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
         fixed = correct_parallax(f.bars_v, f.fits["x"].with_slope(k, sides["x"]), f.parallax)
         edges = np.array([[lo.a, hi.a] for lo, hi in fixed.edges])
         assert np.abs(edges - np.array(glass)).max() < 0.5
-    assert building_frame_parallax_m([f for f, _ in views(0.0)])[0] == {}
+    assert building_frame_parallax_m([f for f, _ in views(0.0)], PARAMS.parallax_max_slope)[0] == {}
+    deep = [f for f, _ in views(0.25)]
+    assert slope_of(0.25, min(f.parallax.distance_m for f in deep)) > PARAMS.parallax_max_slope
+    assert building_frame_parallax_m(deep, PARAMS.parallax_max_slope)[0] == {}
 
 
 def test_bars_across_a_tight_cylinder_are_corrected_with_the_frame_depth():
@@ -642,7 +646,7 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
     k = lambda d, D: d / (D - d)  # noqa: E731
     views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
              view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
-    depth = building_frame_parallax_m(views)[0]
+    depth = building_frame_parallax_m(views, PARAMS.parallax_max_slope)[0]
     assert depth.keys() == {"x", "y"}
     assert abs(depth["x"] - 0.12) < 1e-9 and abs(depth["y"] - 0.16) < 1e-9
     width = building_bar_width_m(views)
@@ -662,9 +666,10 @@ def test_a_family_without_a_depth_of_its_own_takes_the_other_familys():
         return FrameBars(None, None, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
 
     k = lambda d: d / (10.0 - d)  # noqa: E731
-    depth, sides = building_frame_parallax_m([view(0.0, k(0.12)), view(0.0, k(0.13)), view(0.0, k(0.11))])
+    depth, sides = building_frame_parallax_m([view(0.0, k(0.12)), view(0.0, k(0.13)), view(0.0, k(0.11))],
+                                     PARAMS.parallax_max_slope)
     assert depth == pytest.approx({"x": 0.12, "y": 0.12}) and sides == {}
-    assert building_frame_parallax_m([view(0.0, 0.0), view(0.0, 0.0)])[0] == {}
+    assert building_frame_parallax_m([view(0.0, 0.0), view(0.0, 0.0)], PARAMS.parallax_max_slope)[0] == {}
 
 
 def test_the_frame_colour_rule_holds_on_planar_surfaces_only():
@@ -890,6 +895,26 @@ def test_bars_wider_than_the_grid_models_widest_are_found_at_the_widths_the_surv
             assert np.abs(np.array(found[name]) / M_PER_PX - bar).max() < 0.35
             at_model = np.array(own.get(name, []))
             assert len(at_model) < 4 or np.abs(at_model / M_PER_PX - bar).max() > 1.0
+
+
+def test_the_survey_takes_no_width_from_a_bar_placed_in_the_clipped_sky():
+    """A facade's end against the sky clipped white: the survey, which has no facade surface (its
+    tolerance is of the pitch the survey measures), cannot tell the sky from a clipped frame, and the grid
+    places a mullion there, one pitch beyond the last. Its width is no frame's: the widths the survey
+    gives (``surveyed_bar_max_m``'s) are the drawn mullions' alone, as without the sky."""
+    from facade_pipeline.segmentation.frames import survey_frames
+
+    d = Drawing(W=240, cols=4)
+    plain = d.render()
+    sky = plain.copy()
+    end = d.x0 + d.cols * d.pitch[0] + d.bar  # the last mullion's right edge (px)
+    sky[:, int(end + 10) :] = 255
+    survey = survey_frames(sky, PARAMS, M_PER_PX)
+    assert survey.metrics["bars_placed_x"] == 1
+    assert survey.bars_v.fit.centres[-1] > end
+    widths = survey.bar_widths_m()
+    assert len(widths["x"]) == d.cols + 1 == len(survey_frames(plain, PARAMS, M_PER_PX).bar_widths_m()["x"])
+    assert np.abs(np.array(widths["x"]) / M_PER_PX - d.bar).max() < 0.5
 
 
 def test_a_bar_clipped_white_with_the_glass_beside_it_is_placed_by_the_grid():
