@@ -275,12 +275,14 @@ def room_mesh(
 @dataclass(frozen=True, eq=False)
 class Room:
     """The room behind an unglazed unit, as the renderer lights it. Its opening, the hole in the body's
-    front face, as ``cells`` [C, 3] (world centres of a grid over it), ``cell_normals`` [C, 3] (world,
+    front face, as ``corners`` [4, 3] (world, bottom-left, bottom-right, top-right, top-left seen from
+    outside) and as ``cells`` [C, 3] (world centres of a grid over it), ``cell_normals`` [C, 3] (world,
     outward) and ``cell_areas`` [C] (m^2); the box's inner area ``box_area_m2`` (m^2, the opening
     included). Drawn per unit: the walls' albedo ``wall`` [3], the ``texture`` in [0, 1] (0 plain paint,
     bare shelves, a plain cloth; 1 mottled concrete, mixed things, a printed cloth) and the cloth's two
     colours ``cloth`` [2, 3]."""
 
+    corners: np.ndarray
     cells: np.ndarray
     cell_normals: np.ndarray
     cell_areas: np.ndarray
@@ -314,5 +316,6 @@ def draw_room(
     chroma = rng.uniform(0.0, 0.35, 2)
     axes = np.array([0.0, 2.0 * math.pi / 3, 4.0 * math.pi / 3])
     cloth = np.clip(light[:, None] * (1.0 + chroma[:, None] * np.cos(hue[:, None] - axes)), 0.0, 1.0)
-    return Room(cells, normals, areas, 2.0 * (w * ht + w * d + ht * d), wall,
+    corners = geom.surface(np.array([s0, s1, s1, s0]), np.array([z0, z0, z1, z1]), np.full(4, h))
+    return Room(corners, cells, normals, areas, 2.0 * (w * ht + w * d + ht * d), wall,
                 float(rng.uniform(*style.room_texture)), cloth)

@@ -8,7 +8,7 @@ colour is the deferred shading of the paper (Eq. 7-8):
 with theta between the normal n and the direction to the camera w_o, and R the radiance along the mirror
 direction w_r = 2 (w_o . n) n - w_o: the scene traced one bounce with "near_field_reflection", else the sky
 alone (no secondary ray is cast). Other surfaces are diffuse: albedo * (ambient + sun Lambert term), no
-shadows; a room behind an unglazed unit is lit only by the sky and ground seen through its opening. Rays
+shadows; a room behind an unglazed unit is lit only by what it sees through its opening. Rays
 are processed in chunks of ``chunk_rays``, so memory depends on the chunk and image size only.
 """
 

@@ -187,9 +187,26 @@ def room_albedo(p: np.ndarray, kind: np.ndarray, room: Room, seed: int) -> np.nd
 
 
 def _sky_without_sun(env: EnvironmentParams) -> EnvironmentParams:
-    # the sun's disc is a point to the opening's grid of cells: it would light the room in spots; the
-    # renderer casts no shadows, so direct sun through an opening is left out as it is everywhere
+    # the sun's disc is a point to the opening's grid of cells: summed over them it would light the room
+    # in spots; its light is added apart, where its ray passes through the opening (``sun_through``)
     return replace(env, sun_disc_deg=0.0)
+
+
+def sun_through(p: np.ndarray, room: Room, env: EnvironmentParams) -> np.ndarray:
+    """Whether the ray from each room point p [N, 3] toward the sun leaves through the room's opening [N]
+    (the opening taken as the plane quad of its corners: exact on a planar part, within the sagitta of a
+    unit's width on a cylinder)."""
+    s = sun_direction(env)
+    c = room.corners
+    m = room.cell_normals.mean(axis=0)
+    along = float(s @ m)
+    if along <= 1e-9:
+        return np.zeros(len(p), bool)
+    t = (c[0] - p) @ m / along
+    x = p + t[:, None] * s - c[0]
+    eu, ev = c[1] - c[0], c[3] - c[0]
+    a, b = x @ eu / (eu @ eu), x @ ev / (ev @ ev)
+    return (t > 0) & (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
 
 
 def opening_light(p: np.ndarray, n: np.ndarray, room: Room, env: EnvironmentParams) -> np.ndarray:
@@ -197,10 +214,13 @@ def opening_light(p: np.ndarray, n: np.ndarray, room: Room, env: EnvironmentPara
     the room's opening, as radiance per unit albedo (a matte point's radiance is its albedo times this):
     the sky and the ground's haze seen through each cell of the opening, sum L cos_p cos_q A / (pi r^2)
     (the point-to-area form factor), plus the light the box's walls pass on, the flux that came in
-    (pi A_open L_in, L_in the cosine-weighted mean radiance entering) reflected on with the walls' mean
-    albedo rho, a share 1 - f (f = A_open / A_box) staying inside each bounce, spread evenly over the
-    box's inner area: rho (1 - f) L_in A_open / ((A_box - A_open) (1 - rho (1 - f))). No direct sun."""
-    env = _sky_without_sun(env)
+    (pi A_open L_in, L_in the cosine-weighted mean radiance entering, the sun's share included) reflected
+    on with the walls' mean albedo rho, a share 1 - f (f = A_open / A_box) staying inside each bounce,
+    spread evenly over the box's inner area: rho (1 - f) L_in A_open / ((A_box - A_open) (1 - rho (1 - f)));
+    plus the sun's Lambert term (``sun_intensity`` n . s, as outside) where the sun's ray leaves through the
+    opening (the renderer casts no other shadow: shelves and cloth do not shade each other)."""
+    sun = env.sun_intensity * np.clip(n @ sun_direction(env), 0.0, None) * sun_through(p, room, env)
+    sky_env = _sky_without_sun(env)
     out = np.empty((len(p), 3))
     for a in range(0, len(p), ROOM_CHUNK):
         v = room.cells[None] - p[a : a + ROOM_CHUNK, None]  # [N, C, 3]
@@ -208,13 +228,15 @@ def opening_light(p: np.ndarray, n: np.ndarray, room: Room, env: EnvironmentPara
         w = v / np.sqrt(r2)[..., None]
         cos_p = np.clip(np.einsum("ncj,nj->nc", w, n[a : a + ROOM_CHUNK]), 0.0, None)
         cos_q = np.clip(np.einsum("ncj,cj->nc", w, room.cell_normals), 0.0, None)
-        L = sky(w.reshape(-1, 3), env).reshape(w.shape)
+        L = sky(w.reshape(-1, 3), sky_env).reshape(w.shape)
         out[a : a + ROOM_CHUNK] = np.einsum("ncj,nc->nj", L, cos_p * cos_q * room.cell_areas / (np.pi * r2))
     a_open = float(room.cell_areas.sum())
     f = a_open / room.box_area_m2
     rho = float(np.mean(room.wall))
     fill = rho * (1.0 - f) * a_open / ((room.box_area_m2 - a_open) * (1.0 - rho * (1.0 - f)))
-    return out + fill * _light_in(room, env)
+    m = room.cell_normals.mean(axis=0)
+    sun_in = env.sun_intensity * max(float(sun_direction(env) @ m) / float(np.linalg.norm(m)), 0.0)
+    return out + fill * (_light_in(room, sky_env) + sun_in) + sun[:, None]
 
 
 def _light_in(room: Room, env: EnvironmentParams) -> np.ndarray:

@@ -19,7 +19,7 @@ from facade_pipeline.synthetic.noise import rng_for
 from facade_pipeline.synthetic.render import first_hits, render_view, shade
 from facade_pipeline.synthetic.scene import panels_description
 from facade_pipeline.synthetic.simulate import build_simulator, raw_view, sensor_image, spread_stops
-from facade_pipeline.synthetic.textures import opening_light, room_albedo
+from facade_pipeline.synthetic.textures import opening_light, room_albedo, sun_through
 from tests.synthetic.conftest import replace_in, shipped, tiny, with_effects, without
 
 
@@ -132,15 +132,38 @@ def _floor_radiance(p, depths_m: np.ndarray) -> np.ndarray:
 def test_a_room_is_lit_through_its_opening_falling_with_depth_and_rising_with_the_sky():
     depths = np.array([0.3, 1.0, 1.8, 2.6])
     plain = {"room_texture": (0.0, 0.0), "room_albedo": (0.6, 0.6), "room_depth_m": 3.0}
-    lit = _floor_radiance(_opened(plain), depths)
+    shade = {"sun_intensity": 0.0}
+    lit = _floor_radiance(_opened(plain, shade), depths)
     assert (np.diff(lit) < 0).all() and lit[-1] < 0.7 * lit[0], lit
     env = tiny().environment
-    dim = {"sky_zenith_color": tuple(0.5 * c for c in env.sky_zenith_color),
+    dim = {**shade, "sky_zenith_color": tuple(0.5 * c for c in env.sky_zenith_color),
            "sky_horizon_color": tuple(0.5 * c for c in env.sky_horizon_color)}
-    # the sun lights the outside, never a room: only the sky and ground seen through the opening do
     np.testing.assert_allclose(_floor_radiance(_opened(plain, dim), depths), 0.5 * lit, rtol=1e-6)
-    bright = _floor_radiance(_opened({**plain, "room_albedo": (0.9, 0.9)}), depths)
+    bright = _floor_radiance(_opened({**plain, "room_albedo": (0.9, 0.9)}, shade), depths)
     assert (bright > 1.5 * lit).all()  # a light box passes more of the light on: more than its albedo says
+
+
+def test_the_sun_lights_a_room_where_its_ray_passes_through_the_opening():
+    p = _opened({"room_depth_m": 3.0}, {"sun_azimuth_deg": 90.0, "sun_elevation_deg": 30.0})
+    room = build_simulator(p).scene.rooms[0]
+    geom = build_simulator(p).scene.parts[0]
+    s0, s1, z0, z1 = geom.panel_bounds(1, 2)
+    h = -p.facade.frame_back_m
+    # the sun straight in front, 30 deg up: the ray from the floor's centre line at depth d leaves through
+    # the opening while it rises less than the opening's height, d tan 30 < z1 - z0
+    reach = (z1 - z0) / np.tan(np.radians(30.0))
+    depths = np.array([0.2, 0.6, 0.9]) * min(reach, 3.0)
+    floor = geom.surface(np.full(3, 0.5 * (s0 + s1)), np.full(3, z0), h - depths)
+    up = np.tile([0.0, 0.0, 1.0], (3, 1))
+    assert sun_through(floor, room, p.environment).all()
+    deep = geom.surface(0.5 * (s0 + s1), z0, h - 1.1 * reach)[None]
+    back = geom.surface(0.5 * (s0 + s1), z1 - 0.01, h - 0.5)[None]  # the ceiling's ray leaves downward
+    assert not sun_through(deep, room, p.environment).any()
+    assert not sun_through(back, room, p.environment).any()
+    dark = dataclasses.replace(p.environment, sun_intensity=0.0)
+    gain = opening_light(floor, up, room, p.environment) - opening_light(floor, up, room, dark)
+    # the sun's Lambert term on the floor, plus the same share of its flux passed on by the walls at each
+    assert np.ptp(gain) < 1e-9 and gain.min() > p.environment.sun_intensity * np.sin(np.radians(30.0))
 
 
 def _corner_form_factor(a: float, b: float, d: float) -> float:
@@ -153,7 +176,8 @@ def _corner_form_factor(a: float, b: float, d: float) -> float:
 
 def test_opening_light_is_the_form_factor_of_the_opening_times_what_it_shows():
     grey = (0.5, 0.5, 0.5)
-    p = _opened({"room_albedo": (0.0, 0.0)}, {"sky_zenith_color": grey, "sky_horizon_color": grey})
+    p = _opened({"room_albedo": (0.0, 0.0)},
+                {"sky_zenith_color": grey, "sky_horizon_color": grey, "sun_intensity": 0.0})
     scene = build_simulator(p).scene
     room = scene.rooms[0]
     assert not room.wall.any()  # a black box passes nothing on: the light is the opening's alone
