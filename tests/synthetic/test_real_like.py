@@ -234,6 +234,13 @@ def test_unglazed_units_name_the_key_when_wrong(units, effects, named):
     assert named in str(e.value)
 
 
+@pytest.mark.parametrize("key", ["room_albedo", "room_texture"])
+def test_room_style_ranges_name_the_key_when_wrong(key):
+    with pytest.raises(ConfigError) as e:
+        _opened({key: (0.8, 0.2)})
+    assert f"synthesize.facade.{key}" in str(e.value)
+
+
 def test_masts_and_cranes_stand_in_front_and_are_reflected_by_the_glass():
     p = replace_in(tiny(), "render", supersample=1)
     on, off = build_simulator(with_effects(p, "masts_and_cranes")), build_simulator(p)
