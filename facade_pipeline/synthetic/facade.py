@@ -155,11 +155,12 @@ def part_meshes(
     first_panel: int,
     ground_z: float,
     unglazed: frozenset = frozenset(),
+    first_room: int = 0,
 ) -> tuple[TriMesh, TriMesh, TriMesh]:
     """(glass, frames, body) meshes of one part. Glass triangles carry their global panel index
     (``first_panel`` + row * cols + col); the body reaches down to world height ``ground_z``. The units
     (row, col) in ``unglazed`` have no glass: the body's front face is open behind them onto a room (walls,
-    shelves and a cloth, part of the body mesh)."""
+    shelves and a cloth, part of the body mesh), numbered from ``first_room`` in sorted (row, col) order."""
     p, fw = geom.part, style.frame_width_m
     pitch = (p.width_m - fw) / p.cols
     seg = curve_segments(geom, style, pitch)  # per panel column
@@ -192,15 +193,21 @@ def part_meshes(
         Material.WALL,
     )
     if unglazed:
-        body = _open_body(geom, style, body, seg * p.cols, min(z_floor, 0.0), unglazed)
+        body = _open_body(geom, style, body, seg * p.cols, min(z_floor, 0.0), unglazed, first_room)
     return concat(glass), concat(frames), body
 
 
 def _open_body(
-    geom: PartGeometry, style: FacadeStyle, body: TriMesh, front_quads: int, z_floor: float, units: frozenset
+    geom: PartGeometry,
+    style: FacadeStyle,
+    body: TriMesh,
+    front_quads: int,
+    z_floor: float,
+    units: frozenset,
+    first_room: int,
 ) -> TriMesh:
     """The body with its front face (the first ``front_quads`` quads of its prism) rebuilt with a hole
-    behind each unit of ``units``, and a room behind each hole."""
+    behind each unit of ``units``, and a room behind each hole (numbered from ``first_room``)."""
     p = geom.part
     keep = np.arange(len(body.triangles)) >= 2 * front_quads
     holes = [geom.panel_bounds(r, c) for r, c in sorted(units)]
@@ -219,32 +226,35 @@ def _open_body(
                 continue
             seg = curve_segments(geom, style, sb - sa)
             pieces.append(sheet(front, (sa, sb), (za, zb), seg, Material.WALL))
-    for s0, s1, z0, z1 in holes:
-        pieces.append(room_mesh(geom, style, (s0, s1), (z0, z1)))
+    for k, (s0, s1, z0, z1) in enumerate(holes):
+        pieces.append(room_mesh(geom, style, (s0, s1), (z0, z1), first_room + k))
     return concat(pieces)
 
 
 SHELF_HEIGHTS = (0.2, 0.45, 0.7)  # shelves' heights, fractions of the room's height (-)
 SHELF_DEPTH = 0.3  # shelves' depth, a fraction of the room's (-)
+ROOM_OBJECTS = 3  # object ids per room: walls, shelves, cloth
+OPENING_SAMPLES = 8  # cells per side of the grid over an opening through which a room's light is summed
 
 
 def room_mesh(
-    geom: PartGeometry, style: FacadeStyle, s: tuple[float, float], z: tuple[float, float]
+    geom: PartGeometry, style: FacadeStyle, s: tuple[float, float], z: tuple[float, float], room: int = 0
 ) -> TriMesh:
     """A room behind the opening s x z of the body's front face: a box (floor, ceiling, side and back
     walls, seen from inside), shelves along its back wall and a cloth hanging in its front half, folded
-    in waves. Material INTERIOR, object id 0 (walls), 1 (shelves), 2 (cloth)."""
+    in waves. Material INTERIOR, object id ``ROOM_OBJECTS * room`` + 0 (walls), 1 (shelves), 2 (cloth)."""
     back, depth = style.frame_back_m, style.room_depth_m
     h0, h1 = -back - depth, -back
     seg = curve_segments(geom, style, s[1] - s[0])
-    box = prism(geom.surface, s, z, (h0, h1), seg, Material.INTERIOR, 0)
+    first = ROOM_OBJECTS * room
+    box = prism(geom.surface, s, z, (h0, h1), seg, Material.INTERIOR, first)
     # the box's front face closes the opening: the room is seen through where it was
     box = box.select(np.arange(len(box.triangles)) >= 2 * seg)
     height, width = z[1] - z[0], s[1] - s[0]
     thick = 0.04 * height
     shelves = [
         prism(geom.surface, s, (z[0] + f * height, z[0] + f * height + thick), (h0, h0 + SHELF_DEPTH * depth),
-              seg, Material.INTERIOR, 1)
+              seg, Material.INTERIOR, first + 1)
         for f in SHELF_HEIGHTS
     ]
     # a cloth from the ceiling down to a third of the height over the left half, in vertical folds
@@ -258,5 +268,54 @@ def room_mesh(
     ], axis=1)
     mid = 0.5 * (ss[:-1] + ss[1:])
     out = geom.surface(mid, np.full(n, za), np.full(n, 1.0)) - geom.surface(mid, np.full(n, za), np.zeros(n))
-    cloth = quads_to_mesh(quads, out, Material.INTERIOR, 2)
+    cloth = quads_to_mesh(quads, out, Material.INTERIOR, first + 2)
     return concat([box, *shelves, cloth])
+
+
+@dataclass(frozen=True, eq=False)
+class Room:
+    """The room behind an unglazed unit, as the renderer lights it. Its opening, the hole in the body's
+    front face, as ``corners`` [4, 3] (world, bottom-left, bottom-right, top-right, top-left seen from
+    outside) and as ``cells`` [C, 3] (world centres of a grid over it), ``cell_normals`` [C, 3] (world,
+    outward) and ``cell_areas`` [C] (m^2); the box's inner area ``box_area_m2`` (m^2, the opening
+    included). Drawn per unit: the walls' albedo ``wall`` [3], the ``texture`` in [0, 1] (0 plain paint,
+    bare shelves, a plain cloth; 1 mottled concrete, mixed things, a printed cloth) and the cloth's two
+    colours ``cloth`` [2, 3]."""
+
+    corners: np.ndarray
+    cells: np.ndarray
+    cell_normals: np.ndarray
+    cell_areas: np.ndarray
+    box_area_m2: float
+    wall: np.ndarray
+    texture: float
+    cloth: np.ndarray
+
+
+def draw_room(
+    geom: PartGeometry, style: FacadeStyle, row: int, col: int, rng: np.random.Generator
+) -> Room:
+    """The room behind unit (row, col) of ``geom``: its opening sampled on a grid of ``OPENING_SAMPLES``
+    cells per side, and its style drawn from ``room_albedo`` and ``room_texture`` (uniform in each range),
+    the walls grey with a slight tint, the cloth of any hue."""
+    s0, s1, z0, z1 = geom.panel_bounds(row, col)
+    n, h = OPENING_SAMPLES, -style.frame_back_m
+    se, ze = np.linspace(s0, s1, n + 1), np.linspace(z0, z1, n + 1)
+    S, Z = np.meshgrid(se, ze, indexing="ij")  # [n + 1, n + 1] cell corners
+    P = geom.surface(S, Z, np.full_like(S, h))
+    d1, d2 = P[1:, 1:] - P[:-1, :-1], P[:-1, 1:] - P[1:, :-1]
+    areas = 0.5 * np.linalg.norm(np.cross(d1, d2), axis=-1).ravel()
+    sc, zc = np.meshgrid(0.5 * (se[1:] + se[:-1]), 0.5 * (ze[1:] + ze[:-1]), indexing="ij")
+    cells = geom.surface(sc, zc, np.full_like(sc, h)).reshape(-1, 3)
+    normals = geom.normal(sc).reshape(-1, 3)
+    w, ht, d = s1 - s0, z1 - z0, style.room_depth_m
+    grey = rng.uniform(*style.room_albedo)
+    wall = np.clip(grey * (1.0 + rng.uniform(-0.06, 0.06, 3)), 0.0, 1.0)
+    hue = rng.uniform(0.0, 2.0 * math.pi, 2)
+    light = rng.uniform(0.3, 0.9, 2)
+    chroma = rng.uniform(0.0, 0.35, 2)
+    axes = np.array([0.0, 2.0 * math.pi / 3, 4.0 * math.pi / 3])
+    cloth = np.clip(light[:, None] * (1.0 + chroma[:, None] * np.cos(hue[:, None] - axes)), 0.0, 1.0)
+    corners = geom.surface(np.array([s0, s1, s1, s0]), np.array([z0, z0, z1, z1]), np.full(4, h))
+    return Room(corners, cells, normals, areas, 2.0 * (w * ht + w * d + ht * d), wall,
+                float(rng.uniform(*style.room_texture)), cloth)

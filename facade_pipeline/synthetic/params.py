@@ -25,7 +25,7 @@ Effect = Literal[
     "pose_noise",  # raw COLMAP poses perturbed (gt/ keeps the true ones)
     "exposure_spread",  # views' exposures spread over noise.exposure_spread_stops, highlights clipped
     "lens_distortion",  # frontal raw images through a radial lens (noise.lens_k1_k2); gt/ undistorted
-    "unglazed_units",  # facade.unglazed_units: openings without glass onto a room with shelves and cloth
+    "unglazed_units",  # facade.unglazed_units: openings without glass onto a room lit through them
     "masts_and_cranes",  # poles and a tower crane in front of the facade, reflected across its bars
 ]
 ALL_EFFECTS: tuple[str, ...] = Effect.__args__  # type: ignore[attr-defined]
@@ -100,6 +100,13 @@ class FacadeStyle:
     """(part index, row, col) of units without glass ("unglazed_units"): the opening shows a room."""
     room_depth_m: Positive
     """Depth of the room behind an unglazed unit ("unglazed_units") (m)."""
+    room_albedo: tuple[Fraction, Fraction]
+    """Range of the albedo of a room's walls, drawn per unglazed unit ("unglazed_units"): dark concrete
+    at the low end, light paint at the high end (0-1)."""
+    room_texture: tuple[Fraction, Fraction]
+    """Range of a room's texture, drawn per unglazed unit ("unglazed_units"): 0 a plain painted box with
+    bare boards for shelves and a plain cloth, 1 mottled concrete, shelves of things of mixed colours and
+    a printed cloth (0-1)."""
 
 
 @dataclass(frozen=True)
@@ -338,6 +345,10 @@ def _check_effects(p: SynthesizeParams) -> None:
     if "unglazed_units" in p.effects:
         if not units:
             _fail("facade.unglazed_units", "at least one (part, row, col) with effect 'unglazed_units'", [])
+        for key in ("room_albedo", "room_texture"):
+            low, high = getattr(p.facade, key)
+            if not 0.0 <= low <= high <= 1.0:
+                _fail(f"facade.{key}", "(low, high) with 0 <= low <= high <= 1", (low, high))
         if p.facade.room_depth_m > p.facade.body_depth_m - p.facade.frame_back_m:
             _fail("facade.room_depth_m", "within the body (body_depth_m - frame_back_m)",
                   p.facade.room_depth_m)

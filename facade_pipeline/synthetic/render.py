@@ -8,7 +8,8 @@ colour is the deferred shading of the paper (Eq. 7-8):
 with theta between the normal n and the direction to the camera w_o, and R the radiance along the mirror
 direction w_r = 2 (w_o . n) n - w_o: the scene traced one bounce with "near_field_reflection", else the sky
 alone (no secondary ray is cast). Other surfaces are diffuse: albedo * (ambient + sun Lambert term), no
-shadows. Rays are processed in chunks of ``chunk_rays``, so memory depends on the chunk and image size only.
+shadows; a room behind an unglazed unit is lit only by what it sees through its opening. Rays
+are processed in chunks of ``chunk_rays``, so memory depends on the chunk and image size only.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.synthetic.cameras import Lens
 from facade_pipeline.synthetic.mesh import Material, TriMesh
 from facade_pipeline.synthetic.scene import Scene
-from facade_pipeline.synthetic.textures import albedo, lighting, sky
+from facade_pipeline.synthetic.textures import albedo, lighting, room_radiance, sky
 
 
 @dataclass
@@ -107,13 +108,18 @@ def first_hits(tracer: Tracer, arrays: SceneArrays, o: np.ndarray, d: np.ndarray
 
 def diffuse_radiance(scene: Scene, hits: Hits, d: np.ndarray) -> np.ndarray:
     """Radiance [N, 3] of hits seen along d [N, 3] without tracing further: the sky on misses, lit albedo on
-    diffuse surfaces, and on glass (1 - refl) D + refl F0 sky(w_r) (the bounce budget is spent)."""
+    diffuse surfaces (rooms lit through their openings), and on glass (1 - refl) D + refl F0 sky(w_r) (the
+    bounce budget is spent)."""
     p = scene.params
     hit = hits.material != Material.NONE
     out = np.empty((len(d), 3))
     out[~hit] = sky(d[~hit], p.environment)
     glass = hits.material == Material.GLASS
-    diff = hit & ~glass
+    room = hits.material == Material.INTERIOR
+    if room.any():
+        out[room] = room_radiance(hits.points[room], hits.normals[room], hits.object_id[room], scene.rooms,
+                                  p.environment, p.seed)
+    diff = hit & ~glass & ~room
     if diff.any():
         a = albedo(
             hits.material[diff],

@@ -11,7 +11,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from facade_pipeline.synthetic.environment import Placement, environment_mesh, place_objects, site_frame
-from facade_pipeline.synthetic.facade import Panel, PartGeometry, build_panels, part_meshes, world_from_facade
+from facade_pipeline.synthetic.facade import (
+    Panel,
+    PartGeometry,
+    Room,
+    build_panels,
+    draw_room,
+    part_meshes,
+    world_from_facade,
+)
 from facade_pipeline.synthetic.mesh import Material, TriMesh, concat
 from facade_pipeline.synthetic.noise import rng_for
 from facade_pipeline.synthetic.params import SynthesizeParams
@@ -22,7 +30,8 @@ SITE_MARGIN_M = 10.0  # trees are placed this far beyond the facade's extent alo
 @dataclass(frozen=True, eq=False)
 class Scene:
     """Everything the renderer and the writers need. ``panel_diffuse`` [P, 3] is indexed by the glass
-    triangles' object id; ``world_from_site`` [4, 4] is the environment's frame."""
+    triangles' object id; ``world_from_site`` [4, 4] is the environment's frame; ``rooms`` are the rooms
+    behind the unglazed units, indexed by their triangles' object id // ``ROOM_OBJECTS``."""
 
     params: SynthesizeParams
     parts: tuple[PartGeometry, ...]
@@ -34,6 +43,7 @@ class Scene:
     mesh: TriMesh
     world_from_site: np.ndarray
     placement: Placement
+    rooms: tuple[Room, ...] = ()
 
     @property
     def panel_diffuse(self) -> np.ndarray:  # [P, 3]
@@ -57,12 +67,15 @@ def build_scene(params: SynthesizeParams) -> Scene:
         PartGeometry(i, p, world_from_facade(p), style.frame_width_m) for i, p in enumerate(params.parts)
     )
     rng = rng_for(params.seed, "interior")
+    room_rng = rng_for(params.seed, "rooms")
     panels: list[Panel] = []
+    rooms: list[Room] = []
     glass, frames, bodies = [], [], []
     for geom in parts:
         unglazed = frozenset((r, c) for k, r, c in style.unglazed_units if k == geom.index)
-        g, f, b = part_meshes(geom, style, len(panels), 0.0, unglazed)
+        g, f, b = part_meshes(geom, style, len(panels), 0.0, unglazed, len(rooms))
         panels.extend(build_panels(geom, style, rng, unglazed))
+        rooms.extend(draw_room(geom, style, r, c, room_rng) for r, c in sorted(unglazed))
         glass.append(g)
         frames.append(f)
         bodies.append(b)
@@ -74,7 +87,7 @@ def build_scene(params: SynthesizeParams) -> Scene:
     g, f, b = concat(glass), concat(frames), concat(bodies)
     mesh = concat([g, f, b, env])
     assert int((mesh.material == Material.GLASS).sum()) == len(g.triangles)
-    return Scene(params, parts, tuple(panels), g, f, b, env, mesh, T, placement)
+    return Scene(params, parts, tuple(panels), g, f, b, env, mesh, T, placement, tuple(rooms))
 
 
 def _half_span(parts: tuple[PartGeometry, ...], T: np.ndarray) -> float:

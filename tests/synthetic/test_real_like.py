@@ -13,10 +13,13 @@ import pytest
 from facade_pipeline.errors import ConfigError
 from facade_pipeline.io.colmap import undistort_options, undistort_rgb
 from facade_pipeline.io.images import to_uint8
+from facade_pipeline.synthetic.facade import draw_room
 from facade_pipeline.synthetic.mesh import Material
-from facade_pipeline.synthetic.render import first_hits, render_view
+from facade_pipeline.synthetic.noise import rng_for
+from facade_pipeline.synthetic.render import first_hits, render_view, shade
 from facade_pipeline.synthetic.scene import panels_description
 from facade_pipeline.synthetic.simulate import build_simulator, raw_view, sensor_image, spread_stops
+from facade_pipeline.synthetic.textures import opening_light, room_albedo, sun_through
 from tests.synthetic.conftest import replace_in, shipped, tiny, with_effects, without
 
 
@@ -100,6 +103,124 @@ def test_unglazed_units_are_openings_onto_a_room_and_not_panels():
     assert "openings" not in panels_description(plain)
 
 
+def _opened(style_changes: dict | None = None, env_changes: dict | None = None):
+    """A tiny scene with unit (1, 2) open onto a room, its facade style and environment changed."""
+    p = tiny()
+    facade = dataclasses.replace(p.facade, unglazed_units=((0, 1, 2),), **(style_changes or {}))
+    return dataclasses.replace(p, effects=(*p.effects, "unglazed_units"), facade=facade,
+                               environment=dataclasses.replace(p.environment, **(env_changes or {})))
+
+
+def _floor_radiance(p, depths_m: np.ndarray) -> np.ndarray:
+    """Radiance the renderer gives the room's floor at ``depths_m`` behind its opening, seen from 2 m in
+    front of the opening's centre."""
+    sim = build_simulator(p)
+    geom = sim.scene.parts[0]
+    s0, s1, z0, _ = geom.panel_bounds(1, 2)
+    back = p.facade.frame_back_m
+    eye = geom.surface(0.5 * (s0 + s1), z0 + 1.0, 2.0)
+    target = geom.surface(np.full(len(depths_m), 0.5 * (s0 + s1)), np.full(len(depths_m), z0 + 0.01),
+                          -back - depths_m)
+    d = target - eye
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(eye, d.shape).copy()
+    hits = first_hits(sim.tracer, sim.arrays, o, d, "other")
+    assert (hits.material == Material.INTERIOR).all() and (hits.object_id == 0).all()
+    return shade(sim.scene, sim.tracer, sim.arrays, o, d).mean(axis=1)
+
+
+def test_a_room_is_lit_through_its_opening_falling_with_depth_and_rising_with_the_sky():
+    depths = np.array([0.3, 1.0, 1.8, 2.6])
+    plain = {"room_texture": (0.0, 0.0), "room_albedo": (0.6, 0.6), "room_depth_m": 3.0}
+    shade = {"sun_intensity": 0.0}
+    lit = _floor_radiance(_opened(plain, shade), depths)
+    assert (np.diff(lit) < 0).all() and lit[-1] < 0.7 * lit[0], lit
+    env = tiny().environment
+    dim = {**shade, "sky_zenith_color": tuple(0.5 * c for c in env.sky_zenith_color),
+           "sky_horizon_color": tuple(0.5 * c for c in env.sky_horizon_color)}
+    np.testing.assert_allclose(_floor_radiance(_opened(plain, dim), depths), 0.5 * lit, rtol=1e-6)
+    bright = _floor_radiance(_opened({**plain, "room_albedo": (0.9, 0.9)}, shade), depths)
+    assert (bright > 1.5 * lit).all()  # a light box passes more of the light on: more than its albedo says
+
+
+def test_the_sun_lights_a_room_where_its_ray_passes_through_the_opening():
+    p = _opened({"room_depth_m": 3.0}, {"sun_azimuth_deg": 90.0, "sun_elevation_deg": 30.0})
+    room = build_simulator(p).scene.rooms[0]
+    geom = build_simulator(p).scene.parts[0]
+    s0, s1, z0, z1 = geom.panel_bounds(1, 2)
+    h = -p.facade.frame_back_m
+    # the sun straight in front, 30 deg up: the ray from the floor's centre line at depth d leaves through
+    # the opening while it rises less than the opening's height, d tan 30 < z1 - z0
+    reach = (z1 - z0) / np.tan(np.radians(30.0))
+    depths = np.array([0.2, 0.6, 0.9]) * min(reach, 3.0)
+    floor = geom.surface(np.full(3, 0.5 * (s0 + s1)), np.full(3, z0), h - depths)
+    up = np.tile([0.0, 0.0, 1.0], (3, 1))
+    assert sun_through(floor, room, p.environment).all()
+    deep = geom.surface(0.5 * (s0 + s1), z0, h - 1.1 * reach)[None]
+    back = geom.surface(0.5 * (s0 + s1), z1 - 0.01, h - 0.5)[None]  # the ceiling's ray leaves downward
+    assert not sun_through(deep, room, p.environment).any()
+    assert not sun_through(back, room, p.environment).any()
+    dark = dataclasses.replace(p.environment, sun_intensity=0.0)
+    gain = opening_light(floor, up, room, p.environment) - opening_light(floor, up, room, dark)
+    # the sun's Lambert term on the floor, plus the same share of its flux passed on by the walls at each
+    assert np.ptp(gain) < 1e-9 and gain.min() > p.environment.sun_intensity * np.sin(np.radians(30.0))
+
+
+def _corner_form_factor(a: float, b: float, d: float) -> float:
+    """Form factor from a point to a parallel a x b rectangle at distance d facing it, the point opposite
+    one of its corners."""
+    x, y = a / d, b / d
+    return (x / np.hypot(1, x) * np.arctan(y / np.hypot(1, x))
+            + y / np.hypot(1, y) * np.arctan(x / np.hypot(1, y))) / (2 * np.pi)
+
+
+def test_opening_light_is_the_form_factor_of_the_opening_times_what_it_shows():
+    grey = (0.5, 0.5, 0.5)
+    p = _opened({"room_albedo": (0.0, 0.0)},
+                {"sky_zenith_color": grey, "sky_horizon_color": grey, "sun_intensity": 0.0})
+    scene = build_simulator(p).scene
+    room = scene.rooms[0]
+    assert not room.wall.any()  # a black box passes nothing on: the light is the opening's alone
+    geom = scene.parts[0]
+    s0, s1, z0, z1 = geom.panel_bounds(1, 2)
+    h = -p.facade.frame_back_m
+    for d in (0.5, 1.5, 3.0):
+        q = geom.surface(0.5 * (s0 + s1), 0.5 * (z0 + z1), h - d)[None]
+        n = geom.normal(np.array([0.5 * (s0 + s1)]))
+        got = opening_light(q, n, room, p.environment)[0]
+        # each half is two of the four quarters the centre faces; the upper half shows the sky, the lower
+        # half the ground's haze (0.6 of the horizon)
+        half = 2 * _corner_form_factor((s1 - s0) / 2, (z1 - z0) / 2, d)
+        np.testing.assert_allclose(got, half * 0.5 * (1.0 + 0.6), rtol=0.02)
+
+
+def test_drawn_rooms_span_their_style_ranges_and_repeat_for_a_seed():
+    p = _opened({"room_albedo": (0.2, 0.85), "room_texture": (0.1, 0.9)})
+    geom = build_simulator(p).scene.parts[0]
+    rooms = [draw_room(geom, p.facade, 1, 2, rng_for(7, "rooms", k)) for k in range(200)]
+    grey = np.array([r.wall.mean() for r in rooms])
+    texture = np.array([r.texture for r in rooms])
+    assert 0.2 * 0.94 <= grey.min() < 0.26 and 0.79 < grey.max() <= 0.85 * 1.06, (grey.min(), grey.max())
+    assert 0.1 <= texture.min() < 0.15 and 0.85 < texture.max() <= 0.9
+    cloth = np.array([r.cloth for r in rooms])
+    assert ((cloth >= 0) & (cloth <= 1)).all() and np.ptp(cloth[:, 0].mean(axis=1)) > 0.4
+    again = draw_room(geom, p.facade, 1, 2, rng_for(7, "rooms", 0))
+    assert again.texture == rooms[0].texture and np.array_equal(again.cloth, rooms[0].cloth)
+
+
+def test_a_textured_room_is_rougher_than_a_plain_one():
+    geom = build_simulator(_opened()).scene.parts[0]
+    p = _opened()
+    xs = np.linspace(0.0, 3.0, 400)
+    pts = geom.surface(np.full_like(xs, 0.0), 1.0 + xs, np.full_like(xs, -1.0))
+    spread = {}
+    for t in (0.0, 1.0):
+        room = dataclasses.replace(draw_room(geom, p.facade, 1, 2, rng_for(1, "rooms")), texture=t)
+        spread[t] = [room_albedo(pts, np.full(len(xs), k), room, 3).std(axis=0).max() for k in (0, 1, 2)]
+    assert spread[0.0][0] < 1e-9 and spread[0.0][1] < 1e-9  # plain paint, bare boards
+    assert all(spread[1.0][k] > 0.02 for k in (0, 1)), spread
+
+
 @pytest.mark.parametrize(("units", "effects", "named"), [
     (((0, 1, 2),), (), "synthesize.facade.unglazed_units"),
     (((0, 7, 0),), ("unglazed_units",), "synthesize.facade.unglazed_units[0]"),
@@ -111,6 +232,13 @@ def test_unglazed_units_name_the_key_when_wrong(units, effects, named):
         facade = dataclasses.replace(p.facade, unglazed_units=units)
         dataclasses.replace(p, effects=(*p.effects, *effects), facade=facade)
     assert named in str(e.value)
+
+
+@pytest.mark.parametrize("key", ["room_albedo", "room_texture"])
+def test_room_style_ranges_name_the_key_when_wrong(key):
+    with pytest.raises(ConfigError) as e:
+        _opened({key: (0.8, 0.2)})
+    assert f"synthesize.facade.{key}" in str(e.value)
 
 
 def test_masts_and_cranes_stand_in_front_and_are_reflected_by_the_glass():
