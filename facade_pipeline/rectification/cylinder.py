@@ -23,8 +23,9 @@ one surface bent through both fits neither, and the fit is redone on the part ho
 the fit over all fits that part about as well as its own (one surface with a gap); (6) a plane and a
 cylinder meeting with no gap between them (a flat wall continued by a curved corner, tangentially or at a
 kink), or two planes meeting at a kink (a building's corner, a folded bay), are one part: the points are
-split where two surfaces fit them best (``turn_split``), and the fit is redone on the side holding most
-where the fit over all strays from the other side (``_turn_fit``); a fit of planes only, too.
+split where two surfaces fit them best (``turn_split``), and the fit is redone on the side the view's
+optical axis meets (the side holding most where no axis is given) where the fit over all strays from the
+other side (``_turn_fit``); a fit of planes only, too.
 """
 
 from __future__ import annotations
@@ -360,10 +361,12 @@ def _bend_directions(points: np.ndarray, plane: Surface, scale_m: float) -> list
 
 
 def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, unit_m: float,
-               curved: bool = True, candidates: int = 64) -> np.ndarray:
-    """Mask [N] of the side holding most of ``points`` [N, 3] of the best split of them into two surfaces
-    meeting along a line across ``surface`` (a flat wall continued by a curved corner, tangentially or at a
-    kink, or by a second flat wall at a kink, with no gap between them: one part for ``point_parts``).
+               curved: bool = True, candidates: int = 64, looked_at: np.ndarray | None = None) -> np.ndarray:
+    """Mask [N] of one side of the best split of ``points`` [N, 3] into two surfaces meeting along a line
+    across ``surface`` (a flat wall continued by a curved corner, tangentially or at a kink, or by a second
+    flat wall at a kink, with no gap between them: one part for ``point_parts``): the side holding
+    ``looked_at`` [3] (the point of ``surface`` a view's optical axis meets: the view frames the surface it
+    looks at, whichever side holds more points), else, with no ``looked_at``, the side holding most.
 
     Only the points within ``ransac_threshold`` of ``surface`` take part (far outliers drop out as in the
     fit). They are taken in cross-section across ``surface``'s axis (a plane's two in-plane directions both
@@ -384,7 +387,8 @@ def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, u
         directions = [surface.binormal, surface.axis]
     else:
         directions = _bend_directions(points[near], surface, params.inlier_scale * unit_m)
-    q = points - points[near].mean(0)
+    centre = points[near].mean(0)
+    q = points - centre
     w = q @ surface.normal
     ks = np.unique(np.linspace(params.min_points, n - params.min_points, candidates).astype(int))
     best, best_cost = np.ones(len(points), bool), np.inf
@@ -401,7 +405,8 @@ def turn_split(points: np.ndarray, surface: Surface, params: SurfaceFitParams, u
         if cost[j] < best_cost:
             k = int(ks[j])
             cut = 0.5 * (ss[k - 1] + ss[k]) * unit_m
-            best_cost, best = float(cost[j]), (s < cut) if 2 * k >= n else (s >= cut)
+            before = 2 * k >= n if looked_at is None else float((looked_at - centre) @ u) < cut
+            best_cost, best = float(cost[j]), (s < cut) if before else (s >= cut)
     return best
 
 
@@ -442,8 +447,10 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
     ``normal_knn`` neighbours) is redone on the part holding most of them (``SurfaceFit.part``), unless the
     fit over all fits that part within ``MAX_PART_RMS_RATIO`` of its own fit (one surface with a gap); the
     other is left to the views that frame it. A plane and a cylinder on one part (no gap between them) are
-    split the same way where the fit over both strays from the side holding fewer points (``_turn_fit``),
-    and so are two planes meeting at a kink, ``curved = False`` too.
+    split where the fit over both strays from either side (``_turn_fit``), and so are two planes meeting at
+    a kink, ``curved = False`` too: the fit is redone on the side the optical axis (minus
+    ``toward_camera`` from ``viewpoint``) meets, the surface the view looks at, else on the side holding
+    most.
 
     The params' lengths are fractions of ``unit_m``, the frontal views' footprint
     (``surface_map.frontal_footprint_m``). Raises ``SurfaceFitError`` naming ``source`` for too few points
@@ -471,9 +478,9 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
             surface, fitted = part_surface, main
             keep = np.zeros(len(points), bool)
             keep[np.flatnonzero(main)[keep_main]] = True
-    # two surfaces meeting on one part (no gap between them): fit the side holding most
+    # two surfaces meeting on one part (no gap between them): fit the side the view looks at
     surface, keep, fitted = _turn_fit(surface, keep, fitted, points, viewpoint, params, unit_m, source,
-                                      curved)
+                                      curved, toward_camera)
     d = surface.signed_distance(points[keep])
     return SurfaceFit(surface, float(np.sqrt(np.mean(d * d))), n_given, int(keep.sum()),
                       None if fitted.all() else points[keep])
@@ -481,19 +488,27 @@ def fit_surface(points: np.ndarray, viewpoint: np.ndarray, params: SurfaceFitPar
 
 def _turn_fit(surface: Surface, keep: np.ndarray, fitted: np.ndarray, points: np.ndarray,
               viewpoint: np.ndarray, params: SurfaceFitParams, unit_m: float,
-              source: str | Path | None, curved: bool) -> tuple[Surface, np.ndarray, np.ndarray]:
+              source: str | Path | None, curved: bool,
+              toward_camera: np.ndarray | None = None) -> tuple[Surface, np.ndarray, np.ndarray]:
     """(surface, inlier mask [N], fitted mask [N]): ``surface`` (inliers ``keep`` among ``points`` [N, 3],
-    fitted to those in ``fitted`` [N]) refitted on the side holding most of the best split of its points into
-    two surfaces (``turn_split``), else as given (the sides fitted as ``curved`` says, as the surface was). It
-    is refitted where a plane takes part (the surface or a side's own fit: not cylinders alone) and the
-    surface fits the other side's inliers more than ``MAX_PART_RMS_RATIO`` times worse (RMS) than the worse of
-    the two sides' own fits fits its own: bent through both, it keeps to the side holding most and strays from
-    the other. Not the main side's ratio, as across separate parts: a cylinder bent through a curved corner
-    and the flat wall it continues tangentially strays little over the corner, and a side of few points fitted
-    alone (tilt and offset free) takes up some of the points' own error, so that its fit is no measure of
-    their scatter alone."""
+    fitted to those in ``fitted`` [N]) refitted on one side of the best split of its points into two surfaces
+    (``turn_split``), else as given (the sides fitted as ``curved`` says, as the surface was). The side kept
+    is the one the view looks at: where its optical axis (from ``viewpoint`` along minus ``toward_camera``)
+    meets ``surface``; the side holding most where that is not known (no ``toward_camera``, or the axis
+    misses the surface). It is refitted where a plane takes part (the surface or a side's own fit: not
+    cylinders alone) and the surface fits the other side's inliers more than ``MAX_PART_RMS_RATIO`` times
+    worse (RMS) than the worse of the two sides' own fits fits its own: bent through both, it keeps to the
+    side holding most and strays from the other. Not the main side's ratio, as across separate parts: a
+    cylinder bent through a curved corner and the flat wall it continues tangentially strays little over the
+    corner, and a side of few points fitted alone (tilt and offset free) takes up some of the points' own
+    error, so that its fit is no measure of their scatter alone."""
+    looked_at = None
+    if toward_camera is not None:
+        forward = -np.asarray(toward_camera, float)
+        lam = float(surface.intersect(viewpoint[None], forward[None])[0])
+        looked_at = viewpoint + lam * forward if np.isfinite(lam) else None
     main = np.zeros(len(points), bool)
-    main[fitted] = turn_split(points[fitted], surface, params, unit_m, curved)
+    main[fitted] = turn_split(points[fitted], surface, params, unit_m, curved, looked_at=looked_at)
     # the other side's points near the surface alone (as the split saw them): beyond it lie other things
     other = fitted & ~main & (np.abs(surface.signed_distance(points)) < params.ransac_threshold * unit_m)
     if other.sum() < params.min_points:

@@ -253,6 +253,23 @@ def test_two_planes_at_a_kink_fit_the_plane_the_view_frames(framed, kink_deg, cu
     assert np.sqrt(np.mean(s.signed_distance(pts[main]) ** 2)) < 0.04
 
 
+@pytest.mark.parametrize("curved", [True, False])
+@pytest.mark.parametrize("kink_deg", [-20.0, 20.0])
+@pytest.mark.parametrize("framed", ["first", "second"])
+def test_two_planes_at_a_kink_half_and_half_fit_the_plane_the_view_looks_at(framed, kink_deg, curved):
+    """A view centred on one of two walls at a kink that hold as many points each (the corner framed half
+    and half): neither side holds most, and the view's photo is of the wall its optical axis meets; the fit
+    takes that wall's normal, not the other's."""
+    pts, n_first, second_normal = planes_at_kink(4.25, 4.25, kink_deg)
+    main = np.arange(len(pts)) < n_first if framed == "first" else np.arange(len(pts)) >= n_first
+    normal = np.array([0.0, 1.0, 0.0]) if framed == "first" else second_normal
+    eye = pts[main].mean(0) + 7.0 * normal
+    fit = fit_surface(pts, eye, FIT, FOOTPRINT_M, toward_camera=normal, curved=curved)
+    assert np.isinf(fit.surface.radius_m)
+    assert fit.surface.normal @ normal > np.cos(np.radians(1.0))
+    assert fit.part is not None and abs(fit.n_inliers - main.sum()) < 75
+
+
 @pytest.mark.parametrize(("radius", "curved"), [(np.inf, True), (np.inf, False), (9.0, True)])
 def test_one_surface_with_the_coarse_points_scatter_is_not_split(radius, curved):
     """A single plane (fitted as a plane or a cylinder) or a single cylinder whose points scatter as the
