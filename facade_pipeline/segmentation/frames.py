@@ -396,13 +396,14 @@ class FrameBars:
                 if f"pitch_{name}_px" in self.metrics}
 
     def frame_depths_m(self, unjudged: bool = False) -> dict[str, float]:
-        """The frame depth d = k D / (1 + k) (m) each family's own parallax fit gives ("x": the mullions,
-        "y": the transoms), where it has one and the camera's distance D to the surface is known; with
+        """The frame depth d = k D (m) each family's own parallax fit gives ("x": the mullions, "y": the
+        transoms; ``parallax.slope_of``), where it has one and the camera's distance D to the surface is
+        known; with
         ``unjudged``, the depths of the exact fits instead (``Parallax.unjudged``, the larger side slope)."""
         D = np.nan if self.parallax is None else self.parallax.distance_m
         k = {n: float(np.nanmax(f.slopes)) if unjudged else f.k for n, f in self.fits.items()
              if f.unjudged == unjudged and (unjudged or f.k > 0.0)}
-        return {n: v / (1.0 + v) * D for n, v in k.items() if np.isfinite(D)}
+        return {n: v * D for n, v in k.items() if np.isfinite(D)}
 
 
 def find_frames(

@@ -3,16 +3,20 @@ away from the camera along the surface by d tan(a), a the angle of the line of s
 (in the plane of the normal and the direction across the bar); its front face hides a strip of the glass
 beyond it of that width, while on its side towards the camera the bar's side face shows. In pixels the shift
 is k' P, with P the view's parallax coordinate (``ParallaxField``: D tan(a) / m, D the camera's distance to
-the surface, m the scale) and k' = d / D = k / (1 + k). Seen straight on to a plane, P = u - c, the distance
-from the camera's foot c; across an unrolled cylinder P grows faster than the distance (the surface turns
-away from the camera), and for the horizontal bars it changes along the bar. A bar's apparent width thus
-grows as w = B + k P, with P at its far (front-face) edge; on a side of c where the side faces are shaded
-like the glass, the near edge found is the front face's as well, and the width does not grow there. k and
-those sides are fitted per family and view (``fit_parallax``); where both sides' side faces are shaded the
-widths show no k at all, so a rectified view takes k from the building's frame depth per family (the median
-of the views' fits, ``segment_frames``). The front-face edges are moved back by k P / (1 + k) along their
-length, where the glass meets the frame: corners are the glass panel's corners, and masks are the panels'
-quads, hidden strips included (``parallax_max_slope = 0`` keeps the visible glass instead)."""
+the surface, m the scale) and k' = d / (D + d) = k / (1 + k), k = d / D: the surface is the one fitted to the
+coarse points, which photogrammetry finds on the frames' front rather than on the glass (a reflection gives no
+points of the glass's own), so the glass lies d behind it, D + d from the camera (a surface taken for the
+glass, k = d / (D - d), turns a view's slope into a depth too small by about d / D, and a depth into a slope
+too large by as much). Seen straight on to a plane, P = u - c, the distance from the camera's foot c; across
+an unrolled cylinder P grows faster than the distance (the surface turns away from the camera), and for the
+horizontal bars it changes along the bar. A bar's apparent width thus grows as w = B + k P, with P at its far
+(front-face) edge; on a side of c where the side faces are shaded like the glass, the near edge found is the
+front face's as well, and the width does not grow there. k and those sides are fitted per family and view
+(``fit_parallax``); where both sides' side faces are shaded the widths show no k at all, so a rectified view
+takes k from the building's frame depth per family (the median of the views' fits, ``segment_frames``). The
+front-face edges are moved back by k P / (1 + k) along their length, where the glass meets the frame: corners
+are the glass panel's corners, and masks are the panels' quads, hidden strips included
+(``parallax_max_slope = 0`` keeps the visible glass instead)."""
 
 from __future__ import annotations
 
@@ -160,9 +164,9 @@ def _slope_error(A: np.ndarray, residual: np.ndarray, sides: list[int], slopes: 
 
 
 def slope_of(frame_depth_m: float, distance_m: float) -> float:
-    """The parallax slope k = d / (D - d) of frames ``frame_depth_m`` proud of a surface ``distance_m``
-    from the camera (0 where that is not finite and positive)."""
-    k = frame_depth_m / (distance_m - frame_depth_m)
+    """The parallax slope k = d / D of frames ``frame_depth_m`` proud of the glass, their front on the
+    surface ``distance_m`` from the camera (module docstring; 0 where that is not finite and positive)."""
+    k = frame_depth_m / distance_m
     return float(k) if np.isfinite(k) and k > 0.0 else 0.0
 
 
@@ -255,9 +259,10 @@ def pooled_depth_m(
 ) -> tuple[float, tuple[float, float]]:
     """The frame depth d (m) of one family fitted over the bars of many views at once, 0 where they do not
     show one. Each view (its ``Bars`` at the working scale, its ``ParallaxField`` with the camera's distance
-    D, its metres per pixel m) adds its bars' widths in metres, w = B_v + (d / D) s, s the extent (m) of a
-    bar beyond the camera's foot on either side at its found edges (``fit_parallax``'s model: there k s /
-    (1 + k) in pixels, k = d / (D - d)). One facade's frames share d, and on a plane each side of the foot
+    D, its metres per pixel m) adds its bars' widths in metres, w = B_v + d s / (D + d), s the extent (m) of
+    a bar beyond the camera's foot on either side at its found edges (``fit_parallax``'s model: there k s /
+    (1 + k) in pixels, k = d / D; a second fit divides by D + d). One facade's frames share d, and on a plane
+    each side of the foot
     shows the same face of every bar, lit alike in every view, so views with too few bars for a fit of
     their own (a close-up framing one unit: two bars a family) measure d together. Each view has its own
     B_v: a photo's exposure, focus and scale widen or narrow all its bars alike, so only the widths within
@@ -269,7 +274,7 @@ def pooled_depth_m(
     (``slope_of``: the largest of theirs) is within ``max_slope``, the largest a view's own fit accepts
     (``fit_parallax``); else 0. Returned with each side's own d (P < 0, P > 0; NaN: not measured there):
     a side's faces shaded like the glass show as a side whose widths do not grow (``Parallax.with_slope``)."""
-    w, x, px, view, distances = [], [], [], [], []
+    w, x, px, view, dist = [], [], [], [], []
     for i, (bars, field, m) in enumerate(views):
         if not np.isfinite(field.distance_m) or not bars.edges:
             continue
@@ -278,24 +283,26 @@ def pooled_depth_m(
                 if width >= 0.5 * float(np.median(widths))]
         if len(kept) < 2:
             continue
-        distances.append(field.distance_m)
         for lo, hi, width in kept:
             s = np.maximum([-_coord(field, axis, lo), _coord(field, axis, hi)], 0.0)
             w.append(width * m)
-            x.append(s * m / field.distance_m)
+            x.append(s * m)
             px.append(s)
             view.append(i)
+            dist.append(field.distance_m)
     none = (0.0, (float("nan"), float("nan")))
     sides = [j for j in (0, 1) if len(px) and np.ptp(np.array(px)[:, j]) >= 1.0]
     ids = np.unique(view)
     if len(w) < min_bars or not sides or len(ids) < 2 or len(w) <= len(ids) + len(sides):
         return none
     own = (np.array(view)[:, None] == ids[None]).astype(float)
-    A = np.concatenate([own, np.array(x)[:, sides]], axis=1)
-    coef = np.linalg.lstsq(A, np.array(w), rcond=None)[0]
-    slopes = dict(zip(sides, coef[len(ids):], strict=True))
-    side = max(slopes, key=lambda j: slopes[j])
-    d = float(slopes[side])
+    d = 0.0
+    for _ in range(2):
+        A = np.concatenate([own, np.array(x)[:, sides] / (np.array(dist)[:, None] + d)], axis=1)
+        coef = np.linalg.lstsq(A, np.array(w), rcond=None)[0]
+        slopes = dict(zip(sides, coef[len(ids):], strict=True))
+        side = max(slopes, key=lambda j: slopes[j])
+        d = max(float(slopes[side]), 0.0)
     if d <= 0.0:
         return none
     residual = np.array(w) - A @ coef
@@ -303,6 +310,6 @@ def pooled_depth_m(
     scores = [A[own[:, g] > 0].T @ residual[own[:, g] > 0] for g in range(len(ids))]
     cov = len(ids) / (len(ids) - 1) * inv @ sum(np.outer(q, q) for q in scores) @ inv
     error = float(np.sqrt(max(cov[len(ids) + sides.index(side), len(ids) + sides.index(side)], 0.0)))
-    if d < PARALLAX_MIN_T * error or slope_of(d, min(distances)) > max_slope:
+    if d < PARALLAX_MIN_T * error or slope_of(d, min(dist)) > max_slope:
         return none
     return d, (float(slopes.get(0, np.nan)), float(slopes.get(1, np.nan)))

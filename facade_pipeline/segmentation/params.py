@@ -34,4 +34,4 @@ class SegmentParams:
     frame_colour_tol: NonNeg
     """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
     parallax_max_slope: NonNeg
-    """Largest frame parallax d / (Z - d) accepted (frames d proud of glass seen from Z); 0: no correction."""
+    """Largest frame parallax d / Z accepted (frames d proud of glass, their front Z away); 0: none."""

@@ -219,7 +219,7 @@ def test_only_one_family_of_bars_is_named():
 
 
 def test_parallax_of_proud_frames_is_fitted_and_corrected():
-    """Bars 8 px wide at glass level seen with the parallax k = d / (Z - d) = 0.01 about c = 192: every
+    """Bars 8 px wide at glass level seen with the parallax k = d / Z = 0.01 about c = 192: every
     bar's far edge is pushed away from c; right of c shaded side faces make the near edges move too (the
     bars keep their width there), left of c the near edges are found where they are. k comes from the
     left side, the right side is recognised as displaced, and every edge is put back; a bar cut by the
@@ -276,6 +276,38 @@ def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scat
     assert not noisy.unjudged
 
 
+def test_the_frame_depth_is_measured_from_the_frames_front_where_the_surface_is_fitted():
+    """A close-up of a plane (real_like's: 4.2 m, 23.5 mm per px) whose surface, fitted to the coarse points,
+    lies on the frames' front, the glass d = 0.12 m behind it: the glass edge and the front-face edge above
+    it projected exactly onto the surface. The bars' widths give d, and d gives the slope that moves every
+    front-face edge onto the glass corner it hides. A surface taken for the glass (k = d / (D - d)) would
+    give 0.1166 m and move the far edges 0.25 px too far."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.frames import FrameBars
+    from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, fit_parallax, slope_of
+
+    d, D, m, foot, W = 0.12, 4.18, 0.0235, 200.0, 400
+    field = dataclasses.replace(ParallaxField.about((foot, 127.0), W, 254), distance_m=D)
+
+    def seen(x: float, h: float) -> float:  # px on the surface of a point x m from the foot, h above it
+        return foot + x * D / (D - h) / m
+
+    glass = [(x, x + 0.4) for x in (-4.2, -2.6, 0.6, 2.2, 3.8)]  # where the glass meets each bar (m)
+    # the far edge is the front face's; the near edge, the glass's beside the side face
+    found = [(seen(lo, -d if lo > 0 else 0.0), seen(hi, 0.0 if hi > 0 else -d)) for lo, hi in glass]
+    line = lambda a: EdgeLine(float(a), 0.0, 127.0, np.ones(254))  # noqa: E731
+    bars = Bars([(line(lo), line(hi)) for lo, hi in found], None)
+    fit = fit_parallax(bars, field, 0, 3, 0.05)
+    view = FrameBars(bars, None, {"x": fit}, field, (W, 254), (1.0, 1.0), m, None, {}, (None, None))
+    depth = building_frame_parallax_m([view], PARAMS.parallax_max_slope)[0]["x"]
+    assert depth == pytest.approx(d, abs=5e-4)
+    fixed = correct_parallax(bars, fit.with_slope(slope_of(d, D)), field)
+    truth = [(seen(lo, -d), seen(hi, -d)) for lo, hi in glass]
+    pairs = zip(fixed.edges, truth, strict=True)
+    far = [hi.a - t[1] if t[1] > foot else lo.a - t[0] for (lo, hi), t in pairs]
+    assert np.abs(far).max() < 0.02
+
+
 def test_exact_parallax_fits_count_for_the_building_where_they_agree():
     """Views whose fits are exact (three bars for three unknowns) give the building's depth where their
     depths agree (Student's t on their mean), and none where they scatter as a few bars in real photos do;
@@ -291,7 +323,7 @@ def test_exact_parallax_fits_count_for_the_building_where_they_agree():
         fit = Parallax(0, slopes=(kx, np.nan), unjudged=True) if exact else Parallax(0, kx)
         return FrameBars(None, None, {"x": fit}, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
 
-    k = lambda d: d / (10.0 - d)  # noqa: E731
+    k = lambda d: d / 10.0  # noqa: E731
     agree = [view(k(0.12), True), view(k(0.125), True), view(k(0.118), True)]
     assert building_frame_parallax_m(agree, PARAMS.parallax_max_slope)[0]["x"] == pytest.approx(0.12)
     scatter = [view(k(0.06), True), view(k(0.005), True), view(k(0.2), True)]
@@ -328,7 +360,8 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
         for _ in range(12):
             D, foot = rng.uniform(3.4, 4.0), rng.uniform(100.0, 257.0)
             field = dataclasses.replace(ParallaxField.about((foot, 127.0), W, 254), distance_m=D)
-            front = lambda g: foot + (g - foot) * D / (D - depth_m)  # noqa: B023, E731
+            # the surface (D from the camera) at the frames' front, the glass depth_m behind it
+            front = lambda g: foot + (g - foot) * (D + depth_m) / D  # noqa: B023, E731
             left = rng.uniform(20.0, 60.0)
             glass = [(g, g + bar_m / m) for g in (left, left + 150.0)]  # (low, high) where it meets glass
             # a front-face edge where the bar's far side hides the glass; on its near side the glass's own,
@@ -349,9 +382,12 @@ def test_close_ups_with_two_bars_each_measure_the_frame_depth_together(shaded_hi
 
     proud = views(0.12)
     depth, sides = building_frame_parallax_m([f for f, _ in proud], PARAMS.parallax_max_slope)
+    # a bar beyond the foot whose side face is shaded shows its front face alone, d / D wider than it meets
+    # the glass, which its view's own width cannot take while the view's other bar shows the glass: 4 % low
+    tol = 0.006 if shaded_high else 0.005
     # no transoms at all: they take the mullions' depth, which nothing here corrects
-    assert depth.keys() == {"x", "y"} and depth["x"] == pytest.approx(0.12, abs=0.005) == depth["y"]
-    assert sides["x"][0] == pytest.approx(0.12, abs=0.005)
+    assert depth.keys() == {"x", "y"} and depth["x"] == pytest.approx(0.12, abs=tol) == depth["y"]
+    assert sides["x"][0] == pytest.approx(0.12, abs=tol)
     assert (sides["x"][1] < 0.02) if shaded_high else sides["x"][1] == pytest.approx(0.12, abs=0.005)
     for f, glass in proud:
         k = slope_of(depth["x"], f.parallax.distance_m)
@@ -630,7 +666,7 @@ def test_a_thin_line_wider_than_the_side_face_is_not_taken_for_it():
 
 
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
-    """Each view's own parallax fit gives d = k D / (1 + k) where it has one and D is known (a view not
+    """Each view's own parallax fit gives d = k D where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
     from facade_pipeline.segmentation.edges import Bars, EdgeLine
     from facade_pipeline.segmentation.frames import FrameBars
@@ -643,7 +679,7 @@ def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_
         fits = {"x": Parallax(0, kx), "y": Parallax(1, ky)}
         return FrameBars(bars, bars, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
 
-    k = lambda d, D: d / (D - d)  # noqa: E731
+    k = lambda d, D: d / D  # noqa: E731
     views = [view(k(0.10, 12.0), k(0.15, 12.0), 12.0, [6.0, 6.0]), view(k(0.12, 20.0), 0.0, 20.0, [6.0]),
              view(k(0.30, 10.0), k(0.17, 10.0), 10.0, [2.0]), view(0.01, 0.01, np.nan, [6.0]), None]
     depth = building_frame_parallax_m(views, PARAMS.parallax_max_slope)[0]
@@ -665,9 +701,9 @@ def test_a_family_without_a_depth_of_its_own_takes_the_other_familys():
         fits = {"x": Parallax(0, kx), "y": Parallax(1, ky)}
         return FrameBars(None, None, fits, field, (100, 100), (1.0, 1.0), 0.05, None, {}, (None, None))
 
-    k = lambda d: d / (10.0 - d)  # noqa: E731
+    k = lambda d: d / 10.0  # noqa: E731
     depth, sides = building_frame_parallax_m([view(0.0, k(0.12)), view(0.0, k(0.13)), view(0.0, k(0.11))],
-                                     PARAMS.parallax_max_slope)
+                                             PARAMS.parallax_max_slope)
     assert depth == pytest.approx({"x": 0.12, "y": 0.12}) and sides == {}
     assert building_frame_parallax_m([view(0.0, 0.0), view(0.0, 0.0)], PARAMS.parallax_max_slope)[0] == {}
 
