@@ -146,10 +146,11 @@ def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
 
 
 def survey_one(layout: BuildingLayout, view: View, params: Params
-               ) -> tuple[dict[str, float], dict[str, list[float]], float]:
+               ) -> tuple[dict[str, float], dict[str, list[float]], FrameBars | None, float]:
     """The pitch (m) per family of the grid the survey finds in one view (``frames.survey_frames``: sizes
     relative to the view, before the building's pitch is known; none for a view rectify skipped), the
-    widths (m) of its bars per family and the seconds it took."""
+    widths (m) of its bars per family, the survey's frame bars (None where skipped: their parallax fits
+    give the frames' depth before the building's pitch is known) and the seconds it took."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, valid_region
@@ -158,23 +159,24 @@ def survey_one(layout: BuildingLayout, view: View, params: Params
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     if rect.kind == "skipped":
-        return {}, {}, time.perf_counter() - t0
+        return {}, {}, None, time.perf_counter() - t0
     image = read_image(layout.path("rectify_image", stem=view.stem))
     planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
     found = survey_frames(image, params, rect.metres_per_px, valid_region(rect), parallax_field(rect, view),
                           None, planar)
-    return found.pitches_m(), found.bar_widths_m(), time.perf_counter() - t0
+    return found.pitches_m(), found.bar_widths_m(), found, time.perf_counter() - t0
 
 
 def find_one(
     layout: BuildingLayout, view: View, params: Params, mesh: MeshRaycaster, unit_m: float,
     pitch_m: dict[str, tuple[float, float]] | None = None, bar_max_m: dict[str, float] | None = None,
-    predicted: bool = False,
+    predicted: bool = False, side_depth_m: dict[str, float] | None = None,
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """The rectification of one view and the frame bars in it (None for a view rectify skipped), and the
     seconds it took (``mesh``: the coarse mesh, which tells where the facade surface is; ``unit_m``: the
     building's pitch, ``building.survey_unit_m``; ``pitch_m``: the pitches sought and ``bar_max_m`` the
-    widest bars, per family, and ``predicted``: those pitches are the building's, ``frames.find_frames``)."""
+    widest bars, per family, ``predicted``: those pitches are the building's, and ``side_depth_m``: the
+    frames' depth the surveys measured, ``frames.find_frames``)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, facade_support, valid_region
@@ -190,14 +192,14 @@ def find_one(
     support = facade_support(rect, lambda o, d: mesh.cast(o, d).t, params.surface_tolerance * unit_m)
     planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
     found = find_frames(image, params, rect.metres_per_px, unit_m, valid, parallax, support, planar, pitch_m,
-                        bar_max_m, predicted)
+                        bar_max_m, predicted, side_depth_m)
     return rect, found, time.perf_counter() - t0
 
 
 def with_building_grid(
     layout: BuildingLayout, views: list[View], found: list[tuple[ViewRectification, FrameBars | None, float]],
     params: Params, mesh: MeshRaycaster, width_m: dict[str, float], unit_m: float,
-    bar_max_m: dict[str, float] | None = None,
+    bar_max_m: dict[str, float] | None = None, side_depth_m: dict[str, float] | None = None,
 ) -> tuple[list[tuple[ViewRectification, FrameBars | None, float]], dict[str, str]]:
     """``found`` with the building's grid tried on every view whose own grid is not it (none, or a pitch
     or bar width beyond the building's: ``building.disagreement``): sought again at the building's pitches
@@ -205,7 +207,8 @@ def with_building_grid(
     range (``building.within``); failing that, a family off the building's pitch sought there alone, the
     other at any pitch, where it is found there and the other at all (``building.sought_again``); it keeps
     its own otherwise. Returns them and, per such view, why it disagreed and what the building's grid
-    gave (``bar_max_m``: the widest bars sought, as ``find_one``)."""
+    gave (``bar_max_m``: the widest bars sought, ``side_depth_m``: the surveys' frame depth, as
+    ``find_one``)."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.segmentation.building import (
         building_pitch_m,
@@ -227,7 +230,8 @@ def with_building_grid(
             spent = []
 
             def seek(ranges, view=view, spent=spent):
-                _, again, more = find_one(layout, view, params, mesh, unit_m, ranges, bar_max_m, True)
+                _, again, more = find_one(layout, view, params, mesh, unit_m, ranges, bar_max_m, True,
+                                            side_depth_m)
                 spent.append(more)
                 return again
 
@@ -303,15 +307,16 @@ def _coarse_raycaster(mesh_path: Path) -> MeshRaycaster:
 
 
 def _find_view(
-    layout: BuildingLayout, params: Params, unit_m: float, bar_max_m: dict[str, float], view: View
+    layout: BuildingLayout, params: Params, unit_m: float, bar_max_m: dict[str, float],
+    side_depth_m: dict[str, float], view: View,
 ) -> tuple[ViewRectification, FrameBars | None, float]:
     """``find_one`` in whichever process ``map_views`` runs it, the coarse mesh loaded once there."""
     return find_one(layout, view, params, shared(_coarse_raycaster, layout.import_coarse_mesh), unit_m,
-                    bar_max_m=bar_max_m)
+                    bar_max_m=bar_max_m, side_depth_m=side_depth_m)
 
 
 def _survey_view(layout: BuildingLayout, params: Params, view: View
-                 ) -> tuple[dict[str, float], dict[str, list[float]], float]:
+                 ) -> tuple[dict[str, float], dict[str, list[float]], FrameBars | None, float]:
     """``survey_one`` in whichever process ``map_views`` runs it."""
     return survey_one(layout, view, params)
 
@@ -331,24 +336,30 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     with tqdm(total=len(views), desc="segment_panels: survey", unit="img", file=sys.stderr) as bar:
         surveyed = map_views(functools.partial(_survey_view, layout, params), views, settings.view_workers,
                              lambda _: bar.update())
-    unit = survey_unit_m([p for p, _, _ in surveyed])
-    bar_max = {} if unit is None else surveyed_bar_max_m([w for _, w, _ in surveyed],
+    unit = survey_unit_m([p for p, _, _, _ in surveyed])
+    bar_max = {} if unit is None else surveyed_bar_max_m([w for _, w, _, _ in surveyed],
                                                         params.grid.max_bar * unit)
+    # the frames' depth the surveys' own parallax fits show, for the side faces of the bars sought wider; a
+    # family pooled over the views' bars (no view's own fit gave it) is sought as surveyed: the survey's few
+    # bars a view pool into a looser depth, and a slope too steep widens every bar sought
+    side_depth, pooled = building_frame_parallax_m([f for _, _, f, _ in surveyed], params.parallax_max_slope)
+    side_depth = {n: d for n, d in side_depth.items() if n not in pooled}
     if unit is None:  # no view shows a grid at any pitch: each is written without panels, saying so
         found = [(ViewRectification.load(layout.path("rectify_mapping", stem=v.stem)), None, s)
-                 for v, (_, _, s) in zip(views, surveyed, strict=True)]
+                 for v, (_, _, _, s) in zip(views, surveyed, strict=True)]
     else:
         with tqdm(total=len(views), desc="segment_panels: frame bars", unit="img", file=sys.stderr) as bar:
-            found = map_views(functools.partial(_find_view, layout, params, unit, bar_max), views,
+            found = map_views(functools.partial(_find_view, layout, params, unit, bar_max, side_depth), views,
                               settings.view_workers, lambda _: bar.update())
-        found = [(r, f, s + t) for (r, f, s), (_, _, t) in zip(found, surveyed, strict=True)]
+        found = [(r, f, s + t) for (r, f, s), (_, _, _, t) in zip(found, surveyed, strict=True)]
     depth, sides = building_frame_parallax_m([f for _, f, _ in found], params.parallax_max_slope)
     width = building_bar_width_m([f for _, f, _ in found])
     # the views off the building's grid are sought again here, one after another (few, and they need the
     # building's figures, known only now)
     mesh = shared(_coarse_raycaster, layout.import_coarse_mesh)
     found, disagreeing = ((found, {}) if unit is None
-                          else with_building_grid(layout, views, found, params, mesh, width, unit, bar_max))
+                          else with_building_grid(layout, views, found, params, mesh, width, unit, bar_max,
+                                                 side_depth))
     for view, (rect, frames, seconds) in zip(views, found, strict=True):
         outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
                                                 settings.overlay_scale, sides)

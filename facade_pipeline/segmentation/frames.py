@@ -37,6 +37,8 @@ from facade_pipeline.segmentation.parallax import (
     ParallaxField,
     faces_found,
     fit_parallax,
+    slope_of,
+    widest_side_face,
 )
 from facade_pipeline.segmentation.params import SegmentParams
 from facade_pipeline.segmentation.photometry import normalise_exposure
@@ -418,6 +420,7 @@ def find_frames(
     pitch_m: dict[str, tuple[float, float]] | None = None,
     bar_max_m: dict[str, float] | None = None,
     predicted: bool = False,
+    side_depth_m: dict[str, float] | None = None,
 ) -> FrameBars:
     """The frame bars of an RGB image [H, W, 3] of a facade at ``metres_per_px`` (a rectified frontal view),
     found at the working scale (``work_bar_px``); ``unit_m`` is the building's panel pitch (m), the unit of
@@ -430,7 +433,10 @@ def find_frames(
     widens the bars sought across the mullions ("x") or the transoms ("y") to at least that width (m; the
     widths the survey saw where wider than the grid model's, ``building.surveyed_bar_max_m``); with
     ``predicted``, the ranges of ``pitch_m`` are the building's grid, which predicts where the bars lie
-    (``find_bars``: the mullions, where ``pitch_m`` holds theirs)."""
+    (``find_bars``: the mullions, where ``pitch_m`` holds theirs); ``side_depth_m`` is the frames' depth
+    (m) the views' surveys measured per family (``building.building_frame_parallax_m`` of
+    ``survey_frames``): a family of ``bar_max_m`` is sought wider still by the widest side face its bars
+    show in this view at the slope that depth gives from this camera (``parallax.widest_side_face``)."""
     H, W = image.shape[:2]
     q = working_scale(params, metres_per_px, unit_m)
     Ww, Hw = max(1, int(round(W * q))), max(1, int(round(H * q)))
@@ -451,10 +457,17 @@ def find_frames(
             max_pitch=min(sizes.max_pitch, pitch_m[name][1] / m))
         for name in ("x", "y")
     )
+    # a bar seen obliquely shows its side face beside the surveyed width: the widest it shows in this view,
+    # at the slope the surveys measured, is sought too, so that a far bar is found with its side face, as
+    # the parallax fit reads it; a family whose slope no survey measured is sought as surveyed
+    slopes = {name: slope_of(d, parallax.distance_m) for name, d in (side_depth_m or {}).items()
+              if parallax is not None}
     family_sizes = tuple(
         z if name not in (bar_max_m or {}) else dataclasses.replace(
-            z, max_bar=max(z.max_bar, int(round(bar_max_m[name] / m))))
-        for name, z in zip(("x", "y"), family_sizes, strict=True)
+            z, max_bar=max(z.max_bar, int(round(bar_max_m[name] / m + (
+                widest_side_face(parallax, axis, (Ww, Hw), slopes[name]) if slopes.get(name, 0.0) > 0.0
+                else 0.0)))))
+        for axis, (name, z) in enumerate(zip(("x", "y"), family_sizes, strict=True))
     )
     image = normalise_exposure(image, valid)
     bars_v, bars_h, metrics, fits, grads = find_bars(

@@ -163,6 +163,22 @@ def _slope_error(A: np.ndarray, residual: np.ndarray, sides: list[int], slopes: 
     return float(np.sqrt(max(variance, 0.0)))
 
 
+def widest_side_face(field: ParallaxField, axis: int, size: tuple[int, int], slope: float) -> float:
+    """The widest side face (px) a bar of family ``axis`` (0: mullions) shows beside its front face in an
+    image of ``size`` (W, H) whose parallax coordinate is ``field``: k P / (1 + k) at the frames' slope k
+    (``slope``) and the largest |P| across the family in the image. A bar seen obliquely is found as its
+    front and side faces together (the width ``fit_parallax`` reads k from); a grid that does not seek that
+    width finds its front face alone, and the growth is lost. P is bilinear between the field's samples, so
+    its largest |P| over the image lies at a sample inside it or on its border."""
+    W, H = size
+    xs = np.unique(np.clip(np.concatenate([[0.0, W], field.xs]), 0.0, W))
+    ys = np.unique(np.clip(np.concatenate([[0.0, H], field.ys]), 0.0, H))
+    gx, gy = np.meshgrid(xs, ys)
+    pos, t = (gx, gy) if axis == 0 else (gy, gx)
+    p = float(np.abs(field.along(axis, pos.ravel(), t.ravel())).max())
+    return slope / (1.0 + slope) * p
+
+
 def slope_of(frame_depth_m: float, distance_m: float) -> float:
     """The parallax slope k = d / D of frames ``frame_depth_m`` proud of the glass, their front on the
     surface ``distance_m`` from the camera (module docstring; 0 where that is not finite and positive)."""

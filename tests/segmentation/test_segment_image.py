@@ -1044,3 +1044,49 @@ def test_a_transom_cut_by_the_views_border_and_clipped_with_the_glass_is_placed_
         assert len(err) == 36 and np.median(err) < 0.5 and err.max() < 1.5
     else:
         assert seg.metrics["bars_placed_y"] == 0 and not top
+
+
+def test_the_widest_side_face_a_view_may_show_is_at_its_border_farthest_from_the_foot():
+    """A plane's P is the distance from the camera's foot: the widest side face is k P / (1 + k) at the
+    image's border farthest from it, across the mullions (x) and the transoms (y) alike; an image half as
+    wide about the same foot shows at most half of it."""
+    from facade_pipeline.segmentation.parallax import ParallaxField, widest_side_face
+
+    k = 0.05
+    field = ParallaxField.about((100.0, 30.0), 400, 200)
+    assert widest_side_face(field, 0, (400, 200), k) == pytest.approx(k / (1 + k) * 300.0)
+    assert widest_side_face(field, 1, (400, 200), k) == pytest.approx(k / (1 + k) * 170.0)
+    assert widest_side_face(field, 0, (200, 200), k) == pytest.approx(k / (1 + k) * 100.0)
+
+
+def test_far_bars_wider_than_the_surveyed_widest_are_found_with_their_side_faces():
+    """Mullions 10.2 px wide at the front, seen from a camera whose foot is the image's left border with
+    frames d = 0.12 m proud at D = 4 m: each shows its side face beside it, k P / (1 + k) at its far edge,
+    so the farthest is 16.1 px wide. Sought no wider than the surveyed widest bar (10.5 px), the far bars
+    are found narrower than front and side face together, their widths do not grow and the view gives no
+    depth; sought wider by the side face the frames' depth gives from this camera (``side_depth_m``),
+    every bar is found at its drawn width and the view's own fit gives the depth."""
+    from facade_pipeline.segmentation.frames import find_frames
+    from facade_pipeline.segmentation.parallax import ParallaxField
+
+    pitch, front, d, D, W, H = (60.4, 55.3), 10.2, 0.12, 4.0, 240, 200
+    unit_m = float(np.sqrt(pitch[0] * pitch[1])) * M_PER_PX
+    grows = d / D / (1.0 + d / D)
+    drawn = Drawing(W=W, H=H, x0=12.3, y0=10.6, pitch=pitch, bar=front)
+    img = drawn.render()
+    widths = []
+    for x in drawn._lines(0):  # each mullion drawn at its own width: its pane-wide strip from a drawing of it
+        widths.append(front + grows * (x + front))
+        lo, hi = int(max(0.0, x - pitch[0] / 2)), int(min(W, x + pitch[0] / 2))
+        img[:, lo:hi] = dataclasses.replace(drawn, bar=widths[-1]).render()[:, lo:hi]
+    assert widths[-1] - front > 5.0
+    field = dataclasses.replace(ParallaxField.about((0.0, H / 2), W, H), distance_m=D)
+    widest = {"x": 10.5 * M_PER_PX}
+    as_surveyed = find_frames(img, PARAMS, M_PER_PX, unit_m, parallax=field, bar_max_m=widest)
+    found = np.array(as_surveyed.bar_widths_m()["x"]) / M_PER_PX
+    assert len(found) == 4 and (widths - found)[2:].min() > 3.0 and as_surveyed.frame_depths_m() == {}
+    widened = find_frames(img, PARAMS, M_PER_PX, unit_m, parallax=field, bar_max_m=widest,
+                          side_depth_m={"x": d})
+    found = np.array(widened.bar_widths_m()["x"]) / M_PER_PX
+    assert len(found) == 4 and np.abs(found - widths).max() < 0.5
+    assert widened.frame_depths_m()["x"] == pytest.approx(d, abs=0.005)
