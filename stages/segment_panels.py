@@ -145,12 +145,11 @@ def parallax_field(rect: ViewRectification, view: View) -> ParallaxField | None:
     return field if np.isfinite(field.p).all() else None
 
 
-def survey_one(layout: BuildingLayout, view: View, params: Params
-               ) -> tuple[dict[str, float], dict[str, list[float]], FrameBars | None, float]:
-    """The pitch (m) per family of the grid the survey finds in one view (``frames.survey_frames``: sizes
-    relative to the view, before the building's pitch is known; none for a view rectify skipped), the
-    widths (m) of its bars per family, the survey's frame bars (None where skipped: their parallax fits
-    give the frames' depth before the building's pitch is known) and the seconds it took."""
+def survey_one(layout: BuildingLayout, view: View, params: Params) -> tuple[FrameBars | None, float]:
+    """The frame bars the survey finds in one view (``frames.survey_frames``: sizes relative to the view,
+    before the building's pitch is known; None for a view rectify skipped) and the seconds it took. Their
+    pitches and bar widths give the building's pitch and widest bars, their parallax fits the frames' depth
+    before the building's pitch is known."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.rectification.surface_map import ViewRectification, valid_region
@@ -159,12 +158,12 @@ def survey_one(layout: BuildingLayout, view: View, params: Params
     t0 = time.perf_counter()
     rect = ViewRectification.load(layout.path("rectify_mapping", stem=view.stem))
     if rect.kind == "skipped":
-        return {}, {}, None, time.perf_counter() - t0
+        return None, time.perf_counter() - t0
     image = read_image(layout.path("rectify_image", stem=view.stem))
     planar = rect.chart is not None and rect.chart.curvature_per_m == 0.0
     found = survey_frames(image, params, rect.metres_per_px, valid_region(rect), parallax_field(rect, view),
                           None, planar)
-    return found.pitches_m(), found.bar_widths_m(), found, time.perf_counter() - t0
+    return found, time.perf_counter() - t0
 
 
 def find_one(
@@ -315,8 +314,7 @@ def _find_view(
                     bar_max_m=bar_max_m, side_depth_m=side_depth_m)
 
 
-def _survey_view(layout: BuildingLayout, params: Params, view: View
-                 ) -> tuple[dict[str, float], dict[str, list[float]], FrameBars | None, float]:
+def _survey_view(layout: BuildingLayout, params: Params, view: View) -> tuple[FrameBars | None, float]:
     """``survey_one`` in whichever process ``map_views`` runs it."""
     return survey_one(layout, view, params)
 
@@ -336,22 +334,22 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     with tqdm(total=len(views), desc="segment_panels: survey", unit="img", file=sys.stderr) as bar:
         surveyed = map_views(functools.partial(_survey_view, layout, params), views, settings.view_workers,
                              lambda _: bar.update())
-    unit = survey_unit_m([p for p, _, _, _ in surveyed])
-    bar_max = {} if unit is None else surveyed_bar_max_m([w for _, w, _, _ in surveyed],
-                                                        params.grid.max_bar * unit)
+    unit = survey_unit_m([{} if f is None else f.pitches_m() for f, _ in surveyed])
+    bar_max = {} if unit is None else surveyed_bar_max_m([{} if f is None else f.bar_widths_m()
+                                                          for f, _ in surveyed], params.grid.max_bar * unit)
     # the frames' depth the surveys' own parallax fits show, for the side faces of the bars sought wider; a
     # family pooled over the views' bars (no view's own fit gave it) is sought as surveyed: the survey's few
     # bars a view pool into a looser depth, and a slope too steep widens every bar sought
-    side_depth, pooled = building_frame_parallax_m([f for _, _, f, _ in surveyed], params.parallax_max_slope)
+    side_depth, pooled = building_frame_parallax_m([f for f, _ in surveyed], params.parallax_max_slope)
     side_depth = {n: d for n, d in side_depth.items() if n not in pooled}
     if unit is None:  # no view shows a grid at any pitch: each is written without panels, saying so
         found = [(ViewRectification.load(layout.path("rectify_mapping", stem=v.stem)), None, s)
-                 for v, (_, _, _, s) in zip(views, surveyed, strict=True)]
+                 for v, (_, s) in zip(views, surveyed, strict=True)]
     else:
         with tqdm(total=len(views), desc="segment_panels: frame bars", unit="img", file=sys.stderr) as bar:
             found = map_views(functools.partial(_find_view, layout, params, unit, bar_max, side_depth), views,
                               settings.view_workers, lambda _: bar.update())
-        found = [(r, f, s + t) for (r, f, s), (_, _, _, t) in zip(found, surveyed, strict=True)]
+        found = [(r, f, s + t) for (r, f, s), (_, t) in zip(found, surveyed, strict=True)]
     depth, sides = building_frame_parallax_m([f for _, f, _ in found], params.parallax_max_slope)
     width = building_bar_width_m([f for _, f, _ in found])
     # the views off the building's grid are sought again here, one after another (few, and they need the
