@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from facade_pipeline.synthetic.mesh import Material, TriMesh, concat, prism, quads_to_mesh, sheet
-from facade_pipeline.synthetic.params import FacadePart, FacadeStyle
+from facade_pipeline.synthetic.params import SHELVES_MAX, FacadePart, FacadeStyle
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,13 +155,15 @@ def part_meshes(
     style: FacadeStyle,
     first_panel: int,
     ground_z: float,
-    unglazed: frozenset = frozenset(),
+    rooms: dict[tuple[int, int], Room] | None = None,
     first_room: int = 0,
 ) -> tuple[TriMesh, TriMesh, TriMesh]:
     """(glass, frames, body) meshes of one part. Glass triangles carry their global panel index
     (``first_panel`` + row * cols + col); the body reaches down to world height ``ground_z``. The units
-    (row, col) in ``unglazed`` have no glass: the body's front face is open behind them onto a room (walls,
-    shelves and a cloth, part of the body mesh), numbered from ``first_room`` in sorted (row, col) order."""
+    (row, col) keyed in ``rooms`` have no glass: the body's front face is open behind them onto their room
+    (its box and what it holds, part of the body mesh), numbered from ``first_room`` in sorted (row, col)
+    order."""
+    unglazed = frozenset(rooms or ())
     p, fw = geom.part, style.frame_width_m
     pitch = (p.width_m - fw) / p.cols
     seg = curve_segments(geom, style, pitch)  # per panel column
@@ -193,7 +196,7 @@ def part_meshes(
         Material.WALL,
     )
     if unglazed:
-        body = _open_body(geom, style, body, seg * p.cols, min(z_floor, 0.0), unglazed, first_room)
+        body = _open_body(geom, style, body, seg * p.cols, min(z_floor, 0.0), rooms, first_room)
     return concat(glass), concat(frames), body
 
 
@@ -203,14 +206,15 @@ def _open_body(
     body: TriMesh,
     front_quads: int,
     z_floor: float,
-    units: frozenset,
+    rooms: dict[tuple[int, int], Room],
     first_room: int,
 ) -> TriMesh:
     """The body with its front face (the first ``front_quads`` quads of its prism) rebuilt with a hole
-    behind each unit of ``units``, and a room behind each hole (numbered from ``first_room``)."""
+    behind each unit keyed in ``rooms``, and its room behind each hole (numbered from ``first_room``)."""
     p = geom.part
     keep = np.arange(len(body.triangles)) >= 2 * front_quads
-    holes = [geom.panel_bounds(r, c) for r, c in sorted(units)]
+    units = sorted(rooms)
+    holes = [geom.panel_bounds(r, c) for r, c in units]
     back = style.frame_back_m
 
     def front(s, z, hh):  # the body's front face as a sheet at h = 0
@@ -226,27 +230,40 @@ def _open_body(
                 continue
             seg = curve_segments(geom, style, sb - sa)
             pieces.append(sheet(front, (sa, sb), (za, zb), seg, Material.WALL))
-    for k, (s0, s1, z0, z1) in enumerate(holes):
-        pieces.append(room_mesh(geom, style, (s0, s1), (z0, z1), first_room + k))
+    for k, (unit, (s0, s1, z0, z1)) in enumerate(zip(units, holes, strict=True)):
+        pieces.append(room_mesh(geom, style, (s0, s1), (z0, z1), rooms[unit], first_room + k))
     return concat(pieces)
 
 
 SHELF_HEIGHTS = (0.2, 0.45, 0.7)  # shelves' heights, fractions of the room's height (-)
 SHELF_DEPTH = 0.3  # shelves' depth, a fraction of the room's (-)
-ROOM_OBJECTS = 3  # object ids per room: walls, shelves, cloth
+ROOM_OBJECTS = 4  # object ids per room: walls, shelves, cloth, posts
 OPENING_SAMPLES = 8  # cells per side of the grid over an opening through which a room's light is summed
+FRONT_CLOTH = (0.1, 0.55, 0.3, 1.0)  # a cloth in the front half: (s0, s1, z0, z1), fractions of width, height
+BACK_CLOTH_SPAN = ((0.0, 0.25), (0.75, 1.0), (0.4, 1.0))  # ranges of a back cloth's s0, s1, top (fractions)
+POST_WIDTH = 0.06  # side of a post's square section, a fraction of the room's width (-)
+# ranges of a post's centre: across the width, and back from the opening short of the shelves (fractions)
+POST_SPAN = ((0.1, 0.9), (0.15, 0.6))
+CLOTH_FOLDS = 24  # flat strips of a cloth (-)
 
 
 def room_mesh(
-    geom: PartGeometry, style: FacadeStyle, s: tuple[float, float], z: tuple[float, float], room: int = 0
+    geom: PartGeometry,
+    style: FacadeStyle,
+    s: tuple[float, float],
+    z: tuple[float, float],
+    room: Room,
+    index: int = 0,
 ) -> TriMesh:
     """A room behind the opening s x z of the body's front face: a box (floor, ceiling, side and back
-    walls, seen from inside), shelves along its back wall and a cloth hanging in its front half, folded
-    in waves. Material INTERIOR, object id ``ROOM_OBJECTS * room`` + 0 (walls), 1 (shelves), 2 (cloth)."""
+    walls, seen from inside) holding what ``room`` drew: shelves along its back wall at ``room.shelves``,
+    a cloth folded in waves in its front half or at its back wall (``room.cloth_at``), posts from floor
+    to ceiling at ``room.posts``. Material INTERIOR, object id ``ROOM_OBJECTS * index`` + 0 (walls),
+    1 (shelves), 2 (cloth), 3 (posts)."""
     back, depth = style.frame_back_m, style.room_depth_m
     h0, h1 = -back - depth, -back
     seg = curve_segments(geom, style, s[1] - s[0])
-    first = ROOM_OBJECTS * room
+    first = ROOM_OBJECTS * index
     box = prism(geom.surface, s, z, (h0, h1), seg, Material.INTERIOR, first)
     # the box's front face closes the opening: the room is seen through where it was
     box = box.select(np.arange(len(box.triangles)) >= 2 * seg)
@@ -255,21 +272,47 @@ def room_mesh(
     shelves = [
         prism(geom.surface, s, (z[0] + f * height, z[0] + f * height + thick), (h0, h0 + SHELF_DEPTH * depth),
               seg, Material.INTERIOR, first + 1)
-        for f in SHELF_HEIGHTS
+        for f in room.shelves
     ]
-    # a cloth from the ceiling down to a third of the height over the left half, in vertical folds
-    n = 24
-    ss = np.linspace(s[0] + 0.1 * width, s[0] + 0.55 * width, n + 1)
-    fold = h1 - 0.35 * depth + 0.04 * depth * np.sin(ss / width * 2 * np.pi * 6)
-    za, zb = z[0] + 0.3 * height, z[1]
+    pieces = [box, *shelves]
+    if room.cloth_at == "front":
+        # from the ceiling down to a third of the height over the left half, in deep vertical folds
+        pieces.append(_cloth(geom, s, z, FRONT_CLOTH, h1 - 0.35 * depth, 0.04 * depth, first + 2))
+    elif room.cloth_at == "back":
+        # against the back wall, or in front of the shelves, from the floor, in shallow folds
+        h = h0 + (SHELF_DEPTH * depth if room.shelves else 0.0) + 0.03 * depth
+        pieces.append(_cloth(geom, s, z, room.cloth_span, h, 0.015 * depth, first + 2))
+    side = POST_WIDTH * width
+    for u, v in room.posts:
+        sc, hc = s[0] + u * width, h1 - v * depth
+        pieces.append(prism(geom.surface, (sc - side / 2, sc + side / 2), z, (hc - side / 2, hc + side / 2),
+                            curve_segments(geom, style, side), Material.INTERIOR, first + 3))
+    return concat(pieces)
+
+
+def _cloth(
+    geom: PartGeometry,
+    s: tuple[float, float],
+    z: tuple[float, float],
+    span: tuple[float, float, float, float],
+    h: float,
+    fold: float,
+    obj: int,
+) -> TriMesh:
+    """A cloth hanging over ``span`` (s0, s1, z0, z1: fractions of the opening s x z) at depth h, in
+    vertical folds of amplitude ``fold`` (m), facing the opening."""
+    width, height = s[1] - s[0], z[1] - z[0]
+    n = CLOTH_FOLDS
+    ss = np.linspace(s[0] + span[0] * width, s[0] + span[1] * width, n + 1)
+    hh = h + fold * np.sin(ss / width * 2 * np.pi * 6)
+    za, zb = z[0] + span[2] * height, z[0] + span[3] * height
     quads = np.stack([
-        geom.surface(ss[:-1], np.full(n, za), fold[:-1]), geom.surface(ss[1:], np.full(n, za), fold[1:]),
-        geom.surface(ss[1:], np.full(n, zb), fold[1:]), geom.surface(ss[:-1], np.full(n, zb), fold[:-1]),
+        geom.surface(ss[:-1], np.full(n, za), hh[:-1]), geom.surface(ss[1:], np.full(n, za), hh[1:]),
+        geom.surface(ss[1:], np.full(n, zb), hh[1:]), geom.surface(ss[:-1], np.full(n, zb), hh[:-1]),
     ], axis=1)
     mid = 0.5 * (ss[:-1] + ss[1:])
     out = geom.surface(mid, np.full(n, za), np.full(n, 1.0)) - geom.surface(mid, np.full(n, za), np.zeros(n))
-    cloth = quads_to_mesh(quads, out, Material.INTERIOR, first + 2)
-    return concat([box, *shelves, cloth])
+    return quads_to_mesh(quads, out, Material.INTERIOR, obj)
 
 
 @dataclass(frozen=True, eq=False)
@@ -280,7 +323,10 @@ class Room:
     outward) and ``cell_areas`` [C] (m^2); the box's inner area ``box_area_m2`` (m^2, the opening
     included). Drawn per unit: the walls' albedo ``wall`` [3], the ``texture`` in [0, 1] (0 plain paint,
     bare shelves, a plain cloth; 1 mottled concrete, mixed things, a printed cloth) and the cloth's two
-    colours ``cloth`` [2, 3]."""
+    colours ``cloth`` [2, 3]; what the box holds: the ``shelves``' heights (fractions of the room's
+    height, of ``SHELF_HEIGHTS``), where the cloth hangs (``cloth_at``: none, in the front half at
+    ``FRONT_CLOTH``, or at the back over ``cloth_span``: s0, s1, z0, z1 fractions of the opening) and the
+    ``posts`` [P, 2] (centres: fraction of the width, fraction of the depth back from the opening)."""
 
     corners: np.ndarray
     cells: np.ndarray
@@ -290,6 +336,10 @@ class Room:
     wall: np.ndarray
     texture: float
     cloth: np.ndarray
+    shelves: tuple[float, ...]
+    cloth_at: Literal["none", "front", "back"]
+    cloth_span: tuple[float, float, float, float]
+    posts: np.ndarray
 
 
 def draw_room(
@@ -297,7 +347,10 @@ def draw_room(
 ) -> Room:
     """The room behind unit (row, col) of ``geom``: its opening sampled on a grid of ``OPENING_SAMPLES``
     cells per side, and its style drawn from ``room_albedo`` and ``room_texture`` (uniform in each range),
-    the walls grey with a slight tint, the cloth of any hue."""
+    the walls grey with a slight tint, the cloth of any hue; then what it holds: ``room_shelves`` shelves
+    at as many of ``SHELF_HEIGHTS`` drawn at random, a cloth in front or at the back with the chances of
+    ``room_cloth`` (at the back over a span drawn in ``BACK_CLOTH_SPAN``), ``room_posts`` posts at centres
+    drawn in ``POST_SPAN``."""
     s0, s1, z0, z1 = geom.panel_bounds(row, col)
     n, h = OPENING_SAMPLES, -style.frame_back_m
     se, ze = np.linspace(s0, s1, n + 1), np.linspace(z0, z1, n + 1)
@@ -317,5 +370,16 @@ def draw_room(
     axes = np.array([0.0, 2.0 * math.pi / 3, 4.0 * math.pi / 3])
     cloth = np.clip(light[:, None] * (1.0 + chroma[:, None] * np.cos(hue[:, None] - axes)), 0.0, 1.0)
     corners = geom.surface(np.array([s0, s1, s1, s0]), np.array([z0, z0, z1, z1]), np.full(4, h))
-    return Room(corners, cells, normals, areas, 2.0 * (w * ht + w * d + ht * d), wall,
-                float(rng.uniform(*style.room_texture)), cloth)
+    texture = float(rng.uniform(*style.room_texture))
+    count = int(rng.integers(style.room_shelves[0], style.room_shelves[1] + 1))
+    shelves = tuple(SHELF_HEIGHTS[k] for k in sorted(rng.choice(SHELVES_MAX, count, replace=False)))
+    front, back = style.room_cloth
+    u = rng.uniform()
+    cloth_at = "front" if u < front else "back" if u < front + back else "none"
+    (a0, a1), (b0, b1), (t0, t1) = BACK_CLOTH_SPAN
+    span = (float(rng.uniform(a0, a1)), float(rng.uniform(b0, b1)), 0.0, float(rng.uniform(t0, t1)))
+    posts = int(rng.integers(style.room_posts[0], style.room_posts[1] + 1))
+    (u0, u1), (v0, v1) = POST_SPAN
+    centres = np.stack([rng.uniform(u0, u1, posts), rng.uniform(v0, v1, posts)], axis=-1)
+    return Room(corners, cells, normals, areas, 2.0 * (w * ht + w * d + ht * d), wall, texture, cloth,
+                shelves, cloth_at, FRONT_CLOTH if cloth_at == "front" else span, centres)

@@ -26,7 +26,7 @@ class Material(IntEnum):
     BUILDING = 7
     TRUNK = 8
     CROWN = 9
-    INTERIOR = 10  # a room behind an unglazed unit; object id 3 * room + 0 walls, 1 shelves, 2 cloth
+    INTERIOR = 10  # a room behind an unglazed unit; object id 4 * room + 0 walls, 1 shelves, 2 cloth, 3 posts
     MAST = 11  # poles and cranes; object id: 0 poles, 1 crane
 
 

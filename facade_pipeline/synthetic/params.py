@@ -31,6 +31,7 @@ Effect = Literal[
 ALL_EFFECTS: tuple[str, ...] = Effect.__args__  # type: ignore[attr-defined]
 
 RGB = tuple[Fraction, Fraction, Fraction]
+SHELVES_MAX = 3  # the shelf heights a room behind an unglazed unit has (facade.SHELF_HEIGHTS) (-)
 FieldOfView = Annotated[float, Range(1.0, 170.0)]
 """a camera's horizontal field of view (deg)"""
 Elevation = Annotated[float, Range(-10.0, 90.0, high_open=True)]
@@ -107,6 +108,17 @@ class FacadeStyle:
     """Range of a room's texture, drawn per unglazed unit ("unglazed_units"): 0 a plain painted box with
     bare boards for shelves and a plain cloth, 1 mottled concrete, shelves of things of mixed colours and
     a printed cloth (0-1)."""
+    room_shelves: tuple[Count, Count]
+    """Range of the number of shelves along a room's back wall, drawn per unglazed unit ("unglazed_units"),
+    uniform over the whole numbers in it, at as many of the three shelf heights drawn at random (0-3)."""
+    room_cloth: tuple[Fraction, Fraction]
+    """Chances (front, back), drawn per unglazed unit ("unglazed_units"), that a room's cloth hangs in its
+    front half, folded, from the ceiling over part of its width, or at its back wall, from the floor over
+    most of its width; no cloth the rest of the time (front + back <= 1)."""
+    room_posts: tuple[Count, Count]
+    """Range of the number of posts standing from a room's floor to its ceiling, drawn per unglazed unit
+    ("unglazed_units"), uniform over the whole numbers in it, each at a point drawn over the room's
+    floor (-)."""
 
 
 @dataclass(frozen=True)
@@ -349,6 +361,14 @@ def _check_effects(p: SynthesizeParams) -> None:
             low, high = getattr(p.facade, key)
             if not 0.0 <= low <= high <= 1.0:
                 _fail(f"facade.{key}", "(low, high) with 0 <= low <= high <= 1", (low, high))
+        low, high = p.facade.room_shelves
+        if not low <= high <= SHELVES_MAX:
+            _fail("facade.room_shelves", f"(low, high) with 0 <= low <= high <= {SHELVES_MAX}", (low, high))
+        if sum(p.facade.room_cloth) > 1.0:
+            _fail("facade.room_cloth", "(front, back) chances with front + back <= 1", p.facade.room_cloth)
+        low, high = p.facade.room_posts
+        if not low <= high:
+            _fail("facade.room_posts", "(low, high) with 0 <= low <= high", (low, high))
         if p.facade.room_depth_m > p.facade.body_depth_m - p.facade.frame_back_m:
             _fail("facade.room_depth_m", "within the body (body_depth_m - frame_back_m)",
                   p.facade.room_depth_m)

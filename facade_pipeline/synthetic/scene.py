@@ -73,9 +73,10 @@ def build_scene(params: SynthesizeParams) -> Scene:
     glass, frames, bodies = [], [], []
     for geom in parts:
         unglazed = frozenset((r, c) for k, r, c in style.unglazed_units if k == geom.index)
-        g, f, b = part_meshes(geom, style, len(panels), 0.0, unglazed, len(rooms))
+        drawn = {(r, c): draw_room(geom, style, r, c, room_rng) for r, c in sorted(unglazed)}
+        g, f, b = part_meshes(geom, style, len(panels), 0.0, drawn, len(rooms))
         panels.extend(build_panels(geom, style, rng, unglazed))
-        rooms.extend(draw_room(geom, style, r, c, room_rng) for r, c in sorted(unglazed))
+        rooms.extend(drawn.values())
         glass.append(g)
         frames.append(f)
         bodies.append(b)

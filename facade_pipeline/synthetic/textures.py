@@ -170,9 +170,10 @@ def albedo(
 
 
 def room_albedo(p: np.ndarray, kind: np.ndarray, room: Room, seed: int) -> np.ndarray:
-    """Albedo [N, 3] inside ``room`` at world points p [N, 3] of kind [N] (0 walls, 1 shelves, 2 cloth).
-    The room's texture t in [0, 1] blends a plain painted box (walls of one albedo, shelves bare boards of
-    the walls' paint, a plain cloth) into mottled concrete (the walls' albedo swinging by
+    """Albedo [N, 3] inside ``room`` at world points p [N, 3] of kind [N] (0 walls, 1 shelves, 2 cloth,
+    3 posts: cast with the walls, in their concrete or paint). The room's texture t in [0, 1] blends a
+    plain painted box (walls of one albedo, shelves bare boards of the walls' paint, a plain cloth) into
+    mottled concrete (the walls' albedo swinging by
     ``ROOM_MOTTLE`` t), shelves of things of mixed colours and a cloth striped in its two colours."""
     t = room.texture
     q = p[:, 0] + p[:, 1]
@@ -218,7 +219,7 @@ def opening_light(p: np.ndarray, n: np.ndarray, room: Room, env: EnvironmentPara
     on with the walls' mean albedo rho, a share 1 - f (f = A_open / A_box) staying inside each bounce,
     spread evenly over the box's inner area: rho (1 - f) L_in A_open / ((A_box - A_open) (1 - rho (1 - f)));
     plus the sun's Lambert term (``sun_intensity`` n . s, as outside) where the sun's ray leaves through the
-    opening (the renderer casts no other shadow: shelves and cloth do not shade each other)."""
+    opening (the renderer casts no other shadow: shelves, cloth and posts do not shade each other)."""
     sun = env.sun_intensity * np.clip(n @ sun_direction(env), 0.0, None) * sun_through(p, room, env)
     sky_env = _sky_without_sun(env)
     out = np.empty((len(p), 3))

@@ -13,9 +13,10 @@ import pytest
 from facade_pipeline.errors import ConfigError
 from facade_pipeline.io.colmap import undistort_options, undistort_rgb
 from facade_pipeline.io.images import to_uint8
-from facade_pipeline.synthetic.facade import draw_room
+from facade_pipeline.synthetic.facade import BACK_CLOTH_SPAN, POST_SPAN, SHELF_HEIGHTS, draw_room
 from facade_pipeline.synthetic.mesh import Material
 from facade_pipeline.synthetic.noise import rng_for
+from facade_pipeline.synthetic.params import SHELVES_MAX
 from facade_pipeline.synthetic.render import first_hits, render_view, shade
 from facade_pipeline.synthetic.scene import panels_description
 from facade_pipeline.synthetic.simulate import build_simulator, raw_view, sensor_image, spread_stops
@@ -131,7 +132,7 @@ def _floor_radiance(p, depths_m: np.ndarray) -> np.ndarray:
 
 def test_a_room_is_lit_through_its_opening_falling_with_depth_and_rising_with_the_sky():
     depths = np.array([0.3, 1.0, 1.8, 2.6])
-    plain = {"room_texture": (0.0, 0.0), "room_albedo": (0.6, 0.6), "room_depth_m": 3.0}
+    plain = {"room_texture": (0.0, 0.0), "room_albedo": (0.6, 0.6), "room_depth_m": 3.0, "room_posts": (0, 0)}
     shade = {"sun_intensity": 0.0}
     lit = _floor_radiance(_opened(plain, shade), depths)
     assert (np.diff(lit) < 0).all() and lit[-1] < 0.7 * lit[0], lit
@@ -206,6 +207,85 @@ def test_drawn_rooms_span_their_style_ranges_and_repeat_for_a_seed():
     assert ((cloth >= 0) & (cloth <= 1)).all() and np.ptp(cloth[:, 0].mean(axis=1)) > 0.4
     again = draw_room(geom, p.facade, 1, 2, rng_for(7, "rooms", 0))
     assert again.texture == rooms[0].texture and np.array_equal(again.cloth, rooms[0].cloth)
+    assert again.shelves == rooms[0].shelves and np.array_equal(again.posts, rooms[0].posts)
+
+
+def _spans(values: np.ndarray, lo: float, hi: float) -> bool:
+    """Whether ``values`` lie in [lo, hi] and reach within a tenth of the range of either end."""
+    margin = 0.1 * (hi - lo)
+    return lo <= values.min() < lo + margin and hi - margin < values.max() <= hi
+
+
+def test_what_drawn_rooms_hold_spans_its_ranges():
+    p = _opened({"room_shelves": (0, 3), "room_cloth": (0.3, 0.5), "room_posts": (0, 2)})
+    geom = build_simulator(p).scene.parts[0]
+    rooms = [draw_room(geom, p.facade, 1, 2, rng_for(7, "rooms", k)) for k in range(300)]
+    assert len(SHELF_HEIGHTS) == SHELVES_MAX
+    assert {len(r.shelves) for r in rooms} == {0, 1, 2, 3}
+    assert set().union(*(r.shelves for r in rooms)) == set(SHELF_HEIGHTS)  # each height, not the lowest first
+    at = np.array([r.cloth_at for r in rooms])
+    assert abs((at == "front").mean() - 0.3) < 0.08 and abs((at == "back").mean() - 0.5) < 0.08
+    assert abs((at == "none").mean() - 0.2) < 0.08
+    back = np.array([r.cloth_span for r in rooms if r.cloth_at == "back"])
+    for k, (lo, hi) in zip((0, 1, 3), BACK_CLOTH_SPAN, strict=True):
+        assert _spans(back[:, k], lo, hi), (k, back[:, k].min(), back[:, k].max())
+    assert (back[:, 2] == 0.0).all()  # from the floor
+    assert {len(r.posts) for r in rooms} == {0, 1, 2}
+    posts = np.concatenate([r.posts for r in rooms])
+    for k, (lo, hi) in enumerate(POST_SPAN):
+        assert _spans(posts[:, k], lo, hi), (k, posts[:, k].min(), posts[:, k].max())
+    fixed = _opened({"room_shelves": (2, 2), "room_cloth": (0.0, 0.0), "room_posts": (1, 1)})
+    room = draw_room(geom, fixed.facade, 1, 2, rng_for(7, "rooms"))
+    assert len(room.shelves) == 2 and room.cloth_at == "none" and len(room.posts) == 1
+
+
+def _through_the_opening(style: dict, n: int = 48):
+    """Rays from 2 m in front of unit (1, 2)'s centre through an n x n grid over its opening, in a room of
+    plain paint and no sun: the room's triangles by object id and the rays' hits, surface coordinates
+    (s, z, h) and radiance [n, n] (grey)."""
+    p = _opened({"room_texture": (0.0, 0.0), **style}, {"sun_intensity": 0.0})
+    sim = build_simulator(p)
+    geom = sim.scene.parts[0]
+    s0, s1, z0, z1 = geom.panel_bounds(1, 2)
+    ss, zz = np.meshgrid(np.linspace(s0, s1, n + 2)[1:-1], np.linspace(z0, z1, n + 2)[1:-1], indexing="ij")
+    eye = geom.surface(0.5 * (s0 + s1), 0.5 * (z0 + z1), 2.0)
+    d = geom.surface(ss.ravel(), zz.ravel(), np.full(n * n, -p.facade.frame_back_m)) - eye
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(eye, d.shape).copy()
+    hits = first_hits(sim.tracer, sim.arrays, o, d, "other")
+    radiance = shade(sim.scene, sim.tracer, sim.arrays, o, d).mean(axis=1).reshape(n, n)
+    room = sim.scene.mesh.object_id[sim.scene.mesh.material == Material.INTERIOR]
+    return p, geom, room, hits, geom.surface_coords(hits.points), radiance
+
+
+@pytest.mark.parametrize(("holds", "style"), [
+    ("nothing", {}),
+    ("shelves", {"room_shelves": (1, 1)}),
+    ("a cloth in front", {"room_cloth": (1.0, 0.0)}),
+    ("a cloth at the back", {"room_cloth": (0.0, 1.0)}),
+    ("a post", {"room_posts": (1, 1)}),
+])
+def test_a_room_holding_nothing_renders_as_a_plain_box(holds, style):
+    empty = {"room_shelves": (0, 0), "room_cloth": (0.0, 0.0), "room_posts": (0, 0)}
+    p, geom, room, hits, (s, z, h), radiance = _through_the_opening({**empty, **style})
+    s0, s1, z0, z1 = geom.panel_bounds(1, 2)
+    h0 = -p.facade.frame_back_m - p.facade.room_depth_m
+    tol = 1e-6
+    on_box = (np.abs(h - h0) < tol) | (np.abs(s - s0) < tol) | (np.abs(s - s1) < tol)
+    on_box |= (np.abs(z - z0) < tol) | (np.abs(z - z1) < tol)
+    assert (hits.material == Material.INTERIOR).all()
+    if holds != "nothing":
+        # what it holds is in the mesh under its own object id and in sight through the opening
+        assert set(np.unique(room)) == {0, {"shelves": 1, "a post": 3}.get(holds, 2)}
+        assert (hits.object_id != 0).mean() > 0.01 and not on_box.all()
+        return
+    assert (room == 0).all() and (hits.object_id == 0).all() and on_box.all()
+    # plain paint lit through the opening: across the back wall the radiance changes by a few per cent
+    # from one ray to the next, no edge
+    back = (np.abs(h - h0) < tol).reshape(radiance.shape)
+    pair = back[1:] & back[:-1]
+    step = np.abs(np.diff(radiance, axis=0))[pair] / radiance[1:][pair]
+    assert pair.sum() > 100 and step.max() < 0.05, step.max()
 
 
 def test_a_textured_room_is_rougher_than_a_plain_one():
@@ -234,10 +314,17 @@ def test_unglazed_units_name_the_key_when_wrong(units, effects, named):
     assert named in str(e.value)
 
 
-@pytest.mark.parametrize("key", ["room_albedo", "room_texture"])
-def test_room_style_ranges_name_the_key_when_wrong(key):
+@pytest.mark.parametrize(("key", "value"), [
+    ("room_albedo", (0.8, 0.2)),
+    ("room_texture", (0.8, 0.2)),
+    ("room_shelves", (2, 1)),
+    ("room_shelves", (0, SHELVES_MAX + 1)),
+    ("room_cloth", (0.6, 0.5)),
+    ("room_posts", (2, 1)),
+])
+def test_room_style_ranges_name_the_key_when_wrong(key, value):
     with pytest.raises(ConfigError) as e:
-        _opened({key: (0.8, 0.2)})
+        _opened({key: value})
     assert f"synthesize.facade.{key}" in str(e.value)
 
 
