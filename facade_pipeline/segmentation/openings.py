@@ -10,11 +10,10 @@ Panels cut by the image border: the strip between the outermost bar and the bord
 other family continue into it (by their frame colour or their edges, where the facade surface is there:
 ``continues``; a clipped frame colour is matched only by a centre line clipped where it is,
 ``EdgeLine.short``); otherwise the facade ends at that bar, except beside the bars that continue on their own
-(a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the border,
-is a partial panel, each bar by its half facing the opening (beside a unit not installed only the other unit's
-half of the bar is there: ``EdgeLine.half_present``). A strip that holds the place of its family's next bar
-whole (one pitch beyond the outermost, on a plane: ``openings``), where the grid found none, is not judged in
-the median: only the bars that continue on their own go on into it.
+(a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the
+border, is a partial panel. A strip that holds the place of its family's next bar whole (one pitch beyond
+the outermost, on a plane: ``openings``), where the grid found none, is not judged in the median: only the
+bars that continue on their own go on into it.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
@@ -63,47 +62,34 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, hi: float) -> float:
-    """The fraction of [lo, hi) that shows the view where ``present`` [L] is 1, not counting ``short``
-    rows; NaN where unknown."""
-    if present is None:
-        return np.nan
-    i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
-    seg = present[i0:i1]
-    if short is not None:
-        seg = np.where(short[i0:i1], 0.0, seg)
-    seg = seg[~np.isnan(seg)]
-    return float(seg.mean()) if len(seg) else np.nan
-
-
-def _bar_continues(
-    bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float, inside: tuple[float, float],
-    halves_span: tuple[float, float] | None = None,
-) -> tuple[float, float, tuple[float, float]]:
+def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
+                   inside: tuple[float, float]) -> tuple[float, float]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
-    larger ratio of its two edges' mean strength there to their mean strength over ``inside``; the same
-    fraction on each half of the bar, low and high, ``EdgeLine.half_present``, over ``halves_span``, all of
-    the strip where None). A centre line below full
-    scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near a clipped frame
-    colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
-    presence = _presence(bar[0].present, bar[0].short, lo, hi)
-    h0, h1 = (lo, hi) if halves_span is None else halves_span
-    halves = (_presence(bar[0].half_present, None, h0, h1), _presence(bar[1].half_present, None, h0, h1))
+    larger ratio of its two edges' mean strength there to their mean strength over ``inside``). A centre
+    line below full scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near
+    a clipped frame colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
+    presence = np.nan
+    if bar[0].present is not None:
+        i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+        seg = bar[0].present[i0:i1]
+        if bar[0].short is not None:
+            seg = np.where(bar[0].short[i0:i1], 0.0, seg)
+        seg = seg[~np.isnan(seg)]
+        if len(seg):
+            presence = float(seg.mean())
     seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
     ratio = 0.0
     for line in bar:
         ref = _mean(line.strength, *inside, seen)
         ratio = max(ratio, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-    return presence, ratio, halves
+    return presence, ratio
 
 
 def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
-               params: SegmentParams, whole: bool = True,
-               halves_span: tuple[float, float] | None = None) -> frozenset[tuple[int, int]] | None:
+               params: SegmentParams, whole: bool = True) -> frozenset[int] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
-    across the whole strip), else the sides of those that do on their own, as (index, side: 0 low, 1 high)
-    (an empty set: the facade ends).
+    across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
 
     Only where the facade surface is there (``support``: the fraction of the strip where the coarse mesh
     lies on the fitted surface, 1 without a mesh) over at least half of the strip: that keeps out the ground
@@ -119,34 +105,18 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     (the strip holds the grid's next bar's place, and no bar was found there): the bars continue on their
     own only, the median over them left out, since the facade's panes do not go on across the whole strip
     (the lit box of an empty unit behind several openings, clipped to the frames' colour, carries some of
-    the bars' centre lines in the median). A bar whose centre line does not show its colour continues on
-    its own on one side where that half of the bar shows it and the other half does not (over no more
-    than 1 - ``continuation_presence`` of the strip; ``EdgeLine.half_present``): beside a unit not
-    installed only the other unit's half of the bar is there, and its centre line, the halves' meeting,
-    shows the frame's colour nowhere or only in part; the opening on the missing half's side does not go
-    on. Halves alike carry nothing the centre line does not (a lit box clipped to the frames' white over
-    part of the strip shows in both). The halves are judged over ``halves_span`` (all of the strip where
-    None): ``openings`` leaves out the bar width beside the strip's bar, where the two families' bars meet
-    and their corners, not a unit's frame, part the halves."""
+    the bars' centre lines in the median)."""
     if support < 0.5:
         return frozenset()
-    found = [_bar_continues(e, lo, hi, inside, halves_span) for e in other.edges]
-    presence = [p for p, _, _ in found if not np.isnan(p)]
+    found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
+    presence = [p for p, _ in found if not np.isnan(p)]
     if whole and presence and float(np.median(presence)) >= params.continuation_presence:
         return None
-    if whole and found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio:
+    if whole and found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
         return None
-
-    def shown(p: float) -> bool:
-        return not np.isnan(p) and p >= params.continuation_presence
-
-    def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
-        other = halves[1 - side]
-        return shown(halves[side]) and not np.isnan(other) and other <= 1.0 - params.continuation_presence
-
     return frozenset(
-        (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
-        if shown(p) or split(halves, side) or r >= params.continuation_ratio
+        i for i, (p, r) in enumerate(found)
+        if (not np.isnan(p) and p >= params.continuation_presence) or r >= params.continuation_ratio
     )
 
 
@@ -172,21 +142,18 @@ def strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
 @dataclass(frozen=True)
 class Opening:
     """One opening across a family's bars: its low and high edge lines, the indices of the bars bounding
-    it (None: the image border), and for a strip cut by the border the sides of the bars of the other
-    family that continue into it (None: all of them; ``continues``)."""
+    it (None: the image border), and for a strip cut by the border the bars of the other family that
+    continue into it (None: all of them)."""
 
     low: EdgeLine
     high: EdgeLine
     bounds: tuple[int | None, int | None]
     cut: bool = False
-    continuing: frozenset[tuple[int, int]] | None = None
+    continuing: frozenset[int] | None = None
 
     def admits(self, bounds: tuple[int | None, int | None]) -> bool:
-        """Does the opening of the other family bounded by the bars ``bounds`` (low, high) go on into this
-        one? Each bar by its side facing that opening: the low bar's high side, the high bar's low side."""
-        return self.continuing is None or all(
-            b is None or (b, side) in self.continuing for b, side in zip(bounds, (1, 0), strict=True)
-        )
+        """Does the opening of the other family bounded by the bars ``bounds`` go on into this one?"""
+        return self.continuing is None or all(b is None or b in self.continuing for b in bounds)
 
 
 def openings(
@@ -210,13 +177,13 @@ def openings(
                    grid_ends and fit.centres[-1] + fit.pitch + w / 2 <= size - 1.0)
     if lo >= min_partial_px:
         going = continues(other, 0, lo, inside, strip_support(support, axis, 0, lo, across), params,
-                           not next_inside[0], (0.0, lo - w))
+                           not next_inside[0])
         if going is None or going:
             out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
     out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
     if size - top >= min_partial_px:
         going = continues(other, top, size, inside, strip_support(support, axis, top, size, across), params,
-                           not next_inside[1], (top + w, float(size)))
+                           not next_inside[1])
         if going is None or going:
             out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
     return out
