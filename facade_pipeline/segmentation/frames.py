@@ -100,11 +100,25 @@ def _family(
         dist = np.linalg.norm(grad.line_colour(span) - frame_colour, axis=1)[: len(e_grad)]
         dist = np.maximum(dist - params.frame_colour_tol, 0.0)
     ll = log_likelihood(e_grad, lsd_evidence(support, widths, hi - lo), uniformity, params.grid, dist)
-    # outer frames are judged without the colour prior: one side meets the background, and the centre line
-    # of a one-sided bar found at its glass-side edge is not reliably on the frame
-    ll_out = log_likelihood(e_out, lsd_evidence(support, w_out, hi - lo), uniformity, params.grid)
+    # an outer frame meets the background on one side, and the centre line of a one-sided bar found at its
+    # glass-side edge is not reliably on the frame; the narrowest bar's width beside that edge is the frame
+    # whatever lies beyond it: the colour prior is taken there, on the side of the run (``glass_side``)
+    lsd_out = lsd_evidence(support, w_out, hi - lo)
+    ll_out = (log_likelihood(e_out, lsd_out, uniformity, params.grid) if dist is None else np.stack([
+        log_likelihood(e_out, lsd_out, uniformity, params.grid, glass_side(dist, w_out, sizes.min_bar, s))
+        for s in (1, -1)]))
     return map_family(ll, widths, grad.size, params.grid, sizes, (ll_out, w_out),
                       lambda c, w: clipped_place(grad, span, c, w, surface))
+
+
+def glass_side(values: np.ndarray, widths: np.ndarray, narrow: int, sign: int) -> np.ndarray:
+    """[M] ``values`` [M] (on the lattice) taken, for a bar at each position of ``widths`` [M] (px), in
+    the middle of the narrowest bar's width (``narrow`` px) beside its edge on the ``sign`` side (+1: its
+    high edge; beyond the first bar of a run the glass lies on that side, beyond the last on the other)."""
+    M = len(values)
+    # (w - narrow) / 2 px is (w - narrow) lattice steps (``STEP_PX``: half a pixel)
+    shift = np.maximum(np.asarray(widths, float) - narrow, 0.0).astype(int)
+    return values[np.clip(np.arange(M) + sign * shift, 0, M - 1)]
 
 
 def clipped_place(grad: Gradients, span: slice, c: float, width: float,

@@ -29,7 +29,8 @@ MAP: maximise ``sum_k [max_delta (l(c_0 + k p + delta) - delta^2 / (2 sigma^2)) 
 frames: a facade's outer frame may meet a background of its own colour (paving, sky), so it shows only its
 glass-side edge. The run is then extended by one bar at either end where l(c) computed with the weaker edge
 counted at least ``outer_edge_floor`` of the stronger (a one-sided bar) pays for the line, one pitch beyond
-the end (relaxed as above). Only there: everywhere else a one-sided edge is a reflection, but for mullions
+the end (relaxed as above; a colour prior, where the family has one, taken beside the bar's glass-side edge,
+``frames.glass_side``). Only there: everywhere else a one-sided edge is a reflection, but for mullions
 sought at the building's pitch whose other edge lies between two clipped pixels, unknown rather than
 absent (``frames.find_bars``' ``predicted``). End bays: a
 facade's last column or row often has a pitch of its own (a wider end bay, a taller ground floor); where no
@@ -290,9 +291,9 @@ def map_family(
     clipped_at: Callable[[float, float], bool] | None = None,
 ) -> FamilyFit | None:
     """The MAP grid of one family from l(c) [M] on the lattice (module docstring); None without 2 lines.
-    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``) extends the run by the outer frames and
-    the end bays; ``clipped_at`` (a bar's centre and width, px) says where a bar's place shows nothing
-    either way (``_with_end_bays``).
+    ``outer`` (l(c) [M] and widths [M] with ``outer_edge_floor``; l(c) [2, M] where it differs beyond the
+    first bar and beyond the last) extends the run by the outer frames and the end bays; ``clipped_at`` (a
+    bar's centre and width, px) says where a bar's place shows nothing either way (``_with_end_bays``).
 
     Pitches run from the smallest up; at each, the phases are ranked by their gain (the sum of their
     positive terms, which bounds any run's score) and the best few get the exact run. A pitch none of whose
@@ -353,12 +354,14 @@ def _with_outer_frames(
 ) -> FamilyFit:
     """The run extended by one bar at either end where l(c) of a one-sided bar (an outer frame meeting a
     background of its own colour: its edge on the glass side only) one pitch beyond the end, relaxed as
-    in the prior, pays for the line (module docstring)."""
-    M = len(ll_outer)
+    in the prior, pays for the line (module docstring). ``ll_outer`` [M], or [2, M]: beyond the first bar
+    and beyond the last (the glass on the bar's high side, on its low side)."""
+    ll_ends = np.broadcast_to(ll_outer, (2, ll_outer.shape[-1]))
+    M = ll_ends.shape[1]
     sigma = max(SIGMA_MIN_PX, params.sigma_frac * fit.pitch)
-    windows = shift_windows(ll_outer, _radius(sigma))
     centres, widths, score = list(fit.centres), list(fit.widths), fit.score
     for end, sign in ((-1, 1.0), (0, -1.0)):
+        windows = shift_windows(ll_ends[1 if sign > 0 else 0], _radius(sigma))
         c = centres[end] + sign * fit.pitch
         i = int(np.rint(c / STEP_PX))
         if not 0 <= i < M:

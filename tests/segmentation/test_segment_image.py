@@ -561,6 +561,32 @@ def test_a_border_strip_that_holds_the_grids_next_bar_takes_only_the_bars_that_c
     assert sorted(p.col for p in curved.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 2, 3]
 
 
+@pytest.mark.parametrize("beyond", ["shade", "frame"])
+def test_an_edge_one_pitch_beyond_the_transoms_is_an_outer_frame_only_beside_the_frames_colour(beyond):
+    """Frames clipped white, and above the top transom the lit box of an empty unit (a light pink, off the
+    frames' white) up to an edge about one pitch higher, where a grey shade (the box's ceiling) begins and
+    runs to the border: a one-sided edge at the grid's next transom's place. A one-sided bar there is an
+    outer frame only where the narrowest bar's width beside its glass-side edge shows the frames' colour:
+    there lies the frame whatever meets it beyond. Beside the shade it does not (the edge is the box's,
+    and the unit's opening is a border strip, no panel); where the band above the edge is the frames'
+    white (an outer frame meeting a background of its own colour), the transom is found."""
+    d = Drawing(H=90, y0=36.3, rows=2, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    top = int(d.y0)  # the top transom's upper edge
+    edge = int(round(d.y0 - d.pitch[1] + d.bar / 2 + 1.3))  # just below the grid's next transom's centre
+    rng = np.random.default_rng(1)
+    shade = (175.0, 158.0, 156.0) if beyond == "shade" else (255.0, 255.0, 255.0)
+    for rows, colour in ((slice(0, top), (250.0, 215.0, 205.0)), (slice(0, edge), shade)):
+        noise = rng.normal(0.0, 2.0, (rows.stop, d.W, 3))
+        img[rows] = np.clip(np.rint(np.array(colour) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    if beyond == "shade":
+        assert seg.metrics["n_transoms"] == 3 and len(seg.panels) == 6
+        assert all(p.complete and p.corners[:, 1].min() > d.y0 for p in seg.panels)
+    else:
+        assert seg.metrics["n_transoms"] == 4
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
