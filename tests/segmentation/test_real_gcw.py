@@ -117,7 +117,9 @@ def _scaled_copy(src, dst, scale: float) -> None:
 def test_the_same_photos_at_a_smaller_size_give_the_same_panels(gcw, tmp_path):
     """Lengths follow the facade, not the pixels: the photos at 0.6 of their size, a coarser ground sample
     distance, give the same frames (the same frame depth, here none: these frames show no parallax a
-    view's few bars could tell from their scatter) and the same corners in the full-size photos' pixels."""
+    view's few bars could tell from their scatter) and the same corners in the full-size photos' pixels;
+    no photo loses more than 0.05 of its mask IoU (img058's empty unit, whose shaded ceiling edge lies one
+    pitch beyond its top transom, was taken for an outer transom at 0.6: ``frames.glass_side``)."""
     layout, per_photo = gcw
     src = tmp_path / "small"
     _scaled_copy(SRC, src, 0.6)
@@ -130,9 +132,12 @@ def test_the_same_photos_at_a_smaller_size_give_the_same_panels(gcw, tmp_path):
     small = BuildingLayout(tmp_path / "data", "gcw_dev")
     depth = read_manifest(small, "segment_panels").metrics["frame_depth_m"]
     assert depth == read_manifest(layout, "segment_panels").metrics["frame_depth_m"]
-    s, full = summary(evaluate_building(small, src)), summary(per_photo)
+    small_per_photo = evaluate_building(small, src)
+    s, full = summary(small_per_photo), summary(per_photo)
     assert s["found_fraction"] >= 0.9 and s["mask_iou_median"] >= full["mask_iou_median"] - 0.03
     assert s["corner_error_median_px"] / 0.6 <= 1.2 * full["corner_error_median_px"]
+    for stem, r in per_photo.items():
+        assert small_per_photo[stem]["mask_iou"] >= r["mask_iou"] - 0.05, stem
 
 
 def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_panels(gcw, tmp_path):
