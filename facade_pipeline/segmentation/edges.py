@@ -40,6 +40,11 @@ class EdgeLine:
     as the frame (above full scale), yet of another hue (the lit box of an empty unit), where the frame
     shaded would fall below full scale in its clipped channels together (None: nowhere, or not
     measured)."""
+    half_present: np.ndarray | None = None
+    """[L] float: as ``present``, on the line halfway between this edge and the bar's centre line (the
+    half of the bar on this edge's side), 0 where ``short`` there. A unitised facade's bar is the frames of
+    the two units beside it, side by side: beside a unit not installed only the other unit's half is there
+    (None: not measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)

@@ -250,10 +250,17 @@ def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
                   params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
     where that is unknown and where it is short (``frame_presence`` within ``frame_colour_tol``), set
-    on both."""
-    present, unknown, short = frame_presence(grad, bar[0], bar[1], span, params.frame_colour_tol)
-    low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short)
-                 for line in bar)
+    on both; and each with where it is present on its own half of the bar (``EdgeLine.half_present``)."""
+    tol = params.frame_colour_tol
+    present, unknown, short = frame_presence(grad, bar[0], bar[1], span, tol)
+    centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
+                                 b=0.5 * (bar[0].b + bar[1].b))
+    halves = []
+    for half in ((bar[0], centre), (centre, bar[1])):
+        seen, _, clipped_short = frame_presence(grad, *half, span, tol)
+        halves.append(seen if clipped_short is None else np.where(clipped_short, 0.0, seen))
+    low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short, half_present=h)
+                 for line, h in zip(bar, halves, strict=True))
     return low, high
 
 

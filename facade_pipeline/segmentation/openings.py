@@ -62,34 +62,42 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
+def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, hi: float) -> float:
+    """The fraction of [lo, hi) that shows the view where ``present`` [L] is 1, not counting ``short``
+    rows; NaN where unknown."""
+    if present is None:
+        return np.nan
+    i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+    seg = present[i0:i1]
+    if short is not None:
+        seg = np.where(short[i0:i1], 0.0, seg)
+    seg = seg[~np.isnan(seg)]
+    return float(seg.mean()) if len(seg) else np.nan
+
+
 def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
-                   inside: tuple[float, float]) -> tuple[float, float]:
+                   inside: tuple[float, float]) -> tuple[float, float, tuple[float, float]]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
-    larger ratio of its two edges' mean strength there to their mean strength over ``inside``). A centre
-    line below full scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near
-    a clipped frame colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
-    presence = np.nan
-    if bar[0].present is not None:
-        i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
-        seg = bar[0].present[i0:i1]
-        if bar[0].short is not None:
-            seg = np.where(bar[0].short[i0:i1], 0.0, seg)
-        seg = seg[~np.isnan(seg)]
-        if len(seg):
-            presence = float(seg.mean())
+    larger ratio of its two edges' mean strength there to their mean strength over ``inside``; the same
+    fraction on each half of the bar, low and high, ``EdgeLine.half_present``). A centre line below full
+    scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near a clipped frame
+    colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
+    presence = _presence(bar[0].present, bar[0].short, lo, hi)
+    halves = (_presence(bar[0].half_present, None, lo, hi), _presence(bar[1].half_present, None, lo, hi))
     seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
     ratio = 0.0
     for line in bar:
         ref = _mean(line.strength, *inside, seen)
         ratio = max(ratio, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-    return presence, ratio
+    return presence, ratio, halves
 
 
 def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
-               params: SegmentParams, whole: bool = True) -> frozenset[int] | None:
+               params: SegmentParams, whole: bool = True) -> frozenset[tuple[int, int]] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
-    across the whole strip), else the indices of those that do on their own (an empty set: the facade ends).
+    across the whole strip), else the sides of those that do on their own, as (index, side: 0 low, 1 high)
+    (an empty set: the facade ends).
 
     Only where the facade surface is there (``support``: the fraction of the strip where the coarse mesh
     lies on the fitted surface, 1 without a mesh) over at least half of the strip: that keeps out the ground
@@ -105,18 +113,25 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     (the strip holds the grid's next bar's place, and no bar was found there): the bars continue on their
     own only, the median over them left out, since the facade's panes do not go on across the whole strip
     (the lit box of an empty unit behind several openings, clipped to the frames' colour, carries some of
-    the bars' centre lines in the median)."""
+    the bars' centre lines in the median). A bar that continues on its own by its colour does so on each
+    half where that half shows it (``EdgeLine.half_present``): beside a unit not installed only the other
+    unit's half of the bar is there, and its centre line, the halves' meeting, shows the frame's colour
+    nowhere or only in part; the opening on the missing half's side does not go on."""
     if support < 0.5:
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
-    presence = [p for p, _ in found if not np.isnan(p)]
+    presence = [p for p, _, _ in found if not np.isnan(p)]
     if whole and presence and float(np.median(presence)) >= params.continuation_presence:
         return None
-    if whole and found and float(np.median([r for _, r in found])) >= params.continuation_ratio:
+    if whole and found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio:
         return None
+
+    def shown(p: float) -> bool:
+        return not np.isnan(p) and p >= params.continuation_presence
+
     return frozenset(
-        i for i, (p, r) in enumerate(found)
-        if (not np.isnan(p) and p >= params.continuation_presence) or r >= params.continuation_ratio
+        (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
+        if shown(p) or shown(halves[side]) or r >= params.continuation_ratio
     )
 
 
@@ -142,18 +157,21 @@ def strip_support(support: np.ndarray | None, axis: int, lo: float, hi: float,
 @dataclass(frozen=True)
 class Opening:
     """One opening across a family's bars: its low and high edge lines, the indices of the bars bounding
-    it (None: the image border), and for a strip cut by the border the bars of the other family that
-    continue into it (None: all of them)."""
+    it (None: the image border), and for a strip cut by the border the sides of the bars of the other
+    family that continue into it (None: all of them; ``continues``)."""
 
     low: EdgeLine
     high: EdgeLine
     bounds: tuple[int | None, int | None]
     cut: bool = False
-    continuing: frozenset[int] | None = None
+    continuing: frozenset[tuple[int, int]] | None = None
 
     def admits(self, bounds: tuple[int | None, int | None]) -> bool:
-        """Does the opening of the other family bounded by the bars ``bounds`` go on into this one?"""
-        return self.continuing is None or all(b is None or b in self.continuing for b in bounds)
+        """Does the opening of the other family bounded by the bars ``bounds`` (low, high) go on into this
+        one? Each bar by its side facing that opening: the low bar's high side, the high bar's low side."""
+        return self.continuing is None or all(
+            b is None or (b, side) in self.continuing for b, side in zip(bounds, (1, 0), strict=True)
+        )
 
 
 def openings(

@@ -587,6 +587,30 @@ def test_an_edge_one_pitch_beyond_the_transoms_is_an_outer_frame_only_beside_the
         assert seg.metrics["n_transoms"] == 4
 
 
+def test_a_bar_beside_a_unit_not_installed_carries_the_opening_on_its_own_side():
+    """Frames clipped white, a top strip that holds the grid's next transom's place (as above, so the
+    median over the mullions is left out). There the first column's glass mirrors the sky clipped white,
+    and the second column's unit is not installed: its lit box (clipped in blue, below full scale in red)
+    fills the opening and the halves of the two mullions beside it that were the unit's own frames. The
+    second mullion's centre line, where its halves meet, shows the box, and no edge is left on either
+    side of its white half; the first column's opening goes on into the strip by that half, the box's by
+    neither of its mullions' halves facing it."""
+    d = Drawing(y0=30.0 - 2 * 23.3, cols=4, rows=4, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    lost = int(np.ceil(d.y0 + d.pitch[1] + d.bar))  # the top strip's transom: the glass below drawn over it
+    img[:lost] = img[lost : 2 * lost]
+    top_edge = int(d.y0 + 2 * d.pitch[1])  # the first transom found starts here
+    left = d.x0 + d.pitch[0] * np.arange(3)  # the first three mullions' left edges
+    img[:top_edge, int(np.ceil(left[0] + d.bar)) : int(left[1]) + 1] = 255  # the sky clipped white
+    box = slice(int(round(left[1] + d.bar / 2)), int(round(left[2] + d.bar / 2)))
+    noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, box.stop - box.start, 3))
+    img[:top_edge, box] = np.clip(np.rint(np.array((205.0, 235.0, 255.0)) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    assert all(not p.complete for p in seg.panels if p.corners[:, 1].min() < 1.0)
+    assert sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0) == [0, 2, 3]
+    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0]) == 4 * 2
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
