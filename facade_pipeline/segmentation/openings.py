@@ -10,10 +10,11 @@ Panels cut by the image border: the strip between the outermost bar and the bord
 other family continue into it (by their frame colour or their edges, where the facade surface is there:
 ``continues``; a clipped frame colour is matched only by a centre line clipped where it is,
 ``EdgeLine.short``); otherwise the facade ends at that bar, except beside the bars that continue on their own
-(a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the
-border, is a partial panel. A strip that holds the place of its family's next bar whole (one pitch beyond
-the outermost, on a plane: ``openings``), where the grid found none, is not judged in the median: only the
-bars that continue on their own go on into it.
+(a stepped facade, an empty or offset unit): there the opening between two such bars, or one and the border,
+is a partial panel, each bar by its half facing the opening (beside a unit not installed only the other unit's
+half of the bar is there: ``EdgeLine.half_present``). A strip that holds the place of its family's next bar
+whole (one pitch beyond the outermost, on a plane: ``openings``), where the grid found none, is not judged in
+the median: only the bars that continue on their own go on into it.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
