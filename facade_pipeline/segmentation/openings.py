@@ -76,16 +76,20 @@ def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, h
     return float(seg.mean()) if len(seg) else np.nan
 
 
-def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
-                   inside: tuple[float, float]) -> tuple[float, float, tuple[float, float]]:
+def _bar_continues(
+    bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float, inside: tuple[float, float],
+    halves_span: tuple[float, float] | None = None,
+) -> tuple[float, float, tuple[float, float]]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
     larger ratio of its two edges' mean strength there to their mean strength over ``inside``; the same
-    fraction on each half of the bar, low and high, ``EdgeLine.half_present``). A centre line below full
+    fraction on each half of the bar, low and high, ``EdgeLine.half_present``, over ``halves_span``, all of
+    the strip where None). A centre line below full
     scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near a clipped frame
     colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
     presence = _presence(bar[0].present, bar[0].short, lo, hi)
-    halves = (_presence(bar[0].half_present, None, lo, hi), _presence(bar[1].half_present, None, lo, hi))
+    h0, h1 = (lo, hi) if halves_span is None else halves_span
+    halves = (_presence(bar[0].half_present, None, h0, h1), _presence(bar[1].half_present, None, h0, h1))
     seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
     ratio = 0.0
     for line in bar:
@@ -95,7 +99,8 @@ def _bar_continues(bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float,
 
 
 def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
-               params: SegmentParams, whole: bool = True) -> frozenset[tuple[int, int]] | None:
+               params: SegmentParams, whole: bool = True,
+               halves_span: tuple[float, float] | None = None) -> frozenset[tuple[int, int]] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
     across the whole strip), else the sides of those that do on their own, as (index, side: 0 low, 1 high)
     (an empty set: the facade ends).
@@ -114,13 +119,18 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     (the strip holds the grid's next bar's place, and no bar was found there): the bars continue on their
     own only, the median over them left out, since the facade's panes do not go on across the whole strip
     (the lit box of an empty unit behind several openings, clipped to the frames' colour, carries some of
-    the bars' centre lines in the median). A bar that continues on its own by its colour does so on each
-    half where that half shows it (``EdgeLine.half_present``): beside a unit not installed only the other
-    unit's half of the bar is there, and its centre line, the halves' meeting, shows the frame's colour
-    nowhere or only in part; the opening on the missing half's side does not go on."""
+    the bars' centre lines in the median). A bar whose centre line does not show its colour continues on
+    its own on one side where that half of the bar shows it and the other half does not (over no more
+    than 1 - ``continuation_presence`` of the strip; ``EdgeLine.half_present``): beside a unit not
+    installed only the other unit's half of the bar is there, and its centre line, the halves' meeting,
+    shows the frame's colour nowhere or only in part; the opening on the missing half's side does not go
+    on. Halves alike carry nothing the centre line does not (a lit box clipped to the frames' white over
+    part of the strip shows in both). The halves are judged over ``halves_span`` (all of the strip where
+    None): ``openings`` leaves out the bar width beside the strip's bar, where the two families' bars meet
+    and their corners, not a unit's frame, part the halves."""
     if support < 0.5:
         return frozenset()
-    found = [_bar_continues(e, lo, hi, inside) for e in other.edges]
+    found = [_bar_continues(e, lo, hi, inside, halves_span) for e in other.edges]
     presence = [p for p, _, _ in found if not np.isnan(p)]
     if whole and presence and float(np.median(presence)) >= params.continuation_presence:
         return None
@@ -130,9 +140,13 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     def shown(p: float) -> bool:
         return not np.isnan(p) and p >= params.continuation_presence
 
+    def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
+        other = halves[1 - side]
+        return shown(halves[side]) and not np.isnan(other) and other <= 1.0 - params.continuation_presence
+
     return frozenset(
         (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
-        if shown(p) or shown(halves[side]) or r >= params.continuation_ratio
+        if shown(p) or split(halves, side) or r >= params.continuation_ratio
     )
 
 
@@ -196,13 +210,13 @@ def openings(
                    grid_ends and fit.centres[-1] + fit.pitch + w / 2 <= size - 1.0)
     if lo >= min_partial_px:
         going = continues(other, 0, lo, inside, strip_support(support, axis, 0, lo, across), params,
-                           not next_inside[0])
+                           not next_inside[0], (0.0, lo - w))
         if going is None or going:
             out.append(Opening(_border(0, length), e[0][0], (None, 0), True, going))
     out += [Opening(e[k][1], e[k + 1][0], (k, k + 1)) for k in range(len(e) - 1)]
     if size - top >= min_partial_px:
         going = continues(other, top, size, inside, strip_support(support, axis, top, size, across), params,
-                           not next_inside[1])
+                           not next_inside[1], (top + w, float(size)))
         if going is None or going:
             out.append(Opening(e[-1][1], _border(size, length), (len(e) - 1, None), True, going))
     return out
