@@ -146,7 +146,8 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
 
     return frozenset(
         (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
-        if shown(p) or split(halves, side) or r >= params.continuation_ratio
+        if shown(p) or split(halves, side)
+        or (r >= params.continuation_ratio and not split(halves, 1 - side))
     )
 
 
