@@ -124,8 +124,9 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     than 1 - ``continuation_presence`` of the strip; ``EdgeLine.half_present``): beside a unit not
     installed only the other unit's half of the bar is there, and its centre line, the halves' meeting,
     shows the frame's colour nowhere or only in part; the opening on the missing half's side does not go
-    on. Halves alike carry nothing the centre line does not (a lit box clipped to the frames' white over
-    part of the strip shows in both). The halves are judged over ``halves_span`` (all of the strip where
+    on, by the edges' strength either (the remaining half keeps its edge with the glass it frames). Halves
+    alike carry nothing the centre line does not (a lit box clipped to the frames' white over part of the
+    strip shows in both). The halves are judged over ``halves_span`` (all of the strip where
     None): ``openings`` leaves out the bar width beside the strip's bar, where the two families' bars meet
     and their corners, not a unit's frame, part the halves."""
     if support < 0.5:
