@@ -611,6 +611,26 @@ def test_a_bar_beside_a_unit_not_installed_carries_the_opening_on_its_own_side()
     assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0]) == 4 * 2
 
 
+def test_a_bars_edges_carry_no_opening_on_the_side_of_its_half_that_is_gone():
+    """A bar going on into a border strip with its edges as strong as inside, its centre line not showing
+    its colour there: where its low half shows the frame's colour and its high half does not (a unit not
+    installed above it), the edge the remaining half keeps with its glass takes the low side's opening on
+    only; where both halves are alike, the edges take both sides on."""
+    from types import SimpleNamespace
+
+    from facade_pipeline.segmentation.openings import continues
+
+    L = 100
+
+    def bar(low_half: float, high_half: float) -> tuple:
+        line = dict(present=np.zeros(L), short=None, strength=np.ones(L))
+        return (SimpleNamespace(**line, half_present=np.full(L, low_half)),
+                SimpleNamespace(**line, half_present=np.full(L, high_half)))
+
+    other = SimpleNamespace(edges=[bar(1.0, 0.0), bar(0.0, 0.0)])
+    assert continues(other, 0, 40, (40, 100), 1.0, PARAMS, whole=False) == {(0, 0), (1, 0), (1, 1)}
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
