@@ -195,11 +195,11 @@ def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
 
 
 def _runs_beyond(fit: FamilyFit, span: slice) -> bool:
-    """Does a bar of ``fit`` lie wholly beyond ``span`` (the along-bar range the other family was sought
-    over)?"""
-    lo = fit.centres - fit.widths / 2
-    hi = fit.centres + fit.widths / 2
-    return bool((hi < span.start).any() or (lo >= span.stop).any())
+    """Does a bar of ``fit`` lie more than half its pitch beyond ``span`` (the along-bar range the other
+    family was sought over, from the first to the last bar of another pass)? Nearer, it is that pass's
+    outermost bar found again a little off, not a bar the pass missed."""
+    reach = fit.pitch / 2
+    return bool((fit.centres < span.start - reach).any() or (fit.centres > span.stop - 1 + reach).any())
 
 
 def extent(fit: FamilyFit | None, size: int) -> slice:
