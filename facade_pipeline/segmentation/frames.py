@@ -208,6 +208,14 @@ def bar_colour(grad: Gradients, fit: FamilyFit, span: slice) -> np.ndarray:
     return nanmedian0(colour[idx])
 
 
+def _runs_beyond(fit: FamilyFit, span: slice) -> bool:
+    """Does a bar of ``fit`` lie more than half its pitch beyond ``span`` (the along-bar range the other
+    family was sought over, from the first to the last bar of another pass)? Nearer, it is that pass's
+    outermost bar found again a little off, not a bar the pass missed."""
+    reach = fit.pitch / 2
+    return bool((fit.centres < span.start - reach).any() or (fit.centres > span.stop - 1 + reach).any())
+
+
 def extent(fit: FamilyFit | None, size: int) -> slice:
     """Along-bar range of the other family: from the first to the last bar centre of ``fit``."""
     if fit is None:
@@ -276,13 +284,14 @@ def find_bars(
 ) -> tuple[Bars | None, Bars | None, dict, dict[str, Parallax], tuple[Gradients, Gradients]]:
     """Mullions and transoms of an RGB image [H, W, 3]: MAP passes for the transoms over the whole image,
     then for each family over the other's extent only (on a ``planar`` surface the transoms must have the
-    mullions' colour, ``frame_colour_scale``), a mullion clipped white with the glass beside it one pitch
-    beyond either end placed by the grid (``with_clipped_ends``; a transom only where its place is cut by
-    the view's border and the mullions go on across the strip beyond), then sub-pixel edges, with their
-    frames' parallax fitted in the image's ``parallax`` field ({"x": mullions, "y": transoms}; none
-    without a field), not yet corrected, and the two families' gradients. ``sizes``: the grid model's
-    sizes of the mullions and the transoms; ``support`` [H, W]: where the facade surface is (None:
-    everywhere).
+    mullions' colour, ``frame_colour_scale``), both again where the transoms found with that colour run
+    beyond the rows the mullions were sought over (``_runs_beyond``), a mullion clipped white with the
+    glass beside it one pitch beyond either end placed by the grid (``with_clipped_ends``; a transom only
+    where its place is cut by the view's border and the mullions go on across the strip beyond), then
+    sub-pixel edges, with their frames' parallax fitted in the image's ``parallax`` field ({"x":
+    mullions, "y": transoms}; none without a field), not yet corrected, and the two families' gradients.
+    ``sizes``: the grid model's sizes of the mullions and the transoms; ``support`` [H, W]: where the
+    facade surface is (None: everywhere).
     ``predicted``: the mullions' pitches sought are the building's (``sizes_v``), which predicts where each
     of them lies: an edge between two clipped pixels there is unknown, not absent, and the bar's other
     edge counts as an outer frame's does (``outer_edge_floor``): a frame clipped with what lies beside it
@@ -316,8 +325,8 @@ def find_bars(
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
         # width
         support_h = None if support is None else support.T  # the transoms' layout: along them first
-        h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W), params,
-                    sizes_h, pool=pool, surface=support_h)
+        h_first = h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W),
+                              params, sizes_h, pool=pool, surface=support_h)
         fam = lsd.result()
         vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
         for done in ahead:
@@ -331,6 +340,17 @@ def find_bars(
         if v is not None and params.grid.frame_colour_scale > 0 and planar:
             colour_h = bar_colour(gv, v, extent(h, H))
         h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
+        if colour_h is not None and h is not None and _runs_beyond(h, extent(h_first, H)):
+            # the transoms found with the mullions' colour run beyond the rows the mullions were sought
+            # over (the first pass missed a transom clipped with the glass beside it, and took the rows of
+            # an empty unit, where the mullions between its openings do not run, for the facade's): the
+            # mullions are sought again over the whole run the panels are made of, and the transoms with
+            # their colour. Only with the colour prior: without it the transoms sought over the mullions'
+            # extent are the first pass's, narrowed
+            v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool, surface=support,
+                        unknown_floor=floor_v)
+            colour_h = None if v is None else bar_colour(gv, v, extent(h, H))
+            h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
         metrics = {
             "n_segments": len(fam.segments),
             "n_vertical_segments": len(vseg),

@@ -171,7 +171,7 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 
 
 #: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do). At +0.5 EV 15 of
-#: 15 whole panes, mask IoU median 0.82, min 0.63; at +1 EV 14 of 15, 0.77 / 0.56 (benchmarks/RESULTS.md; the
+#: 15 whole panes, mask IoU median 0.82, min 0.63; at +1 EV 15 of 15, 0.77 / 0.49 (benchmarks/RESULTS.md; the
 #: empty unit clipped pink, near the frames' white, no longer carries the mullions into a border strip:
 #: ``EdgeLine.short``; img042's top transom, clipped with the sky beside it, is placed by the grid at its
 #: pitch, not at the empty unit's lit ceiling a quarter of a pitch lower: ``grid._with_end_bays``; img060's
@@ -185,11 +185,14 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 #: near edge between clipped pixels over the left pane, too little for the grid to take it, and is placed
 #: at its pitch where the mullions go on across the strip beyond: ``frames.with_clipped_ends``' ``cut``;
 #: img043's last mullion, clipped and cut by the view's border, keeps its pane where its far edge, unknown
-#: in every row, is placed at the bar's width: ``edges.bar_edges``); the empty unit's shelves clip to the
-#: frames' white, pass the transoms' colour prior, and its cell is taken for a pane (img060's lower pane,
-#: not found); and the frames' lit side faces merge with their clipped front faces, a parallax of
-#: 7 mm that the photos as taken do not show (without the parallax correction corners go from 5.5 to 3.4 px
-#: at +1 EV, the IoU stays)
+#: in every row, is placed at the bar's width: ``edges.bar_edges``; img060's lowest transom, clipped, is
+#: missed by the first transom pass, and the mullions are sought again over the run the colour prior
+#: finds: ``frames._runs_beyond``); the empty unit's shelves and ceiling clip to the frames' white: its
+#: cell passes the transoms' colour prior and is taken for a pane, and img060's top strip, above its
+#: ceiling, is taken for partial panels: the mullions, now at their places, go on into it on their centre
+#: lines, clipped as the ceiling is (mask IoU 0.56 -> 0.49, under the 0.5 needed); and the frames' lit
+#: side faces merge with their clipped front faces, a parallax of 7 mm that the photos as taken do not
+#: show (without the parallax correction corners go from 5.5 to 3.4 px at +1 EV, the IoU stays)
 OVEREXPOSED = pytest.mark.xfail(strict=True, reason="frames clipped against bright glass lose their edges; "
                                 "the empty unit clips to the frames' colour")
 #: what does not hold yet, by exposure: +1 EV, ``OVEREXPOSED``. At -0.5 EV one of img042's whole panes
@@ -285,6 +288,21 @@ def test_a_transom_cut_by_the_views_border_and_clipped_with_the_glass_is_placed_
     src, data = exposed["+1 EV"]
     brighter = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
     assert brighter["img042"]["n_found"] == per_photo["img042"]["n_found"] == 3
+
+def test_mullions_are_sought_over_the_transoms_run_where_the_first_pass_missed_one(gcw, exposed):
+    """A stop brighter than taken, img060's lowest transom clips white, the glass above it glares into it
+    and the view's border runs below it, and the first transom pass, over the whole width, finds only the
+    two that bound the empty unit's row: the mullions, sought over those rows, meet the unit's lit room,
+    where the mullion between its two openings does not run, and take the room's post or its side for
+    one. The transoms found with the mullions' colour run on to the
+    lowest; the mullions are sought again over that whole run (``frames._runs_beyond``), the mullion
+    between the lower row's panes is found and the one clipped white beside the view's border placed at
+    the pitch, and the photo finds the whole panes it finds as taken."""
+    _, per_photo = gcw
+    src, data = exposed["+1 EV"]
+    brighter = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+    assert brighter["img060"]["n_found"] == per_photo["img060"]["n_found"] == 2
+
 
 def test_views_off_the_wall_grid_are_listed_with_the_reason(gcw):
     """Nothing silent: every photo whose grid's pitch is not the wall's (0.1032 x 0.1532 m, the truth's;
