@@ -325,32 +325,32 @@ def find_bars(
         # a mullion pass over the whole height would serve nothing: the first transom pass takes the whole
         # width
         support_h = None if support is None else support.T  # the transoms' layout: along them first
-        h_first = h = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W),
-                              params, sizes_h, pool=pool, surface=support_h)
+        h_first = _family(gh, lambda: lsd.result().segments[lsd.result().horizontal], 1, slice(0, W),
+                          params, sizes_h, pool=pool, surface=support_h)
         fam = lsd.result()
         vseg, hseg = fam.segments[fam.vertical], fam.segments[fam.horizontal]
         for done in ahead:
             done.result()
-        v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool, surface=support,
-                    unknown_floor=floor_v)
         # frames are one material: the transoms must have the mullions' colour. Mullions are the reference:
         # they run the facade's full height, while the long straight lines that reflections bring (horizon,
-        # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal
-        colour_h = None
-        if v is not None and params.grid.frame_colour_scale > 0 and planar:
-            colour_h = bar_colour(gv, v, extent(h, H))
-        h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
-        if colour_h is not None and h is not None and _runs_beyond(h, extent(h_first, H)):
-            # the transoms found with the mullions' colour run beyond the rows the mullions were sought
-            # over (the first pass missed a transom clipped with the glass beside it, and took the rows of
-            # an empty unit, where the mullions between its openings do not run, for the facade's): the
-            # mullions are sought again over the whole run the panels are made of, and the transoms with
-            # their colour. Only with the colour prior: without it the transoms sought over the mullions'
-            # extent are the first pass's, narrowed
-            v = _family(gv, vseg, 0, extent(h, H), params, sizes_v, pool=pool, surface=support,
+        # roofs, kerbs) and the shelves seen through an empty frame cell are horizontal.
+        # A second pass where the transoms found with the mullions' colour run beyond the rows the mullions
+        # were sought over (the first pass missed a transom clipped with the glass beside it, and took the
+        # rows of an empty unit, where the mullions between its openings do not run, for the facade's): the
+        # mullions are sought again over the whole run the panels are made of, and the transoms with their
+        # colour. Only with the colour prior: without it the transoms sought over the mullions' extent are
+        # the first pass's, narrowed
+        rows = h_first
+        for again in (False, True):
+            v = _family(gv, vseg, 0, extent(rows, H), params, sizes_v, pool=pool, surface=support,
                         unknown_floor=floor_v)
-            colour_h = None if v is None else bar_colour(gv, v, extent(h, H))
+            colour_h = None
+            if v is not None and params.grid.frame_colour_scale > 0 and planar:
+                colour_h = bar_colour(gv, v, extent(rows, H))
             h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
+            if again or colour_h is None or h is None or not _runs_beyond(h, extent(h_first, H)):
+                break
+            rows = h
         metrics = {
             "n_segments": len(fam.segments),
             "n_vertical_segments": len(vseg),
