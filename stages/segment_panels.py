@@ -251,10 +251,11 @@ def segment_one(
     bar_width_m: dict[str, float],
     overlay_scale: float,
     frame_sides_m: dict[str, tuple[float, float]] | None = None,
+    pitch_m: dict[str, float] | None = None,
 ) -> tuple[list[Path], dict]:
     """Segment one view from its frame bars (``find_one``) with the building's frame depth (and its sides'
-    where the views' bars were pooled for it: ``building_frame_parallax_m``) and bar widths and write its
-    three outputs; returns them and the view's metrics."""
+    where the views' bars were pooled for it: ``building_frame_parallax_m``), bar widths and pitches and
+    write its three outputs; returns them and the view's metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image, write_image
     from facade_pipeline.segmentation.panels import segment_frames
@@ -264,7 +265,7 @@ def segment_one(
     W, H = view.camera.width, view.camera.height
     panels, ok, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
     if found is not None:
-        seg = segment_frames(found, params, frame_depth_m, bar_width_m, frame_sides_m)
+        seg = segment_frames(found, params, frame_depth_m, bar_width_m, frame_sides_m, pitch_m)
         labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
         ok = seg.facade_found and bool((labels >= 0).any())
         panels, metrics = (seg.panels if ok else []), seg.metrics
@@ -324,6 +325,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     from facade_pipeline.segmentation.building import (
         building_bar_width_m,
         building_frame_parallax_m,
+        building_pitch_m,
         survey_unit_m,
         surveyed_bar_max_m,
     )
@@ -358,9 +360,10 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
     found, disagreeing = ((found, {}) if unit is None
                           else with_building_grid(layout, views, found, params, mesh, width, unit, bar_max,
                                                  side_depth))
+    pitch = building_pitch_m([f for _, f, _ in found])
     for view, (rect, frames, seconds) in zip(views, found, strict=True):
         outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
-                                                settings.overlay_scale, sides)
+                                                settings.overlay_scale, sides, pitch)
         if unit is None and rect.kind != "skipped":
             per_view[view.stem]["reason"] = "the survey found no regular frame grid in any view at any pitch"
         per_view[view.stem]["seconds"] = round(per_view[view.stem]["seconds"] + seconds, 3)

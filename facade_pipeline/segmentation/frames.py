@@ -557,16 +557,37 @@ def survey_frames(
                        support, planar, ranges)
 
 
+def _pitch_side(bars: Bars, k: int, pitch_px: float | None) -> float:
+    """On which side of bar ``k`` (-1: low, +1: high, 0: neither) the building's pitch ``pitch_px`` from
+    the nearest other bar of ``bars`` puts its centre: 0 without a pitch or another bar, or where that
+    place lies within the bar as found."""
+    if pitch_px is None or pitch_px <= 0 or len(bars.edges) < 2:
+        return 0.0
+    centres = np.array([0.5 * (low.a + high.a) for low, high in bars.edges])
+    c = centres[k]
+    others = np.delete(centres, k)
+    near = others[np.argmin(np.abs(others - c))]
+    place = near + np.rint((c - near) / pitch_px) * pitch_px
+    half = 0.5 * (bars.edges[k][1].a - bars.edges[k][0].a)
+    return 0.0 if abs(place - c) <= half else float(np.sign(place - c))
+
+
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                       params: SegmentParams,
                       side_face: Callable[[EdgeLine, EdgeLine], tuple | None] | None = None,
+                      pitch_px: float | None = None,
                       ) -> tuple[Bars, int]:
     """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
     a whole width away from the image border found again at that width, and how many were: a thin line
     that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
     place of a frame whose face has little contrast against the glass beside it. Of the four bars of
     ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
-    geometric mean of its edges' strengths, as the bar evidence of ``grid``). Only where the view shows a
+    geometric mean of its edges' strengths, as the bar evidence of ``grid``), of the two on the side of
+    the line where the building's pitch ``pitch_px`` from the nearest other bar puts the bar (``_pitch_side``;
+    all four where it puts it within the line): beside a frame clipped with what lies beyond it (an empty
+    unit's lit shelf over a transom, the sky a pane reflects beside a mullion) the bar's edge there is
+    between clipped pixels, unknown rather than weak, and a weak edge in the glass on the other side would
+    take the bar's place by its strength. Only where the view shows a
     bar of the family at least half that wide: a part whose frames are all thinner than the building's
     (another style) keeps them. With ``side_face`` (``parallax.side_face`` of a bar's edges: its near
     edge, the width its side face shows and its front face's growth), a bar at least half that wide found
@@ -579,7 +600,7 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
     edges, n = [], 0
-    for low, high in bars.edges:
+    for k, (low, high) in enumerate(bars.edges):
         seen = None if side_face is None else side_face(low, high)
         width = high.a - low.a
         if (seen is not None and low.a >= width_px and high.a <= size - width_px
@@ -596,9 +617,13 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
         if width >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
             edges.append((low, high))
             continue
-        best, score = (low, high), 0.0
+        side = _pitch_side(bars, k, pitch_px)
+        # on the pitch's side a bar whose edge there is unknown (no strength) is still the bar's place
+        best, score = (low, high), (0.0 if side == 0 else -1.0)
         for c in (low.a - 0.5 * width_px, low.a + 0.5 * width_px, high.a - 0.5 * width_px,
                   high.a + 0.5 * width_px):
+            if side * (c - 0.5 * (low.a + high.a)) < 0:
+                continue
             e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
             if e is None or e[1].a - e[0].a < 0.5 * width_px:
                 continue

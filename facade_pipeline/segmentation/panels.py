@@ -32,6 +32,7 @@ def segment_frames(
     frame_depth_m: dict[str, float] | None = None,
     bar_width_m: dict[str, float] | None = None,
     frame_sides_m: dict[str, tuple[float, float]] | None = None,
+    pitch_m: dict[str, float] | None = None,
 ) -> Segmentation:
     """The panels between the frame bars ``found`` (``find_frames``), corners in the given image's pixels.
     The bars are corrected for their parallax: a family with a depth in ``frame_depth_m`` ("x": mullions,
@@ -42,7 +43,8 @@ def segment_frames(
     parallax shows the side face, lit unlike the front face) joined to its front face
     (``widen_narrow_bars``). A family with its sides' depths
     in ``frame_sides_m`` (m, P < 0 and P > 0, the building's where no view measured its own) whose fit
-    measured neither side takes them: which side's near edges are displaced."""
+    measured neither side takes them: which side's near edges are displaced. ``pitch_m``: the building's
+    panel pitch (m) per family, which side of a thin bar it is widened to (``widen_narrow_bars``)."""
     metrics = dict(found.metrics)
     bars_v, bars_h, m = found.bars_v, found.bars_h, found.metres_per_px
     if bars_v is None or bars_h is None:
@@ -71,12 +73,14 @@ def segment_frames(
         return lambda low, high: side_face(found.parallax, axis, low, high, fits[name].k)
 
     for name, width in (bar_width_m or {}).items():
+        pitch = (pitch_m or {}).get(name)
+        pitch = None if pitch is None else pitch / m
         if name == "x":
             bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params,
-                                          faces("x", 0))
+                                          faces("x", 0), pitch)
         else:
             bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params,
-                                          faces("y", 1))
+                                          faces("y", 1), pitch)
         metrics[f"bars_widened_{name}"] = n
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax)

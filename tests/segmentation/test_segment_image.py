@@ -735,6 +735,39 @@ def test_a_thin_line_wider_than_the_side_face_is_not_taken_for_it():
     assert abs(out.edges[0][1].a - 31.0) > 1.0  # the shadow's edge is not taken for the glass's
 
 
+def test_a_thin_line_below_a_transom_clipped_with_a_lit_shelf_is_widened_on_the_side_of_the_pitch():
+    """A transom clipped white (rows 20-28) under an empty unit's lit shelf clipped with it (rows 8-20),
+    above its dark shaded underside (rows 28-30), and glass below with a reflection's faint edge (row 38);
+    a whole transom a pitch of 38 px lower (rows 58-66). The grid took the thin line. The bars of the
+    building's width beside it in the clip have their edge there between clipped pixels (unknown, no
+    strength), the one in the glass a weak edge it finds: by their edges alone the bar is widened into the
+    glass. The building's pitch from the whole transom puts the bar above the line: widened there."""
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    H, W = 90, 60
+    img = np.full((H, W, 3), 0.45)
+    img[8:28] = 1.0  # the lit shelf and the transom, clipped together
+    img[28:30] = 0.25  # the shaded underside
+    img[38:] = 0.50  # a reflection's faint edge in the glass
+    img[58:66] = 1.0  # a whole transom
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 1)
+    span = slice(0, W)
+    thin = bar_edges(grad, 29.0, 2.0, span, EDGE_SEARCH_PX)
+    whole = bar_edges(grad, 62.0, 8.0, span, EDGE_SEARCH_PX)
+    assert abs(thin[0].a - 28.0) < 0.3 and abs(thin[1].a - 30.0) < 0.3  # what the grid found
+    bars = Bars([thin, whole], None)
+    plain, _ = widen_narrow_bars(bars, grad, span, 8.0, PARAMS)
+    assert abs(plain.edges[0][0].a - 30.0) < 0.3 and abs(plain.edges[0][1].a - 38.0) < 0.3
+    out, n = widen_narrow_bars(bars, grad, span, 8.0, PARAMS, pitch_px=38.0)
+    assert n == 1
+    assert abs(out.edges[0][0].a - 20.0) < 0.3 and abs(out.edges[0][1].a - 28.0) < 0.3
+    assert out.edges[1] == whole
+
+
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
     """Each view's own parallax fit gives d = k D where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
