@@ -654,6 +654,26 @@ def test_a_bars_halves_are_read_against_its_colour_where_one_half_lies_on_the_gl
     assert low.half_present[70:].mean() == 1.0 and high.half_present[70:].mean() == 1.0
 
 
+def test_a_bars_centre_line_carries_no_opening_on_the_side_of_its_half_that_is_gone():
+    """A bar going on into a border strip with its centre line showing the frame's colour there, its edges
+    weak: where its low half shows the colour and its high half does not (a unit not installed above it,
+    whose lit box, clipped to the frames' white, reaches the halves' meeting), only the low side's opening
+    goes on; where both halves show it, both sides do."""
+    from types import SimpleNamespace
+
+    from facade_pipeline.segmentation.openings import continues
+
+    L = 100
+
+    def bar(low_half: float, high_half: float) -> tuple:
+        line = dict(present=np.ones(L), short=None, strength=np.r_[np.zeros(40), np.ones(L - 40)])
+        return (SimpleNamespace(**line, half_present=np.full(L, low_half)),
+                SimpleNamespace(**line, half_present=np.full(L, high_half)))
+
+    other = SimpleNamespace(edges=[bar(1.0, 0.0), bar(1.0, 1.0)])
+    assert continues(other, 0, 40, (40, 100), 1.0, PARAMS, whole=False) == {(0, 0), (1, 0), (1, 1)}
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
