@@ -331,3 +331,15 @@ def test_a_bar_beside_a_unit_not_installed_keeps_its_sides_apart_brighter_or_off
         src, data = exposed[name]
         other = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
         assert other["img052"]["mask_iou"] >= per_photo["img052"]["mask_iou"] - 0.05, name
+
+
+def test_a_bar_whose_fitted_edge_lies_on_the_glass_keeps_both_halves_beyond_the_run_darker(gcw, exposed):
+    """A stop darker, img051's second mullion shows only one unit's frame over the transoms' run: its
+    other half's place, where its fitted edge lies, shows the pane beside it. In the bottom strip the bar
+    is whole, and both halves read the frame's colour there: the half that lies on the glass over the run
+    is read against the bar's colour, not the glass's, and the strip keeps the glass on both sides of the
+    bar."""
+    _, per_photo = gcw
+    src, data = exposed["-1 EV"]
+    other = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+    assert other["img051"]["mask_iou"] >= per_photo["img051"]["mask_iou"] - 0.05
