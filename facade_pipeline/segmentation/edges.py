@@ -42,9 +42,10 @@ class EdgeLine:
     measured)."""
     half_present: np.ndarray | None = None
     """[L] float: as ``present``, on the line halfway between this edge and the bar's centre line (the
-    half of the bar on this edge's side), 0 where ``short`` there. A unitised facade's bar is the frames of
-    the two units beside it, side by side: beside a unit not installed only the other unit's half is there
-    (None: not measured)."""
+    half of the bar on this edge's side), 0 where ``short`` there; judged against the bar's colour where
+    that line's own colour is not within the tolerance of it (``frames.with_presence``). A unitised
+    facade's bar is the frames of the two units beside it, side by side: beside a unit not installed only
+    the other unit's half is there (None: not measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
