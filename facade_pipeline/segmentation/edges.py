@@ -42,9 +42,10 @@ class EdgeLine:
     measured)."""
     half_present: np.ndarray | None = None
     """[L] float: as ``present``, on the line halfway between this edge and the bar's centre line (the
-    half of the bar on this edge's side), 0 where ``short`` there. A unitised facade's bar is the frames of
-    the two units beside it, side by side: beside a unit not installed only the other unit's half is there
-    (None: not measured)."""
+    half of the bar on this edge's side), 0 where ``short`` there; judged against the bar's colour where
+    that line's own colour is not within the tolerance of it (``frames.with_presence``). A unitised
+    facade's bar is the frames of the two units beside it, side by side: beside a unit not installed only
+    the other unit's half is there (None: not measured)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
@@ -141,31 +142,47 @@ def unknown_place(grad: Gradients, position: float, rows: slice, search_px: floa
     return not known.any()
 
 
-def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice,
-                   tol: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
-    colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``). A frame
-    keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does not,
-    which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's colour
-    and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's colour,
-    clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``), each None
-    where it is nowhere."""
+def _centre_colour(grad: Gradients, low: EdgeLine, high: EdgeLine) -> tuple[np.ndarray, np.ndarray]:
+    """[L, 3] the image on the centre line between ``low`` and ``high`` (the pixel whose span holds it) and
+    [L] bool where that pixel shows the view."""
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     centre = 0.5 * (low.at(t) + high.at(t))
-    col = np.clip(np.floor(centre).astype(int), 0, N - 1)  # the pixel whose span holds the centre line
-    colour = grad.img[np.arange(L), col]  # [L, 3]
-    ok = grad.valid[np.arange(L), col]
-    ref_rows = np.zeros(L, bool)
+    col = np.clip(np.floor(centre).astype(int), 0, N - 1)
+    return grad.img[np.arange(L), col], grad.valid[np.arange(L), col]
+
+
+def bar_colour_ref(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice) -> np.ndarray | None:
+    """The bar's own colour, [3] or [L, 3] (each block's, ``Gradients.block_px``): the median over ``rows``
+    of its centre line between ``low`` and ``high``; None where no row of them shows the view."""
+    colour, ok = _centre_colour(grad, low, high)
+    ref_rows = np.zeros(len(colour), bool)
     ref_rows[rows] = True
     ref_rows &= ok
     if not ref_rows.any():
-        return np.where(ok, 1.0, np.nan), None, None
+        return None
     if grad.block_px is None:
-        ref = np.median(colour[ref_rows], axis=0)
-    else:  # each block's own colour (``Gradients.block_px``)
-        ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
-        ref = np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
+        return np.median(colour[ref_rows], axis=0)
+    # each block's own colour (``Gradients.block_px``)
+    ref = local_median(np.where(ref_rows[:, None], colour, np.nan), grad.block_px, grad.block_step)
+    return np.where(np.isnan(ref), np.median(colour[ref_rows], axis=0), ref)
+
+
+def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, tol: float,
+                   ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """[L] float, 1 / 0 / NaN outside the view: where the bar between ``low`` and ``high`` shows its own
+    colour on its centre line (within ``tol``, RGB distance on 0-1, of its median over ``rows``,
+    ``bar_colour_ref``; or of ``ref`` where given, the colour of a bar of which this line is a part). A
+    frame keeps its colour whatever the glass beside it reflects; an object in front of it (a tree) does
+    not, which is what marks a panel occluded. With it, [L] bool: where the centre line is not the bar's
+    colour and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's
+    colour, clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``),
+    each None where it is nowhere."""
+    colour, ok = _centre_colour(grad, low, high)
+    if ref is None:
+        ref = bar_colour_ref(grad, low, high, rows)
+    if ref is None:
+        return np.where(ok, 1.0, np.nan), None, None
     near = np.linalg.norm(colour - ref, axis=1) <= tol
     clipped = colour.max(axis=1) >= CLIPPED_LEVEL
     unknown = ok & ~near & clipped

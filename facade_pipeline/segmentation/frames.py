@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from facade_pipeline.segmentation.edges import Bars, EdgeLine, bar_edges, frame_presence
+from facade_pipeline.segmentation.edges import Bars, EdgeLine, bar_colour_ref, bar_edges, frame_presence
 from facade_pipeline.segmentation.evidence import (
     Gradients,
     bar_evidence,
@@ -258,14 +258,23 @@ def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
                   params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
     where that is unknown and where it is short (``frame_presence`` within ``frame_colour_tol``), set
-    on both; and each with where it is present on its own half of the bar (``EdgeLine.half_present``)."""
+    on both; and each with where it is present on its own half of the bar (``EdgeLine.half_present``),
+    judged against its own median over ``span`` (one unit's frame may be lit or shaded unlike the other's)
+    where that is within the tolerance of the bar's colour on its centre line, else against the bar's
+    colour: there the half lies off the frame over the span (the bar shows only its other half, and its
+    fitted edge lies on the glass beside it), its median is the glass's, and the frame's colour beyond the
+    span would read as absent."""
     tol = params.frame_colour_tol
     present, unknown, short = frame_presence(grad, bar[0], bar[1], span, tol)
+    ref = bar_colour_ref(grad, bar[0], bar[1], span)
     centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
                                  b=0.5 * (bar[0].b + bar[1].b))
     halves = []
     for half in ((bar[0], centre), (centre, bar[1])):
-        seen, _, clipped_short = frame_presence(grad, *half, span, tol)
+        own = bar_colour_ref(grad, *half, span)
+        if own is not None and ref is not None:
+            own = np.where((np.linalg.norm(own - ref, axis=-1) <= tol)[..., None], own, ref)
+        seen, _, clipped_short = frame_presence(grad, *half, span, tol, own)
         halves.append(seen if clipped_short is None else np.where(clipped_short, 0.0, seen))
     low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short, half_present=h)
                  for line, h in zip(bar, halves, strict=True))

@@ -124,7 +124,9 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     than 1 - ``continuation_presence`` of the strip; ``EdgeLine.half_present``): beside a unit not
     installed only the other unit's half of the bar is there, and its centre line, the halves' meeting,
     shows the frame's colour nowhere or only in part; the opening on the missing half's side does not go
-    on, by the edges' strength either (the remaining half keeps its edge with the glass it frames). Halves
+    on, by the edges' strength either (the remaining half keeps its edge with the glass it frames), nor by
+    the centre line where it does show the colour (brighter, the missing unit's lit box clips to the frames'
+    white up to the halves' meeting: the halves tell the sides apart where the centre line cannot). Halves
     alike carry nothing the centre line does not (a lit box clipped to the frames' white over part of the
     strip shows in both). The halves are judged over ``halves_span`` (all of the strip where
     None): ``openings`` leaves out the bar width beside the strip's bar, where the two families' bars meet
@@ -147,8 +149,8 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
 
     return frozenset(
         (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
-        if shown(p) or split(halves, side)
-        or (r >= params.continuation_ratio and not split(halves, 1 - side))
+        if split(halves, side)
+        or ((shown(p) or r >= params.continuation_ratio) and not split(halves, 1 - side))
     )
 
 

@@ -333,3 +333,27 @@ def test_views_off_the_wall_grid_are_listed_with_the_reason(gcw):
         for name in wrong:
             assert f"pitch {name}" in off[stem] and off[stem].endswith("own kept")
     assert set(off) <= set(m["views"])
+
+
+def test_a_bar_beside_a_unit_not_installed_keeps_its_sides_apart_brighter_or_off_balance(gcw, exposed):
+    """img052's top strip mirrors a clipped sky beside a unit not installed: the bar between them goes on
+    by its half facing the glass only. Half a stop brighter, or with the white balance off, the unit's lit
+    box clips to the frames' white up to the halves' meeting, and the bar's centre line shows the frame's
+    colour there; the halves still tell its sides apart, and the photo keeps its glass as taken."""
+    _, per_photo = gcw
+    for name in ("+0.5 EV", "white balance off by 20 %"):
+        src, data = exposed[name]
+        other = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+        assert other["img052"]["mask_iou"] >= per_photo["img052"]["mask_iou"] - 0.05, name
+
+
+def test_a_bar_whose_fitted_edge_lies_on_the_glass_keeps_both_halves_beyond_the_run_darker(gcw, exposed):
+    """A stop darker, img051's second mullion shows only one unit's frame over the transoms' run: its
+    other half's place, where its fitted edge lies, shows the pane beside it. In the bottom strip the bar
+    is whole, and both halves read the frame's colour there: the half that lies on the glass over the run
+    is read against the bar's colour, not the glass's, and the strip keeps the glass on both sides of the
+    bar."""
+    _, per_photo = gcw
+    src, data = exposed["-1 EV"]
+    other = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+    assert other["img051"]["mask_iou"] >= per_photo["img051"]["mask_iou"] - 0.05

@@ -631,6 +631,49 @@ def test_a_bars_edges_carry_no_opening_on_the_side_of_its_half_that_is_gone():
     assert continues(other, 0, 40, (40, 100), 1.0, PARAMS, whole=False) == {(0, 0), (1, 0), (1, 1)}
 
 
+def test_a_bars_halves_are_read_against_its_colour_where_one_half_lies_on_the_glass_inside():
+    """A white mullion 10 px wide whose edges were fitted where the bar is whole, seen over the transoms'
+    run (rows 0-60) with only its high half: the pane on its low side reaches the halves' meeting there (a
+    bar whose fitted edge lies on the glass). Beyond the run (rows 70-100, a border strip) the bar is
+    whole: both of its halves show the frame's colour there. Read against its own median over the run, the
+    low half would take the glass for its colour and the frame beyond for gone."""
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import with_presence
+
+    H, W = 100, 50
+    img = np.full((H, W, 3), 0.45)
+    img[:, 20:30] = 0.97  # the bar, the frames' colour
+    img[:60, 20:25] = 0.45  # over the run its low half shows the pane beside it
+    img[60:70] = 0.97  # a transom
+    img = np.rint(img * 255).astype(np.uint8)
+    grad = Gradients.of(img, 0)
+    bar = (EdgeLine(20.0, 0.0, 30.0, np.ones(H)), EdgeLine(30.0, 0.0, 30.0, np.ones(H)))
+    low, high = with_presence(grad, bar, slice(0, 60), PARAMS)
+    assert low.half_present[:60].mean() == 0.0 and high.half_present[:60].mean() == 1.0
+    assert low.half_present[70:].mean() == 1.0 and high.half_present[70:].mean() == 1.0
+
+
+def test_a_bars_centre_line_carries_no_opening_on_the_side_of_its_half_that_is_gone():
+    """A bar going on into a border strip with its centre line showing the frame's colour there, its edges
+    weak: where its low half shows the colour and its high half does not (a unit not installed above it,
+    whose lit box, clipped to the frames' white, reaches the halves' meeting), only the low side's opening
+    goes on; where both halves show it, both sides do."""
+    from types import SimpleNamespace
+
+    from facade_pipeline.segmentation.openings import continues
+
+    L = 100
+
+    def bar(low_half: float, high_half: float) -> tuple:
+        line = dict(present=np.ones(L), short=None, strength=np.r_[np.zeros(40), np.ones(L - 40)])
+        return (SimpleNamespace(**line, half_present=np.full(L, low_half)),
+                SimpleNamespace(**line, half_present=np.full(L, high_half)))
+
+    other = SimpleNamespace(edges=[bar(1.0, 0.0), bar(1.0, 1.0)])
+    assert continues(other, 0, 40, (40, 100), 1.0, PARAMS, whole=False) == {(0, 0), (1, 0), (1, 1)}
+
+
 @pytest.mark.parametrize("last_pitch", [(40.0, None), (None, 33.0), (40.0, 33.0)])
 def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
     """A wider last column (end bay) and a taller last row (ground floor) beside a regular grid of 27.4 x
