@@ -115,14 +115,16 @@ CLIPPED_BAR_KNOWN = 0.5
 
 
 def bar_edges(
-    grad: Gradients, centre: float, width: float, rows: slice, search_px: float, place_unknown: bool = True
+    grad: Gradients, centre: float, width: float, rows: slice, search_px: float, place_unknown: bool = True,
+    family_px: float | None = None,
 ) -> tuple[EdgeLine, EdgeLine] | None:
     """The (low, high) edges of the bar centred at ``centre`` with ``width`` (px), or None. Each edge takes
     the polarity of the mean gradient at its expected position. With ``place_unknown``, an edge not fitted
     whose place is unknown in every row (``known_share`` 0: a frame clipped with what lies beside it, or
     cut by the view's border) is no evidence against the bar: it is placed ``width`` from the other edge,
     parallel to it, with no strength; and an edge fitted where its place is mostly unknown is made
-    parallel to the other (``_parallel_where_clipped``)."""
+    parallel to the other where the two part by more than ``family_px`` (the width of the family's bars;
+    None: ``width``) along the bar (``_parallel_where_clipped``)."""
     low = fit_edge(grad, centre - width / 2, 1.0, rows, search_px)
     high = fit_edge(grad, centre + width / 2, 1.0, rows, search_px)
     if place_unknown and (low is None) != (high is None):
@@ -131,7 +133,8 @@ def bar_edges(
             placed = EdgeLine(seen.a + side * float(width), seen.b, seen.mid, np.zeros_like(seen.strength))
             low, high = (placed, high) if low is None else (low, placed)
     elif place_unknown and low is not None and high is not None:
-        low, high = _parallel_where_clipped(grad, low, high, width, rows, search_px)
+        low, high = _parallel_where_clipped(grad, low, high, width if family_px is None else family_px,
+                                            rows, search_px)
     if low is None or high is None or high.a <= low.a:
         return None
     return low, high
@@ -142,10 +145,11 @@ def _parallel_where_clipped(grad: Gradients, low: EdgeLine, high: EdgeLine, widt
     """``low`` and ``high`` with an edge whose place is known over at most ``CLIPPED_BAR_KNOWN`` of
     ``rows`` (``known_share``), where the other's is known over more, made parallel to the other through
     its own fitted line at the middle of the rows it was found in, where the two part by more than
-    ``width`` over ``rows``: the few rows it is known in lie where the frame's clip ends in what lies beside
-    it (an empty unit's lit shelf slanting away from a transom), and their slope, carried along the whole
-    bar, would make a bar wider at one end than twice its width at the other. A frame's two edges are
-    parallel."""
+    ``width`` (px, the family's bars') over ``rows``: the few rows it is known in lie where the frame's
+    clip ends in what lies beside it (an empty unit's lit shelf slanting away from a transom), and their
+    slope, carried along the whole bar, would part its edges by more than a bar's width from one end to
+    the other. A frame's two edges are parallel; within a bar's width over its length, a thin bar's
+    slanting edge is as often its own (a unit's frame beside a unit not installed)."""
     length = len(range(*rows.indices(len(low.strength))))
     share = [known_share(grad, line.at(line.mid), rows, search_px) for line in (low, high)]
     for k, (edge, other) in enumerate(((low, high), (high, low))):

@@ -231,8 +231,9 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     not both found keeps the straight edges of its place: it clips with the glass beside it, and the one
     edge found there is as often where the clip ends in the glass (``bar_edges``' ``place_unknown`` is
     for the bars the grid found by their edges)."""
+    family = float(np.median(fit.widths))
     found = [
-        bar_edges(grad, c, w, span, EDGE_SEARCH_PX, k not in fit.placed)
+        bar_edges(grad, c, w, span, EDGE_SEARCH_PX, k not in fit.placed, family)
         for k, (c, w) in enumerate(zip(fit.centres, fit.widths, strict=True))
     ]
     edges = []
