@@ -148,8 +148,8 @@ def _parallel_where_clipped(grad: Gradients, low: EdgeLine, high: EdgeLine, widt
     ``width`` (px, the family's bars') over ``rows``: the few rows it is known in lie where the frame's
     clip ends in what lies beside it (an empty unit's lit shelf slanting away from a transom), and their
     slope, carried along the whole bar, would part its edges by more than a bar's width from one end to
-    the other. A frame's two edges are parallel; within a bar's width over its length, a thin bar's
-    slanting edge is as often its own (a unit's frame beside a unit not installed)."""
+    the other. A frame's two edges are parallel. The family's width, not the bar's own: the edges of a
+    bar the grid takes thin part by its width at a slope of a few hundredths, within a fit's scatter."""
     length = len(range(*rows.indices(len(low.strength))))
     share = [known_share(grad, line.at(line.mid), rows, search_px) for line in (low, high)]
     for k, (edge, other) in enumerate(((low, high), (high, low))):

@@ -230,7 +230,8 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     """The edges of each bar of ``fit``; a bar placed by the grid (``FamilyFit.placed``) whose edges are
     not both found keeps the straight edges of its place: it clips with the glass beside it, and the one
     edge found there is as often where the clip ends in the glass (``bar_edges``' ``place_unknown`` is
-    for the bars the grid found by their edges)."""
+    for the bars the grid found by their edges). An edge's parting from the other is weighed against the
+    family's median width (``bar_edges``' ``family_px``)."""
     family = float(np.median(fit.widths))
     found = [
         bar_edges(grad, c, w, span, EDGE_SEARCH_PX, k not in fit.placed, family)
