@@ -107,39 +107,76 @@ def fit_edge(grad: Gradients, position: float, sign: float, rows: slice, search_
     return EdgeLine(float(a), float(b), mid, strength)
 
 
+#: a bar's edge whose place is known (``Gradients.known``) over at most this fraction of its length lies
+#: between clipped pixels there: the frame and what lies beside it clip together, which leaves no edge to
+#: find (a bar one pitch beyond either end of a family's run is placed by the grid where both edges are:
+#: the frames are regular across a curtain wall, ``frames.with_clipped_ends``)
+CLIPPED_BAR_KNOWN = 0.5
+
+
 def bar_edges(
-    grad: Gradients, centre: float, width: float, rows: slice, search_px: float, place_unknown: bool = True
+    grad: Gradients, centre: float, width: float, rows: slice, search_px: float, place_unknown: bool = True,
+    family_px: float | None = None,
 ) -> tuple[EdgeLine, EdgeLine] | None:
     """The (low, high) edges of the bar centred at ``centre`` with ``width`` (px), or None. Each edge takes
     the polarity of the mean gradient at its expected position. With ``place_unknown``, an edge not fitted
-    whose place is unknown in every row (``unknown_place``: a frame clipped with what lies beside it, or
+    whose place is unknown in every row (``known_share`` 0: a frame clipped with what lies beside it, or
     cut by the view's border) is no evidence against the bar: it is placed ``width`` from the other edge,
-    parallel to it, with no strength."""
+    parallel to it, with no strength; and an edge fitted where its place is mostly unknown is made
+    parallel to the other where the two part by more than ``family_px`` (the width of the family's bars;
+    None: ``width``) along the bar (``_parallel_where_clipped``)."""
     low = fit_edge(grad, centre - width / 2, 1.0, rows, search_px)
     high = fit_edge(grad, centre + width / 2, 1.0, rows, search_px)
     if place_unknown and (low is None) != (high is None):
         seen, side = (high, -1.0) if low is None else (low, 1.0)
-        if unknown_place(grad, centre + side * width / 2, rows, search_px):
+        if known_share(grad, centre + side * width / 2, rows, search_px) == 0.0:
             placed = EdgeLine(seen.a + side * float(width), seen.b, seen.mid, np.zeros_like(seen.strength))
             low, high = (placed, high) if low is None else (low, placed)
+    elif place_unknown and low is not None and high is not None:
+        low, high = _parallel_where_clipped(grad, low, high, width if family_px is None else family_px,
+                                            rows, search_px)
     if low is None or high is None or high.a <= low.a:
         return None
     return low, high
 
 
-def unknown_place(grad: Gradients, position: float, rows: slice, search_px: float) -> bool:
-    """Whether no boundary within ``search_px`` of ``position`` (px; ``fit_edge``'s search) is known in any
-    of ``rows``: each lies between two clipped pixels (``Gradients.known``) or beside a pixel outside the
-    view, where an edge may be as well as not."""
+def _parallel_where_clipped(grad: Gradients, low: EdgeLine, high: EdgeLine, width: float, rows: slice,
+                            search_px: float) -> tuple[EdgeLine, EdgeLine]:
+    """``low`` and ``high`` with an edge whose place is known over at most ``CLIPPED_BAR_KNOWN`` of
+    ``rows`` (``known_share``), where the other's is known over more, made parallel to the other through
+    its own fitted line at the middle of the rows it was found in, where the two part by more than
+    ``width`` (px, the family's bars') over ``rows``: the few rows it is known in lie where the frame's
+    clip ends in what lies beside it (an empty unit's lit shelf slanting away from a transom), and their
+    slope, carried along the whole bar, would part its edges by more than a bar's width from one end to
+    the other. A frame's two edges are parallel. The family's width, not the bar's own: the edges of a
+    bar the grid takes thin part by its width at a slope of a few hundredths, within a fit's scatter."""
+    length = len(range(*rows.indices(len(low.strength))))
+    share = [known_share(grad, line.at(line.mid), rows, search_px) for line in (low, high)]
+    for k, (edge, other) in enumerate(((low, high), (high, low))):
+        if share[k] > CLIPPED_BAR_KNOWN or share[1 - k] <= CLIPPED_BAR_KNOWN:
+            continue
+        w = edge.strength
+        if w.sum() <= 0 or abs(edge.b - other.b) * length <= width:
+            continue
+        t = float(np.average(np.arange(len(w)) + 0.5, weights=w))
+        parallel = EdgeLine(float(edge.at(t)) + other.b * (other.mid - t), other.b, other.mid, w)
+        return (parallel, high) if k == 0 else (low, parallel)
+    return low, high
+
+
+def known_share(grad: Gradients, position: float, rows: slice, search_px: float) -> float:
+    """The fraction of ``rows`` in which a boundary within ``search_px`` of ``position`` (px; ``fit_edge``'s
+    search) is known: in the others each lies between two clipped pixels (``Gradients.known``) or beside a
+    pixel outside the view, where an edge may be as well as not."""
     n = grad.d.shape[1]
     lo = int(max(0, np.floor(position - 1.0 - search_px)))
     hi = int(min(n, np.ceil(position - 1.0 + search_px) + 1))
     if hi - lo < 1:
-        return True
+        return 0.0
     known = grad.valid[rows, lo:hi] & grad.valid[rows, lo + 1 : hi + 1]
     if grad.known is not None:
         known &= grad.known[rows, lo:hi] > 0
-    return not known.any()
+    return float(known.any(axis=1).mean()) if len(known) else 0.0
 
 
 def _centre_colour(grad: Gradients, low: EdgeLine, high: EdgeLine) -> tuple[np.ndarray, np.ndarray]:

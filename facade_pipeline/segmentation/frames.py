@@ -13,7 +13,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from facade_pipeline.segmentation.edges import Bars, EdgeLine, bar_colour_ref, bar_edges, frame_presence
+from facade_pipeline.segmentation.edges import (
+    CLIPPED_BAR_KNOWN,
+    Bars,
+    EdgeLine,
+    bar_colour_ref,
+    bar_edges,
+    frame_presence,
+)
 from facade_pipeline.segmentation.evidence import (
     Gradients,
     bar_evidence,
@@ -56,10 +63,6 @@ ORIENTATION_SEARCH_DEG = 10.0
 ORIENTATION_TOLERANCE_DEG = 3.0
 #: smoothing of the LSD line-support profile (px)
 LSD_SIGMA_PX = 0.75
-#: a bar one pitch beyond either end of a family's run is placed by the grid where its two edges are known
-#: (``Gradients.known``) over at most this fraction of its length: the frame and the glass beside it clip
-#: together there, which leaves no edge to find, while the frames are regular across a curtain wall
-CLIPPED_BAR_KNOWN = 0.5
 
 
 def _family(
@@ -227,9 +230,11 @@ def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) 
     """The edges of each bar of ``fit``; a bar placed by the grid (``FamilyFit.placed``) whose edges are
     not both found keeps the straight edges of its place: it clips with the glass beside it, and the one
     edge found there is as often where the clip ends in the glass (``bar_edges``' ``place_unknown`` is
-    for the bars the grid found by their edges)."""
+    for the bars the grid found by their edges). An edge's parting from the other is weighed against the
+    family's median width (``bar_edges``' ``family_px``)."""
+    family = float(np.median(fit.widths))
     found = [
-        bar_edges(grad, c, w, span, EDGE_SEARCH_PX, k not in fit.placed)
+        bar_edges(grad, c, w, span, EDGE_SEARCH_PX, k not in fit.placed, family)
         for k, (c, w) in enumerate(zip(fit.centres, fit.widths, strict=True))
     ]
     edges = []

@@ -270,6 +270,18 @@ def test_a_transom_clipped_with_the_lit_shelf_above_it_is_widened_on_the_side_of
     assert brighter["img059"]["mask_iou"] >= per_photo["img059"]["mask_iou"] - 0.05
 
 
+def test_a_transom_known_only_where_the_lit_shelf_slants_away_keeps_the_slope_of_its_other_edge(gcw, exposed):
+    """Half a stop brighter than taken, img056's top transom clips with the empty unit's lit shelf above
+    it: its upper edge lies between clipped pixels but for a short stretch where the shelf's underside
+    slants away from it, and a line fitted there alone would climb into the shelf across the border strip
+    (the bar's centre line showing the frame over 0.42 of the strip, 1.0 as taken). The edge is made
+    parallel to the bar's lower edge (``edges.bar_edges``), and the panes of the strip are kept as taken."""
+    _, per_photo = gcw
+    src, data = exposed["+0.5 EV"]
+    brighter = evaluate_building(BuildingLayout(data, "gcw_dev"), src)
+    assert brighter["img056"]["mask_iou"] >= per_photo["img056"]["mask_iou"] - 0.05
+
+
 def test_a_mullion_clipped_with_the_lit_unit_beside_it_is_found_at_the_buildings_pitch(gcw, exposed):
     """A stop brighter than taken, img041's second mullion clips with the empty unit's lit box beside it
     over most of its length: its edge on that side is unknown, and freely sought the grid takes the grey

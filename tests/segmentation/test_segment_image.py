@@ -1031,6 +1031,30 @@ def test_an_edge_unknown_in_every_row_is_placed_at_the_bars_width_and_one_known_
     # the grid's own placing of a bar (``FamilyFit.placed``) does not take the one edge
     assert bar_edges(grad, 24.0, 8.0, slice(0, 50), EDGE_SEARCH_PX, place_unknown=False) is None
 
+def test_an_edge_known_over_a_short_stretch_only_is_parallel_to_the_bars_other_edge():
+    """A bar (columns 20-28) clipped white, dark glass beyond its high edge, and beside its low edge a
+    region clipped with it but for a short stretch of rows where the clip ends slanting, a few pixels off
+    the bar, in something darker (an empty unit's lit shelf beside a transom): the low edge's place lies
+    between clipped pixels over most of the bar. The line through that stretch alone would climb 24 px
+    along the bar, three times its width; the low edge keeps its place in that stretch, parallel to the
+    high edge, and the bar its width along its whole length."""
+    from facade_pipeline.segmentation.edges import bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    rng = np.random.default_rng(5)
+    img = np.clip(rng.normal(60, 3, (200, 40, 3)), 0, 255)
+    img[:, :28] = 255
+    for r in range(150, 182):  # the clip's end slants from column 18 to 21 over 32 rows
+        img[r, : 18 + (r - 150) // 8] = (230, 170, 190)
+    grad = Gradients.of(np.rint(img).astype(np.uint8), 0)
+    low, high = bar_edges(grad, 24.0, 8.0, slice(0, 200), EDGE_SEARCH_PX)
+    assert abs(high.a - 28.0) < 0.2 and abs(high.b) < 0.01
+    assert low.b == high.b
+    t = np.array([0.0, 100.0, 165.0, 200.0])
+    assert np.all(np.abs(low.at(t) - 19.5) < 1.5)
+
+
 def test_the_survey_finds_the_drawn_pitch_at_any_scale():
     """The survey seeks sizes relative to the view, before any length is known: it finds the drawn pitches
     (27.4 and 23.3 px) to the pitch lattice's step, and at 25 times the metres per pixel (a facade 25
