@@ -171,7 +171,7 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 
 
 #: brighter than taken, a further 10-30 % of these photos' pixels clip (21-34 % already do). At +0.5 EV 15 of
-#: 15 whole panes, mask IoU median 0.828, min 0.631; at +1 EV 15 of 15, 0.803 / 0.494 (benchmarks/RESULTS.md;
+#: 15 whole panes, mask IoU median 0.833, min 0.631; at +1 EV 15 of 15, 0.803 / 0.494 (benchmarks/RESULTS.md;
 #: the empty unit clipped pink, near the frames' white, no longer carries the mullions into a border strip:
 #: ``EdgeLine.short``; img042's top transom, clipped with the sky beside it, is placed by the grid at its
 #: pitch, not at the empty unit's lit ceiling a quarter of a pitch lower: ``grid._with_end_bays``; img060's
@@ -180,7 +180,9 @@ def test_the_same_photos_of_a_wall_25_times_the_size_give_the_same_masks_and_pan
 #: white: ``openings.openings``; img059's top transom, clipped with the unit's lit shelf above it, is widened
 #: from its shaded underside on the side the building's pitch puts it: ``frames.widen_narrow_bars``;
 #: img052's mullion beside the unit not installed, its centre line clipped with the unit's lit box, carries
-#: an opening only on the side whose half shows the frame: ``openings.continues``).
+#: an opening only on the side whose half shows the frame: ``openings.continues``; img056's top transom,
+#: its upper edge between clipped pixels but where the lit shelf slants away, keeps the slope of its lower
+#: edge: ``edges.bar_edges``).
 #: What is lost at +1 EV: the frames and the bright glass beside them meet at full scale, where no edge is
 #: left to find (img041's second mullion, clipped with the empty unit's lit box beside it, is found only at
 #: the building's pitch, where an edge between two clipped pixels counts as unknown: the view's own search
