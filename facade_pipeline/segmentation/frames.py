@@ -591,25 +591,24 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                       side_face: Callable[[EdgeLine, EdgeLine], tuple | None] | None = None,
                       pitch_px: float | None = None,
                       ) -> tuple[Bars, int]:
-    """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and
-    a whole width away from the image border found again at that width, and how many were: a thin line
-    that keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's
-    place of a frame whose face has little contrast against the glass beside it. Of the four bars of
-    ``width_px`` that share an edge with the thin one, the one whose weaker edge is strongest is kept (the
-    geometric mean of its edges' strengths, as the bar evidence of ``grid``), of the two on the side of
-    the line where the building's pitch ``pitch_px`` from the nearest other bar puts the bar (``_pitch_side``;
-    all four where it puts it within the line): beside a frame clipped with what lies beyond it (an empty
-    unit's lit shelf over a transom, the sky a pane reflects beside a mullion) the bar's edge there is
-    between clipped pixels, unknown rather than weak, and a weak edge in the glass on the other side would
-    take the bar's place by its strength. Only where the view shows a
-    bar of the family at least half that wide: a part whose frames are all thinner than the building's
-    (another style) keeps them. With ``side_face`` (``parallax.side_face`` of a bar's edges: its near
-    edge, the width its side face shows and its front face's growth), a bar at least half that wide found
-    as its side face alone (``parallax.faces_found``, a side face lit unlike the front face) is joined to
-    the front face of ``width_px`` found beyond it, away from the camera's foot: its near edge is where the
-    glass meets the frame, and the far edge is the front face's. A thinner one only where its width is
-    within half the side face's of it: a thin line is as often the side face with the shadow it casts on
-    the glass beside it (a transom's underside seen from below), found again as above."""
+    """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and a
+    whole width away from the image border found again at that width, and how many were: a thin line that
+    keeps one edge of the bar (its shaded side face, a reflection meeting it) can take the grid's place of a
+    frame whose face has little contrast against the glass beside it. Of the four bars of ``width_px`` that
+    share an edge with the thin one, the one whose weaker edge is strongest is kept (the geometric mean of its
+    edges' strengths, as the bar evidence of ``grid``), of the two on the side of the line where the
+    building's pitch ``pitch_px`` from the nearest other bar puts the bar (``_pitch_side``; all four where it
+    puts it within the line): beside a frame clipped with what lies beyond it (an empty unit's lit shelf over
+    a transom, the sky a pane reflects beside a mullion) the bar's edge there is between clipped pixels,
+    unknown rather than weak, and a weak edge in the glass on the other side would take the bar's place by its
+    strength. Only where the view shows a bar of the family at least half that wide: a part whose frames are
+    all thinner than the building's (another style) keeps them. With ``side_face`` (``parallax.side_face`` of
+    a bar's edges: its near edge, the width its side face shows and its front face's growth), a bar at least
+    half that wide found as its side face alone (``parallax.faces_found``, a side face lit unlike the front
+    face) is joined to the front face of ``width_px`` found beyond it, away from the camera's foot: its near
+    edge is where the glass meets the frame, and the far edge is the front face's. A thinner one only where
+    its width is within half the side face's of it: a thin line is as often the side face with the shadow it
+    casts on the glass beside it (a transom's underside seen from below), found again as above."""
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
