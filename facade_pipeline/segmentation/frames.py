@@ -270,8 +270,8 @@ def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
     fitted edge lies on the glass beside it), its median is the glass's, and the frame's colour beyond the
     span would read as absent."""
     tol = params.frame_colour_tol
-    present, unknown, short = frame_presence(grad, bar[0], bar[1], span, tol)
     ref = bar_colour_ref(grad, bar[0], bar[1], span)
+    present, unknown, short = frame_presence(grad, bar[0], bar[1], span, tol, ref)
     centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
                                  b=0.5 * (bar[0].b + bar[1].b))
     halves = []
