@@ -688,16 +688,26 @@ def test_an_end_bay_of_its_own_pitch_is_a_panel(last_pitch):
         assert np.abs(pred - t).max(axis=(1, 2)).min() < 1.0
 
 
+def _transoms(img: np.ndarray, *bars: tuple[float, float]):
+    """The transoms' gradients of a drawn image [H, W, 3] on 0-1, the span along them (the whole width) and
+    the edges of each bar (centre, width px) as the grid found it (``edges.bar_edges``)."""
+    from facade_pipeline.segmentation.edges import bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
+
+    grad = Gradients.of(np.rint(img * 255).astype(np.uint8), 1)
+    span = slice(0, img.shape[1])
+    return grad, span, [bar_edges(grad, c, w, span, EDGE_SEARCH_PX) for c, w in bars]
+
+
 def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_width():
     """A transom whose face is barely brighter than the glass (rows 20-28) above its dark shaded underside
     (rows 28-30): the strong thin line takes the bar's place. With the building's transom width (8 px)
     the bar is found again at that width, at the face: of the four bars sharing an edge with the line, the
     one whose weaker edge is strongest. A bar of full width and one a width from the border stay; without
     a bar of full width in the view the thin one stays too (frames of another style)."""
-    from facade_pipeline.segmentation.edges import Bars, bar_edges
-    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.edges import Bars
     from facade_pipeline.segmentation.frames import widen_narrow_bars
-    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
 
     H, W = 90, 60
     img = np.full((H, W, 3), 0.45)
@@ -705,12 +715,7 @@ def test_a_thin_line_at_a_low_contrast_frame_is_widened_to_the_buildings_bar_wid
     img[28:30] = 0.20  # the shaded underside
     img[50:58] = 0.80  # a well-contrasted transom
     img[84:86] = 0.20  # a thin line near the border
-    img = np.rint(img * 255).astype(np.uint8)
-    grad = Gradients.of(img, 1)
-    span = slice(0, W)
-    thin = bar_edges(grad, 29.0, 2.0, span, EDGE_SEARCH_PX)
-    whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
-    border = bar_edges(grad, 85.0, 2.0, span, EDGE_SEARCH_PX)
+    grad, span, (thin, whole, border) = _transoms(img, (29.0, 2.0), (54.0, 8.0), (85.0, 2.0))
     assert abs(thin[0].a - 28.0) < 0.3 and abs(thin[1].a - 30.0) < 0.3  # what the grid found
     out, n = widen_narrow_bars(Bars([thin, whole, border], None), grad, span, 8.0, PARAMS)
     assert n == 1
@@ -726,19 +731,14 @@ def test_a_bar_found_as_its_lit_side_face_alone_is_joined_to_its_front_face():
     darker), over the glass. The grid took the uniform top face for the bar; it is joined to the front face
     found beyond it, away from the foot: the glass meets the frame at row 30 above and the front face ends
     at row 42. Without the side face's width the 4 px bar (half the building's width) stays as found."""
-    from facade_pipeline.segmentation.edges import Bars, bar_edges
-    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.edges import Bars
     from facade_pipeline.segmentation.frames import widen_narrow_bars
-    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
 
     H, W = 90, 60
     img = np.full((H, W, 3), 0.30)
     img[30:34] = 0.85  # the top face
     img[34:42] = 0.60  # the front face
-    img = np.rint(img * 255).astype(np.uint8)
-    grad = Gradients.of(img, 1)
-    span = slice(0, W)
-    top = bar_edges(grad, 32.0, 4.0, span, EDGE_SEARCH_PX)
+    grad, span, (top,) = _transoms(img, (32.0, 4.0))
     assert abs(top[0].a - 30.0) < 0.3 and abs(top[1].a - 34.0) < 0.3  # what the grid found
     out, n = widen_narrow_bars(Bars([top], None), grad, span, 8.0, PARAMS, lambda low, high: (0, 4.0, 0.0))
     assert n == 1
@@ -753,10 +753,8 @@ def test_a_thin_line_wider_than_the_side_face_is_not_taken_for_it():
     side face is 1.5 px: not the side face alone, so the line is found again at the building's width as
     without the side face's width (``test_a_thin_line_at_a_low_contrast_frame_...``), not joined to the
     face with the shadow."""
-    from facade_pipeline.segmentation.edges import Bars, bar_edges
-    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.edges import Bars
     from facade_pipeline.segmentation.frames import widen_narrow_bars
-    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
 
     H, W = 90, 60
     img = np.full((H, W, 3), 0.45)
@@ -764,11 +762,7 @@ def test_a_thin_line_wider_than_the_side_face_is_not_taken_for_it():
     img[28:30] = 0.15  # the underside
     img[30:31] = 0.15  # its shadow on the glass, as dark
     img[50:58] = 0.80  # a whole transom
-    img = np.rint(img * 255).astype(np.uint8)
-    grad = Gradients.of(img, 1)
-    span = slice(0, W)
-    line = bar_edges(grad, 29.5, 3.0, span, EDGE_SEARCH_PX)
-    whole = bar_edges(grad, 54.0, 8.0, span, EDGE_SEARCH_PX)
+    grad, span, (line, whole) = _transoms(img, (29.5, 3.0), (54.0, 8.0))
     assert abs(line[0].a - 28.0) < 0.3 and abs(line[1].a - 31.0) < 0.3  # what the grid found
     bars = Bars([line, whole], None)
     out, n = widen_narrow_bars(bars, grad, span, 8.0, PARAMS, lambda low, high: (1, 1.5, 0.0))
@@ -785,10 +779,8 @@ def test_a_thin_line_below_a_transom_clipped_with_a_lit_shelf_is_widened_on_the_
     building's width beside it in the clip have their edge there between clipped pixels (unknown, no
     strength), the one in the glass a weak edge it finds: by their edges alone the bar is widened into the
     glass. The building's pitch from the whole transom puts the bar above the line: widened there."""
-    from facade_pipeline.segmentation.edges import Bars, bar_edges
-    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.edges import Bars
     from facade_pipeline.segmentation.frames import widen_narrow_bars
-    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX
 
     H, W = 90, 60
     img = np.full((H, W, 3), 0.45)
@@ -796,11 +788,7 @@ def test_a_thin_line_below_a_transom_clipped_with_a_lit_shelf_is_widened_on_the_
     img[28:30] = 0.25  # the shaded underside
     img[38:] = 0.50  # a reflection's faint edge in the glass
     img[58:66] = 1.0  # a whole transom
-    img = np.rint(img * 255).astype(np.uint8)
-    grad = Gradients.of(img, 1)
-    span = slice(0, W)
-    thin = bar_edges(grad, 29.0, 2.0, span, EDGE_SEARCH_PX)
-    whole = bar_edges(grad, 62.0, 8.0, span, EDGE_SEARCH_PX)
+    grad, span, (thin, whole) = _transoms(img, (29.0, 2.0), (62.0, 8.0))
     assert abs(thin[0].a - 28.0) < 0.3 and abs(thin[1].a - 30.0) < 0.3  # what the grid found
     bars = Bars([thin, whole], None)
     plain, _ = widen_narrow_bars(bars, grad, span, 8.0, PARAMS)
