@@ -46,6 +46,10 @@ class EdgeLine:
     that line's own colour is not within the tolerance of it (``frames.with_presence``). A unitised
     facade's bar is the frames of the two units beside it, side by side: beside a unit not installed only
     the other unit's half is there (None: not measured)."""
+    frames_colour: np.ndarray | None = None
+    """[L] float, 1 / 0 / NaN outside the view: where the centre line of a bar found thin and widened to the
+    building's width (``frames.widen_narrow_bars``) shows the other family's colour, or is clipped white
+    (unknown, not absent), 0 where it shows another colour (None: a bar found at its width)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)
@@ -179,7 +183,7 @@ def known_share(grad: Gradients, position: float, rows: slice, search_px: float)
     return float(known.any(axis=1).mean()) if len(known) else 0.0
 
 
-def _centre_colour(grad: Gradients, low: EdgeLine, high: EdgeLine) -> tuple[np.ndarray, np.ndarray]:
+def centre_colour(grad: Gradients, low: EdgeLine, high: EdgeLine) -> tuple[np.ndarray, np.ndarray]:
     """[L, 3] the image on the centre line between ``low`` and ``high`` (the pixel whose span holds it) and
     [L] bool where that pixel shows the view."""
     L, N = grad.img.shape[:2]
@@ -192,7 +196,7 @@ def _centre_colour(grad: Gradients, low: EdgeLine, high: EdgeLine) -> tuple[np.n
 def bar_colour_ref(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice) -> np.ndarray | None:
     """The bar's own colour, [3] or [L, 3] (each block's, ``Gradients.block_px``): the median over ``rows``
     of its centre line between ``low`` and ``high``; None where no row of them shows the view."""
-    colour, ok = _centre_colour(grad, low, high)
+    colour, ok = centre_colour(grad, low, high)
     ref_rows = np.zeros(len(colour), bool)
     ref_rows[rows] = True
     ref_rows &= ok
@@ -215,7 +219,7 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, 
     colour and clipped white (``EdgeLine.unknown``), and [L] bool: where it is within ``tol`` of the bar's
     colour, clipped, and below full scale in a channel where that colour is clipped (``EdgeLine.short``),
     each None where it is nowhere."""
-    colour, ok = _centre_colour(grad, low, high)
+    colour, ok = centre_colour(grad, low, high)
     if ref is None:
         ref = bar_colour_ref(grad, low, high, rows)
     if ref is None:

@@ -19,9 +19,11 @@ from facade_pipeline.segmentation.edges import (
     EdgeLine,
     bar_colour_ref,
     bar_edges,
+    centre_colour,
     frame_presence,
 )
 from facade_pipeline.segmentation.evidence import (
+    CLIPPED_LEVEL,
     Gradients,
     bar_evidence,
     log_likelihood,
@@ -589,7 +591,7 @@ def _pitch_side(bars: Bars, k: int, pitch_px: float | None) -> float:
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                       params: SegmentParams,
                       side_face: Callable[[EdgeLine, EdgeLine], tuple | None] | None = None,
-                      pitch_px: float | None = None,
+                      pitch_px: float | None = None, frames_colour: np.ndarray | None = None,
                       ) -> tuple[Bars, int]:
     """``bars`` with every bar narrower than half of ``width_px`` (the building's width of the family) and a
     whole width away from the image border found again at that width, and how many were: a thin line that
@@ -608,7 +610,10 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     face) is joined to the front face of ``width_px`` found beyond it, away from the camera's foot: its near
     edge is where the glass meets the frame, and the far edge is the front face's. A thinner one only where
     its width is within half the side face's of it: a thin line is as often the side face with the shadow it
-    casts on the glass beside it (a transom's underside seen from below), found again as above."""
+    casts on the glass beside it (a transom's underside seen from below), found again as above.
+    ``frames_colour`` ([3], the other family's bars' colour, ``bar_colour``): a thin bar so widened records
+    where its centre line shows it (``EdgeLine.frames_colour``): the line it was found by may be an edge of
+    what lies beyond the frames (an empty unit's lit ceiling) over part of its length."""
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
@@ -623,8 +628,9 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             sign = 1.0 if seen[0] == 0 else -1.0
             e = bar_edges(grad, far.a + sign * 0.5 * width_px, width_px, span, EDGE_SEARCH_PX)
             if e is not None and e[1].a - e[0].a >= 0.5 * width_px:
-                joined = (near, e[1]) if seen[0] == 0 else (e[0], near)
-                edges.append(with_presence(grad, joined, span, params))
+                joined = with_presence(grad, (near, e[1]) if seen[0] == 0 else (e[0], near), span, params)
+                edges.append(_with_frames_colour(grad, joined, frames_colour, params)
+                             if width < 0.5 * width_px else joined)
                 n += 1
                 continue
         if width >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
@@ -648,3 +654,17 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n
+
+
+def _with_frames_colour(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray | None,
+                        params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
+    """``bar`` with where its centre line is within ``frame_colour_tol`` of ``colour`` or clipped white
+    (unknown, not absent) set on both edges (``EdgeLine.frames_colour``); as it is without ``colour``."""
+    if colour is None:
+        return bar
+    centre, ok = centre_colour(grad, *bar)
+    near = (np.linalg.norm(centre - colour, axis=1) <= params.frame_colour_tol) | (
+        centre.max(axis=1) >= CLIPPED_LEVEL)
+    shown = np.where(ok, near.astype(float), np.nan)
+    low, high = (dataclasses.replace(e, frames_colour=shown) for e in bar)
+    return low, high

@@ -18,7 +18,9 @@ the median: only the bars that continue on their own go on into it.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
-side's length is kept, with ``complete = False``."""
+side's length is kept, with ``complete = False``.
+A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor
+a clip, with no edge of the other family's bars facing it, is no panel (``_not_a_pane``)."""
 
 from __future__ import annotations
 
@@ -246,6 +248,35 @@ def _supported(line: EdgeLine, lo: float, hi: float) -> float:
     return float(((present[seen] > 0) | (found[seen] >= 0.5 * ref)).mean())
 
 
+def _edge_found(line: EdgeLine, lo: float, hi: float) -> float:
+    """Fraction of [lo, hi] along ``line`` where its edge is found at half its median strength or more (0
+    for the image border)."""
+    i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+    if i1 <= i0 or not (line.strength > 0).any():
+        return 0.0
+    ref = np.median(line.strength[line.strength > 0])
+    return float((line.strength[i0:i1] >= 0.5 * ref).mean())
+
+
+def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine]],
+                spans: tuple[tuple[float, float], tuple[float, float]], params: SegmentParams) -> bool:
+    """Whether a cell (``sides``: its mullions' lines, its transoms' lines; ``spans``: its rows, its
+    columns) is no pane: a bar bounding it, found thin and widened, shows the frames' colour over less than
+    ``continuation_presence`` of the cell's side (``EdgeLine.frames_colour``), and neither bar of the other
+    family beside it shows its edge facing the cell over more than 1 - ``continuation_presence`` of its
+    side. The line the thin bar was found by is then an edge of what lies beyond the facade (the back edge
+    of an empty unit's lit ceiling, where the unit's frame runs higher than its neighbours'), and nothing
+    beside the cell shows glass against a frame: a clipped box beside the frames leaves their edges
+    unknown, which is no sign of a pane either."""
+    for k in (0, 1):
+        shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
+        if all(np.isnan(p) or p >= params.continuation_presence for p in shown):
+            continue
+        if all(_edge_found(line, *spans[k]) <= 1.0 - params.continuation_presence for line in sides[k]):
+            return True
+    return False
+
+
 def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: SegmentParams,
                  min_partial_px: float, support: np.ndarray | None = None,
                  grid_ends: bool = True) -> list[Panel]:
@@ -271,6 +302,8 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
             )
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
+                continue
+            if _not_a_pane(((left, right), (top, bottom)), ((y0, y1), (x0, x1)), params):
                 continue
             support = min(
                 _supported(left, y0, y1),

@@ -799,6 +799,50 @@ def test_a_thin_line_below_a_transom_clipped_with_a_lit_shelf_is_widened_on_the_
     assert out.edges[1] == whole
 
 
+def test_a_thin_line_joined_to_a_front_face_without_the_frames_colour_over_an_empty_unit_bounds_no_pane():
+    """Glass in the right column (rows 31-58) under a transom clipped white (rows 22-30) with its dark
+    shaded underside (row 30); in the left column an empty unit's lit box clipped white with the mullions
+    beside it, but for its ceiling (rows 0-30), pink: as bright as the frames' white but of another hue,
+    its back edge a dark line where the transom's underside lies beside it. The
+    grid took the line across both columns for the transom, found as its side face (the camera's foot
+    below) and joined to the front face above. Over the right column that face shows the frames' white;
+    over the left, the ceiling's pink, and the mullions beside the cells there show no edge facing them:
+    the cells above and below the line there are no panes. The right column's and the row below's are."""
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = 90, 90
+    white, pink = (1.0, 1.0, 1.0), (0.96, 0.87, 0.87)
+    img = np.full((H, W, 3), 0.45)
+    img[0:58, 18:40] = white  # the empty unit's lit box, clipped with the mullions beside it
+    img[0:30, 22:36] = pink  # its ceiling
+    img[22:30, 48:] = white  # the transom's front face over the glass
+    img[30, 18:70] = 0.25  # the transom's underside and the ceiling's back edge beside it
+    for x0 in (10, 40, 70):
+        img[:, x0 : x0 + 8] = white  # the mullions
+    img[58:66] = white  # a whole transom
+    img8 = np.rint(img * 255).astype(np.uint8)
+    grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
+    mullions = [bar_edges(grad_v, c, 8.0, slice(0, H), EDGE_SEARCH_PX) for c in (14.0, 44.0, 74.0)]
+    transoms = [bar_edges(grad_h, c, w, slice(0, W), EDGE_SEARCH_PX) for c, w in ((30.5, 1.0), (62.0, 8.0))]
+    assert abs(transoms[0][0].a - 30.0) < 0.3 and abs(transoms[0][1].a - 31.0) < 0.3  # what the grid found
+    bars_v = Bars(mullions, FamilyFit(np.array([14.0, 44.0, 74.0]), np.full(3, 8.0), 30.0, 1.0))
+    bars_h = Bars(transoms, FamilyFit(np.array([30.5, 62.0]), np.array([1.0, 8.0]), 31.5, 1.0))
+    below = lambda low, high: (1, 1.0, 0.0)  # noqa: E731 - the side face of a bar seen from below
+    out, n = widen_narrow_bars(bars_h, grad_h, slice(0, W), 8.0, PARAMS, below, None, np.array(white))
+    assert n == 1 and abs(out.edges[0][0].a - 22.0) < 0.3 and abs(out.edges[0][1].a - 31.0) < 0.3
+    panels = build_panels(bars_v, out, W, H, PARAMS, 3.0)
+    cells = {(p.row, p.col) for p in panels}
+    # rows from the bottom: 0 below the whole transom, 1 between the transoms, 2 above the line
+    assert (1, 1) not in cells and (2, 1) not in cells  # the empty unit's
+    assert {(1, 2), (2, 2), (0, 1), (0, 2)} <= cells
+    plain, _ = widen_narrow_bars(bars_h, grad_h, slice(0, W), 8.0, PARAMS, below)
+    assert {(1, 1), (2, 1)} <= {(p.row, p.col) for p in build_panels(bars_v, plain, W, H, PARAMS, 3.0)}
+
+
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
     """Each view's own parallax fit gives d = k D where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
