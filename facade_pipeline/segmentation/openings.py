@@ -81,11 +81,10 @@ def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, h
 def _bar_continues(
     bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float, inside: tuple[float, float],
     halves_span: tuple[float, float] | None = None,
-) -> tuple[float, tuple[float, float], tuple[float, float]]:
+) -> tuple[float, float, tuple[float, float]]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
-    ratio of each of its two edges' mean strength there to its mean strength over ``inside``, low and
-    high; the same
+    larger ratio of its two edges' mean strength there to their mean strength over ``inside``; the same
     fraction on each half of the bar, low and high, ``EdgeLine.half_present``, over ``halves_span``, all of
     the strip where None). A centre line below full
     scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near a clipped frame
@@ -94,11 +93,11 @@ def _bar_continues(
     h0, h1 = (lo, hi) if halves_span is None else halves_span
     halves = (_presence(bar[0].half_present, None, h0, h1), _presence(bar[1].half_present, None, h0, h1))
     seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
-    ratios = []
+    ratio = 0.0
     for line in bar:
         ref = _mean(line.strength, *inside, seen)
-        ratios.append(_mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-    return presence, (ratios[0], ratios[1]), halves
+        ratio = max(ratio, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
+    return presence, ratio, halves
 
 
 def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
@@ -137,6 +136,11 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     if support < 0.5:
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside, halves_span) for e in other.edges]
+    presence = [p for p, _, _ in found if not np.isnan(p)]
+    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
+        return None
+    if whole and found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio:
+        return None
 
     def shown(p: float) -> bool:
         return not np.isnan(p) and p >= params.continuation_presence
@@ -145,20 +149,10 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
         other = halves[1 - side]
         return shown(halves[side]) and not np.isnan(other) and other <= 1.0 - params.continuation_presence
 
-    def cut(ratios: tuple[float, float], halves: tuple[float, float]) -> bool:  # a half gone with its edge
-        return any(split(halves, 1 - side) and ratios[side] < params.continuation_ratio for side in (0, 1))
-
-    # in the median a bar with a half gone and that half's edge with it goes on on one side only
-    median = [(0.0, 0.0) if cut(r, halves) else (p, max(r)) for p, r, halves in found]
-    presence = [p for p, _ in median if not np.isnan(p)]
-    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
-        return None
-    if whole and median and float(np.median([r for _, r in median])) >= params.continuation_ratio:
-        return None
     return frozenset(
         (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
         if split(halves, side)
-        or ((shown(p) or max(r) >= params.continuation_ratio) and not split(halves, 1 - side))
+        or ((shown(p) or r >= params.continuation_ratio) and not split(halves, 1 - side))
     )
 
 
