@@ -136,6 +136,11 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     if support < 0.5:
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside, halves_span) for e in other.edges]
+    presence = [p for p, _, _ in found if not np.isnan(p)]
+    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
+        return None
+    if whole and found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio:
+        return None
 
     def shown(p: float) -> bool:
         return not np.isnan(p) and p >= params.continuation_presence
@@ -143,15 +148,6 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
         other = halves[1 - side]
         return shown(halves[side]) and not np.isnan(other) and other <= 1.0 - params.continuation_presence
-
-    gone = {(k, 1) for k in range(len(found) - 1) if split(found[k][2], 0) and split(found[k + 1][2], 1)}
-    gone |= {(k + 1, 0) for k, _ in gone}
-    everywhere = frozenset((i, side) for i in range(len(found)) for side in (0, 1)) - gone
-    presence = [p for p, _, _ in found if not np.isnan(p)]
-    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
-        return everywhere if gone else None
-    if whole and found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio:
-        return everywhere if gone else None
 
     return frozenset(
         (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
