@@ -19,8 +19,10 @@ Partly occluded panels: a panel whose frame bars are present (their centre line 
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
 side's length is kept, with ``complete = False``.
-A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor
-a clip, with no edge of the other family's bars facing it, is no panel (``_not_a_pane``)."""
+A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor a
+clip, with no edge of the other family's bars facing it, is no panel; so is a cell on a plane that no border
+cuts beside a mullion that shows only its half away from the cell: the unit there is not installed
+(``_not_a_pane``)."""
 
 from __future__ import annotations
 
@@ -259,7 +261,8 @@ def _edge_found(line: EdgeLine, lo: float, hi: float) -> float:
 
 
 def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine]],
-                spans: tuple[tuple[float, float], tuple[float, float]], params: SegmentParams) -> bool:
+                spans: tuple[tuple[float, float], tuple[float, float]], params: SegmentParams,
+                far: tuple[EdgeLine, EdgeLine] | None = None, clear: float = 0.0) -> bool:
     """Whether a cell (``sides``: its mullions' lines, its transoms' lines; ``spans``: its rows, its
     columns) is no pane: a bar bounding it, found thin and widened, shows the frames' colour over less than
     ``continuation_presence`` of the cell's side (``EdgeLine.frames_colour``), and neither bar of the other
@@ -267,7 +270,29 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
     side. The line the thin bar was found by is then an edge of what lies beyond the facade (the back edge
     of an empty unit's lit ceiling, where the unit's frame runs higher than its neighbours'), and nothing
     beside the cell shows glass against a frame: a clipped box beside the frames leaves their edges
-    unknown, which is no sign of a pane either."""
+    unknown, which is no sign of a pane either.
+
+    Or, for a cell on a plane that no border cuts (``far``: its mullions' edges away from it), a mullion
+    beside it shows its half away from the cell and not its half facing it (``EdgeLine.half_present``: at
+    least ``continuation_presence`` of the cell's rows against no more than 1 - ``continuation_presence`` of
+    them, ``clear`` px clear of the transoms at either end, where the two families' bars meet and their
+    corners, not a unit's frame, part the halves). A unitised facade's bar is the frames of the two units
+    beside it, and a pane's own unit frames it on every side: a mullion without the cell's half is beside a
+    unit not installed. A facade whose glass is missing but whose frames stand (stick-built) keeps both
+    halves and its cells. One mullion is enough: the other is as often found at the width of the one half
+    that is there, both its halves on that unit's frame. The transoms are not read: on real photos their
+    half facing a pane reads absent over most of the cell's width as well (benchmarks/RESULTS.md). Nor is a
+    cylinder's cell: there the bars turn away across the view and show their side faces, shaded unlike their
+    fronts, and a bar corrected for its parallax lies on the side face it shows, the half facing a pane with
+    it."""
+    if far is not None:
+        rows = (spans[0][0] + clear, spans[0][1] - clear)
+        for near, away in zip(sides[0], far, strict=True):
+            facing = _presence(near.half_present, None, *rows)
+            other = _presence(away.half_present, None, *rows)
+            if (not np.isnan(facing) and facing <= 1.0 - params.continuation_presence
+                    and not np.isnan(other) and other >= params.continuation_presence):
+                return True
     for k in (0, 1):
         shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
         if all(np.isnan(p) or p >= params.continuation_presence for p in shown):
@@ -282,9 +307,10 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
                  grid_ends: bool = True) -> list[Panel]:
     """Panels of every opening of the grid (module docstring), rows counted from the bottom; ``support``
     [H, W] marks where the facade surface is (border strips without it hold no partial panel);
-    ``grid_ends``: the surface is a plane (``openings``)."""
+    ``grid_ends``: the surface is a plane (``openings``, ``_not_a_pane``)."""
     cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support, grid_ends)
     rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support, grid_ends)  # top down
+    clear = float(np.median(bars_h.fit.widths))
     panels = []
     for i, row in enumerate(rows):
         top, bottom, cut_r = row.low, row.high, row.cut
@@ -303,7 +329,9 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            if _not_a_pane(((left, right), (top, bottom)), ((y0, y1), (x0, x1)), params):
+            far = (None if cut_r or cut_c or not grid_ends
+                   else (bars_v.edges[col.bounds[0]][0], bars_v.edges[col.bounds[1]][1]))
+            if _not_a_pane(((left, right), (top, bottom)), ((y0, y1), (x0, x1)), params, far, clear):
                 continue
             support = min(
                 _supported(left, y0, y1),

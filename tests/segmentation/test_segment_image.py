@@ -843,6 +843,50 @@ def test_a_thin_line_joined_to_a_front_face_without_the_frames_colour_over_an_em
     assert {(1, 1), (2, 1)} <= {(p.row, p.col) for p in build_panels(bars_v, plain, W, H, PARAMS, 3.0)}
 
 
+@pytest.mark.parametrize("installed", [False, True])
+def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(installed):
+    """White frames 10 px wide around three rows of three cells, glass in all but the middle one. That
+    unit is not installed (``installed`` False): its lit box fills the cell and the halves of the bars
+    around it that were its own frames; the mullions beside it are placed at their whole width, as the
+    grid finds them, and each shows only its half away from the cell there. The cell is no pane; the
+    glass beside it, framed by the other halves, is. Where the unit's frames stand without glass
+    (stick-built, ``installed`` True) both halves are there and the cell is kept: nothing inside a cell
+    tells it from a pane."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import with_presence
+    from facade_pipeline.segmentation.grid import FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = 220, 150
+    mullions, transoms = (10, 50, 90, 130), (10, 70, 130, 190)  # each bar's first pixel
+    img = np.full((H, W, 3), 0.45)
+    for x0 in mullions:
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in transoms:
+        img[y0 : y0 + 10] = 1.0
+    box = (0.78, 0.74, 0.70)
+    if installed:
+        img[80:130, 60:90] = box
+    else:
+        img[75:135, 55:95] = box  # the unit's frames gone: half of each bar around the cell
+    img8 = np.rint(img * 255).astype(np.uint8)
+
+    def bars(axis: int, starts: tuple[int, ...], span: slice) -> Bars:
+        grad, length = Gradients.of(img8, axis), img8.shape[axis]
+        edges = [with_presence(grad, (EdgeLine(s, 0.0, length / 2, np.ones(length)),
+                                      EdgeLine(s + 10.0, 0.0, length / 2, np.ones(length))), span, PARAMS)
+                 for s in starts]
+        centres = np.array(starts, float) + 5.0
+        return Bars(edges, FamilyFit(centres, np.full(len(starts), 10.0), 40.0 if axis == 0 else 60.0, 1.0))
+
+    bars_v, bars_h = bars(0, mullions, slice(15, 196)), bars(1, transoms, slice(15, 136))
+    cells = {(p.row, p.col) for p in build_panels(bars_v, bars_h, W, H, PARAMS, 3.0) if p.complete}
+    # rows from the bottom: 1-3 between the transoms; columns 1-3 between the mullions
+    whole = {(r, c) for r in (1, 2, 3) for c in (1, 2, 3)}
+    assert cells == (whole if installed else whole - {(2, 2)})
+
+
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
     """Each view's own parallax fit gives d = k D where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
