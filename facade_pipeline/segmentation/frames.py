@@ -201,7 +201,8 @@ def _goes_on(bars_v: Bars | None, bars_h: Bars | None, h: FamilyFit, cut: Family
         strips.append((0.0, bars_h.edges[0][0].a))
     if cut.centres[-1] != h.centres[-1]:
         strips.append((bars_h.edges[-1][1].a, float(H)))
-    return all(continues(bars_v, lo, hi, inside, strip_support(support, 1, lo, hi, across), params) is None
+    return all(continues(bars_v, lo, hi, inside, strip_support(support, 1, lo, hi, across), params,
+                         sides=False) is None
                for lo, hi in strips)
 
 

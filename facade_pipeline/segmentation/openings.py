@@ -14,7 +14,9 @@ other family continue into it (by their frame colour or their edges, where the f
 is a partial panel, each bar by its half facing the opening (beside a unit not installed only the other unit's
 half of the bar is there: ``EdgeLine.half_present``). A strip that holds the place of its family's next bar
 whole (one pitch beyond the outermost, on a plane: ``openings``), where the grid found none, is not judged in
-the median: only the bars that continue on their own go on into it.
+the median: only the bars that continue on their own go on into it. Where the median carries a strip, a
+bar that shows nothing of itself there on one side (a unit not installed beside it) stops the opening on
+that side.
 Partly occluded panels: a panel whose frame bars are present (their centre line within ``frame_colour_tol``
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
@@ -102,9 +104,21 @@ def _bar_continues(
     return presence, ratio, halves
 
 
+def _halves_on_frame(other: Bars, at: float, inside: float) -> list[bool]:
+    """Whether each bar of ``other`` has its halves read on its frame at ``at`` along it: a half is read
+    on the line a quarter of the bar's fitted width in from its edge, three quarters of that width from
+    the other edge, which lies on the frame where the bar there is as wide as its family's bars (the
+    median of their fitted widths at ``inside``, along them) only while the fitted bar is no wider than
+    4/3 of that. Wider (one edge fitted off the frame, on what lies beside it), a half shown beside the
+    other's edge and gone beside the fitted one is the frame beside the glass, not a unit not installed."""
+    family = float(np.median([high.at(inside) - low.at(inside) for low, high in other.edges]))
+    return [4.0 * family >= 3.0 * float(high.at(at) - low.at(at)) for low, high in other.edges]
+
+
 def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], support: float,
                params: SegmentParams, whole: bool = True,
-               halves_span: tuple[float, float] | None = None) -> frozenset[tuple[int, int]] | None:
+               halves_span: tuple[float, float] | None = None,
+               sides: bool = True) -> frozenset[tuple[int, int]] | None:
     """Which bars of ``other`` continue over [lo, hi) along them: None for all of them (the facade goes on
     across the whole strip), else the sides of those that do on their own, as (index, side: 0 low, 1 high)
     (an empty set: the facade ends).
@@ -134,15 +148,14 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     alike carry nothing the centre line does not (a lit box clipped to the frames' white over part of the
     strip shows in both). The halves are judged over ``halves_span`` (all of the strip where
     None): ``openings`` leaves out the bar width beside the strip's bar, where the two families' bars meet
-    and their corners, not a unit's frame, part the halves."""
+    and their corners, not a unit's frame, part the halves. Where the median carries the strip, a bar
+    whose centre line, edges and half facing an opening all fail there stops that opening (beside a unit
+    not installed, the median over its neighbours' bars carries the strip across it), where its halves
+    are read on its frame (``_halves_on_frame``); not ``sides`` (``frames._goes_on``: whether the facade
+    goes on across the whole strip, for the grid's next bar), the median alone answers."""
     if support < 0.5:
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside, halves_span) for e in other.edges]
-    presence = [p for p, _, _ in found if not np.isnan(p)]
-    if whole and presence and float(np.median(presence)) >= params.continuation_presence:
-        return None
-    if whole and found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio:
-        return None
 
     def shown(p: float) -> bool:
         return not np.isnan(p) and p >= params.continuation_presence
@@ -150,6 +163,18 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
         other = halves[1 - side]
         return shown(halves[side]) and not np.isnan(other) and other <= 1.0 - params.continuation_presence
+
+    presence = [p for p, _, _ in found if not np.isnan(p)]
+    if whole and (presence and float(np.median(presence)) >= params.continuation_presence
+                  or found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio):
+        gone = {(i, s) for i, (p, r, h) in enumerate(found) for s in (0, 1)
+                if sides and split(h, 1 - s) and not shown(p) and r < params.continuation_ratio}
+        if gone:
+            read = _halves_on_frame(other, 0.5 * sum(halves_span or (lo, hi)), 0.5 * sum(inside))
+            gone = {(i, s) for i, s in gone if read[i]}
+        if not gone:
+            return None
+        return frozenset((i, side) for i in range(len(found)) for side in (0, 1)) - gone
 
     return frozenset(
         (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)

@@ -611,6 +611,55 @@ def test_a_bar_beside_a_unit_not_installed_carries_the_opening_on_its_own_side()
     assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0]) == 4 * 2
 
 
+def test_a_unit_not_installed_in_a_border_strip_the_median_carries_holds_no_panel():
+    """Frames clipped white, a top strip lower than a pitch (the median over the mullions judges it). In
+    the strip the third column's unit is not installed: its grey ceiling fills the opening and the
+    halves of the two mullions beside it that were the unit's own frames, up to their centre lines; the
+    glass beside them mirrors the sky clipped white, so neither mullion keeps an edge there. The other
+    four mullions carry the strip in the median; the two beside the ceiling show nothing of themselves
+    on its side (centre line, edges, facing half), and its opening holds no panel."""
+    d = Drawing(W=150, H=90, y0=16.0 - 23.3, cols=5, rows=4, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    top_edge = int(d.y0 + d.pitch[1])  # the first transom in the view starts here
+    left = d.x0 + d.pitch[0] * np.arange(6)  # the mullions' left edges
+    for c in (1, 3):  # the sky clipped white in the glass beside the empty unit
+        img[:top_edge, int(np.ceil(left[c] + d.bar)) : int(left[c + 1]) + 1] = 255
+    box = slice(int(np.floor(left[2] + d.bar / 2)), int(np.floor(left[3] + d.bar / 2)) + 1)
+    noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, box.stop - box.start, 3))
+    img[:top_edge, box] = np.clip(np.rint(np.array((133.0, 138.0, 148.0)) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    assert sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 3, 4]
+    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0 and p.complete]) == 3 * 5
+
+
+def test_a_bar_fitted_wider_than_its_family_keeps_the_opening_beside_its_half_read_off_the_frame():
+    """A border strip the median carries, where one bar shows nothing of itself on its low side (its
+    centre line and low half off the frame's colour, no edge). Fitted as wide as its family's bars, its
+    low half is read on the frame and is gone: the opening on that side stops. Fitted wider than 4/3 of
+    them there (its low edge on the glass beside it), the line its low half is read on lies off the
+    frame however whole the frame is: the opening goes on."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.openings import continues
+
+    L = 100
+    inside = (40.0, 100.0)
+    strip = np.r_[np.ones(40), np.zeros(L - 40)]
+
+    def bar(x: float, width_in_strip: float, low_half: float, shows: bool) -> tuple:
+        present = np.ones(L) if shows else np.r_[np.zeros(40), np.ones(L - 40)]
+        # 10 px wide at 70 (the middle of the inside), ``width_in_strip`` at 15 (the halves' span's)
+        slope = (width_in_strip - 10.0) / 55.0
+        lo = EdgeLine(x, slope, 70.0, 1.0 - strip, present, half_present=np.r_[np.full(40, low_half),
+                                                                                    np.ones(L - 40)])
+        hi = EdgeLine(x + 10.0, 0.0, 70.0, 1.0 - strip, present, half_present=np.ones(L))
+        return lo, hi
+
+    for width, going in ((10.0, frozenset({(0, 0), (0, 1), (1, 1), (2, 0), (2, 1)})), (16.5, None)):
+        other = Bars([bar(0.0, 10.0, 1.0, True), bar(100.0, width, 0.0, False), bar(200.0, 10.0, 1.0, True)],
+                     None)
+        assert continues(other, 0, 40, inside, 1.0, PARAMS, halves_span=(0.0, 30.0)) == going
+
+
 def test_a_bars_edges_carry_no_opening_on_the_side_of_its_half_that_is_gone():
     """A bar going on into a border strip with its edges as strong as inside, its centre line not showing
     its colour there: where its low half shows the frame's colour and its high half does not (a unit not
