@@ -354,7 +354,7 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            far = (None if cut_r or cut_c
+            far = (None if cut_r or cut_c or not grid_ends
                    else (bars_v.edges[col.bounds[0]][0], bars_v.edges[col.bounds[1]][1]))
             if _not_a_pane(((left, right), (top, bottom)), ((y0, y1), (x0, x1)), params, far, clear):
                 continue
