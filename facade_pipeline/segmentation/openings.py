@@ -322,7 +322,8 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
         shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
         if all(np.isnan(p) or p >= params.continuation_presence for p in shown):
             continue
-        return True
+        if all(_edge_found(line, *spans[k]) <= 1.0 - params.continuation_presence for line in sides[k]):
+            return True
     return False
 
 
