@@ -104,6 +104,15 @@ def _bar_continues(
     return presence, ratio, halves
 
 
+def _one_half(kept: float, gone: float, params: SegmentParams) -> bool:
+    """Whether a bar shows one of its halves (``kept``, the fraction where it is present) and not the other
+    (``gone``): the first over at least ``continuation_presence``, the second over no more than 1 -
+    ``continuation_presence``, both measured (not NaN). Beside a unit not installed only the other unit's
+    half of the bar is there."""
+    return (not np.isnan(kept) and kept >= params.continuation_presence
+            and not np.isnan(gone) and gone <= 1.0 - params.continuation_presence)
+
+
 def _halves_on_frame(other: Bars, at: float, inside: float) -> list[bool]:
     """Whether each bar of ``other`` has its halves read on its frame at ``at`` along it: a half is read
     on the line a quarter of the bar's fitted width in from its edge, three quarters of that width from
@@ -161,14 +170,13 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
         return not np.isnan(p) and p >= params.continuation_presence
 
     def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
-        other = halves[1 - side]
-        return shown(halves[side]) and not np.isnan(other) and other <= 1.0 - params.continuation_presence
+        return _one_half(halves[side], halves[1 - side], params)
 
     presence = [p for p, _, _ in found if not np.isnan(p)]
     if whole and (presence and float(np.median(presence)) >= params.continuation_presence
                   or found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio):
         gone = {(i, s) for i, (p, r, h) in enumerate(found) for s in (0, 1)
-                if sides and split(h, 1 - s) and not shown(p) and r < params.continuation_ratio}
+                if split(h, 1 - s) and not shown(p) and r < params.continuation_ratio} if sides else set()
         if gone:
             read = _halves_on_frame(other, 0.5 * sum(halves_span or (lo, hi)), 0.5 * sum(inside))
             gone = {(i, s) for i, s in gone if read[i]}
@@ -313,10 +321,8 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
     if far is not None:
         rows = (spans[0][0] + clear, spans[0][1] - clear)
         for near, away in zip(sides[0], far, strict=True):
-            facing = _presence(near.half_present, None, *rows)
-            other = _presence(away.half_present, None, *rows)
-            if (not np.isnan(facing) and facing <= 1.0 - params.continuation_presence
-                    and not np.isnan(other) and other >= params.continuation_presence):
+            if _one_half(_presence(away.half_present, None, *rows), _presence(near.half_present, None, *rows),
+                         params):
                 return True
     for k in (0, 1):
         shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
