@@ -611,7 +611,11 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     face) is joined to the front face of ``width_px`` found beyond it, away from the camera's foot: its near
     edge is where the glass meets the frame, and the far edge is the front face's. A thinner one only where
     its width is within half the side face's of it: a thin line is as often the side face with the shadow it
-    casts on the glass beside it (a transom's underside seen from below), found again as above.
+    casts on the glass beside it (a transom's underside seen from below), found again as above. Nor where
+    the building's pitch puts the bar on the line's near side, the face beyond shows the frames' colour
+    neither and the bar on the near side shows it (``_frame_on_near_side``): the line is then the frame's
+    edge facing the glass (a transom clipped white with an empty unit's lit shelf above it, as wide as the
+    side face by chance), found again as above, and the face beyond it is the glass.
     ``frames_colour`` ([3], the other family's bars' colour, ``bar_colour``): a thin bar so widened records
     where its centre line shows it (``EdgeLine.frames_colour``): the line it was found by may be an edge of
     what lies beyond the frames (an empty unit's lit ceiling) over part of its length."""
@@ -622,13 +626,19 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     for k, (low, high) in enumerate(bars.edges):
         seen = None if side_face is None else side_face(low, high)
         width = high.a - low.a
+        side = _pitch_side(bars, k, pitch_px)
         if (seen is not None and low.a >= width_px and high.a <= size - width_px
                 and faces_found(width, seen, width_px) == "side"
                 and (width >= 0.5 * width_px or abs(width - seen[1]) <= 0.5 * seen[1])):
             near, far = (low, high) if seen[0] == 0 else (high, low)
             sign = 1.0 if seen[0] == 0 else -1.0
             e = bar_edges(grad, far.a + sign * 0.5 * width_px, width_px, span, EDGE_SEARCH_PX)
-            if e is not None and e[1].a - e[0].a >= 0.5 * width_px:
+            # a clip on the near side is the frame clipped with what lies beyond it as often as the lit box
+            # of an empty unit beside a set-off unit's frame (whose join is right): the colours alone do not
+            # tell them apart, the side the building's pitch puts the bar on does
+            if (e is not None and e[1].a - e[0].a >= 0.5 * width_px
+                    and not (side == -sign and _frame_on_near_side(
+                        grad, e, near.a - sign * 0.5 * width_px, width_px, span, frames_colour, params))):
                 joined = with_presence(grad, (near, e[1]) if seen[0] == 0 else (e[0], near), span, params)
                 edges.append(_with_frames_colour(grad, joined, frames_colour, params)
                              if width < 0.5 * width_px else joined)
@@ -637,7 +647,6 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
         if width >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
             edges.append((low, high))
             continue
-        side = _pitch_side(bars, k, pitch_px)
         # on the pitch's side a bar whose edge there is unknown (no strength) is still the bar's place
         best, score = (low, high), (0.0 if side == 0 else -1.0)
         for c in (low.a - 0.5 * width_px, low.a + 0.5 * width_px, high.a - 0.5 * width_px,
@@ -657,15 +666,43 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     return Bars(edges, bars.fit), n
 
 
-def _with_frames_colour(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray | None,
-                        params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
-    """``bar`` with where its centre line is within ``frame_colour_tol`` of ``colour`` or clipped white
-    (unknown, not absent) set on both edges (``EdgeLine.frames_colour``); as it is without ``colour``."""
+def _frame_on_near_side(grad: Gradients, front: tuple[EdgeLine, EdgeLine], c: float, width_px: float,
+                        span: slice, colour: np.ndarray | None, params: SegmentParams) -> bool:
+    """Whether a thin line's front face ``front``, found beyond it away from the camera's foot, shows the
+    frames' ``colour`` or a clip (``_colour_shown``) over less than ``continuation_presence`` of ``span``
+    while the bar of ``width_px`` centred at ``c``, beyond the line toward the foot, shows it over at least
+    that: the line is then the frame's edge facing the glass, not its side face (a transom clipped white
+    with what lies beyond it shows no edge but that one), and the face beyond it is the glass. False
+    without ``colour``, or where no bar is found at ``c``."""
     if colour is None:
-        return bar
+        return False
+    rows = np.zeros(grad.img.shape[0], bool)
+    rows[span] = True
+    if float(np.nanmean(_colour_shown(grad, front, colour, params)[rows])) >= params.continuation_presence:
+        return False
+    e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
+    if e is None or e[1].a - e[0].a < 0.5 * width_px:
+        return False
+    return float(np.nanmean(_colour_shown(grad, e, colour, params)[rows])) >= params.continuation_presence
+
+
+def _colour_shown(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray,
+                  params: SegmentParams) -> np.ndarray:
+    """[L] 1 where the centre line of ``bar`` is within ``frame_colour_tol`` of ``colour`` or clipped white
+    (unknown, not absent), 0 where not, NaN where it does not show the view."""
     centre, ok = centre_colour(grad, *bar)
     near = (np.linalg.norm(centre - colour, axis=1) <= params.frame_colour_tol) | (
         centre.max(axis=1) >= CLIPPED_LEVEL)
-    shown = np.where(ok, near.astype(float), np.nan)
+    return np.where(ok, near.astype(float), np.nan)
+
+
+def _with_frames_colour(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray | None,
+                        params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
+    """``bar`` with where its centre line is within ``frame_colour_tol`` of ``colour`` or clipped white
+    (unknown, not absent) set on both edges (``EdgeLine.frames_colour``, ``_colour_shown``); as it is
+    without ``colour``."""
+    if colour is None:
+        return bar
+    shown = _colour_shown(grad, bar, colour, params)
     low, high = (dataclasses.replace(e, frames_colour=shown) for e in bar)
     return low, high

@@ -848,6 +848,38 @@ def test_a_thin_line_below_a_transom_clipped_with_a_lit_shelf_is_widened_on_the_
     assert out.edges[1] == whole
 
 
+def test_a_thin_line_under_a_clipped_transom_is_not_joined_to_a_front_face_in_the_glass():
+    """A transom clipped white (rows 22-30) with an empty unit's lit shelf above it (rows 8-22), a dark
+    line where the glass meets it (row 30), the glass below bright but of its own colour (rows 31-39, a
+    reflection's faint edge at row 39); a whole transom a pitch of 38 px lower (rows 60-68). The grid took
+    the line, found as the side face of a bar seen from above (the camera's foot above it): joined to a
+    front face beyond it, away from the foot, that face is the glass, which shows neither the frames'
+    white nor a clip, while the bar of the building's width on the line's other side, where the building's
+    pitch puts the bar, shows the clip. The line is the frame's edge facing the glass: the bar is found
+    again above it. Without the frames' colour, or without the pitch, it is joined as before."""
+    from facade_pipeline.segmentation.edges import Bars
+    from facade_pipeline.segmentation.frames import widen_narrow_bars
+
+    H, W = 90, 60
+    white = (1.0, 1.0, 1.0)
+    img = np.full((H, W, 3), 0.70)
+    img[8:30] = white  # the lit shelf and the transom, clipped together
+    img[30:31] = 0.25  # where the glass meets the frame
+    img[31:39] = (0.80, 0.86, 0.91)  # the glass, bright
+    img[60:68] = white  # a whole transom
+    grad, span, (line, whole) = _transoms(img, (30.5, 1.0), (64.0, 8.0))
+    assert abs(line[0].a - 30.0) < 0.3 and abs(line[1].a - 31.0) < 0.3  # what the grid found
+    bars = Bars([line, whole], None)
+    above = lambda low, high: (0, 1.0, 0.0)  # noqa: E731 - the side face of a bar seen from above
+    out, n = widen_narrow_bars(bars, grad, span, 8.0, PARAMS, above, 38.0, np.array(white))
+    assert n == 1
+    assert abs(out.edges[0][0].a - 22.0) < 0.3 and abs(out.edges[0][1].a - 30.0) < 0.3
+    assert out.edges[1] == whole
+    for joined in (widen_narrow_bars(bars, grad, span, 8.0, PARAMS, above, 38.0)[0],
+                   widen_narrow_bars(bars, grad, span, 8.0, PARAMS, above, None, np.array(white))[0]):
+        assert abs(joined.edges[0][0].a - 30.0) < 0.3 and abs(joined.edges[0][1].a - 39.0) < 0.3
+
+
 def test_a_thin_line_joined_to_a_front_face_without_the_frames_colour_over_an_empty_unit_bounds_no_pane():
     """Glass in the right column (rows 31-58) under a transom clipped white (rows 22-30) with its dark
     shaded underside (row 30); in the left column an empty unit's lit box clipped white with the mullions
