@@ -46,6 +46,12 @@ class EdgeLine:
     that line's own colour is not within the tolerance of it (``frames.with_presence``). A unitised
     facade's bar is the frames of the two units beside it, side by side: beside a unit not installed only
     the other unit's half is there (None: not measured)."""
+    half_at_place: np.ndarray | None = None
+    """[L] float: as ``half_present``, for a bar found thin and widened (``frames.widen_narrow_bars``) to
+    one beside the thin one rather than over it: the same half of the bar of the building's width that
+    holds the thin one as its half away from the widened bar, read against the thin one's colour
+    (``frames._halves_at_place``; None elsewhere). Beside a unit not installed the thin one is the half
+    that is there and the widened bar lies on that unit's box."""
     frames_colour: np.ndarray | None = None
     """[L] float, 1 / 0 / NaN outside the view: where the centre line of a bar found thin and widened to the
     building's width (``frames.widen_narrow_bars``) shows the other family's colour, or is clipped white

@@ -660,10 +660,38 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             if sc > score:
                 best, score = e, sc
         if best[0] is not low:
-            best = with_presence(grad, best, span, params)
+            best = _halves_at_place(grad, with_presence(grad, best, span, params), (low, high), width_px,
+                                    span, params)
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n
+
+
+def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tuple[EdgeLine, EdgeLine],
+                     width_px: float, span: slice, params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
+    """``bar``, the thin bar ``thin`` widened to ``width_px``, with its halves read again where it lies
+    beside the thin one rather than over it (their centres more than half of ``width_px`` apart): on a bar of
+    ``width_px`` whose far half, away from ``bar``, holds the thin one (its far edge the thin one's), each
+    against the thin one's colour (``EdgeLine.half_at_place``). A thin line is as often the one half of the
+    bar that is there beside a unit not installed (at most half the bar's width, as a thin line is) as an edge
+    beside the bar: there the widened bar lies on that unit's box, and both its halves read the box. Read on
+    the bar the thin half belongs to, the half toward the box is gone and the thin one is there. Centred on
+    the thin line instead, a bar of ``width_px`` has its half lines on the thin half's two edges."""
+    mid = thin[0].mid
+    centre = 0.5 * float(thin[0].at(mid) + thin[1].at(mid))
+    if abs(0.5 * float(bar[0].at(mid) + bar[1].at(mid)) - centre) <= 0.5 * width_px:
+        return bar
+    below = 0.5 * float(bar[0].at(mid) + bar[1].at(mid)) < centre  # widened to the low side
+    far, sign = (thin[1], -1.0) if below else (thin[0], 1.0)
+    ref = bar_colour_ref(grad, *thin, span)
+    reads = []
+    for q in (0.25, 0.75):  # the thin one's half, the half beyond it toward ``bar``
+        line = dataclasses.replace(far, a=far.a + sign * q * width_px)
+        seen, _, short = frame_presence(grad, line, line, span, params.frame_colour_tol, ref)
+        reads.append(seen if short is None else np.where(short, 0.0, seen))
+    halves = reads[::-1] if below else reads
+    low, high = (dataclasses.replace(line, half_at_place=h) for line, h in zip(bar, halves, strict=True))
+    return low, high
 
 
 def _frame_on_near_side(grad: Gradients, front: tuple[EdgeLine, EdgeLine], c: float, width_px: float,

@@ -417,6 +417,18 @@ def test_a_cell_beside_a_mullion_without_its_half_is_no_pane_at_every_exposure(g
     assert evaluate_building(BuildingLayout(data, "gcw_dev"), src)["img051"]["mask_iou"] >= 0.85
 
 
+def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_keeps_that_unit_out(gcw, exposed):
+    """img051's second mullion shows only the glass's unit's half over its unit not installed (the pane
+    beyond it clipped white), found thin there and widened onto the unit's box: read on the bar that half
+    belongs to, the half toward the unit is gone and its cell is no pane (``frames._halves_at_place``), as
+    taken and half a stop either way."""
+    _, per_photo = gcw
+    assert per_photo["img051"]["mask_iou"] >= 0.8
+    for name in ("-0.5 EV", "+0.5 EV"):
+        src, data = exposed[name]
+        assert evaluate_building(BuildingLayout(data, "gcw_dev"), src)["img051"]["mask_iou"] >= 0.8, name
+
+
 def test_a_unit_not_installed_in_a_border_strip_the_median_carries_holds_no_glass(gcw):
     """img043's top strip runs over a unit not installed, its grey ceiling beside a mullion that shows
     only the glazed unit's half there; the strip's other mullions carry it in the median, the ceiling's
