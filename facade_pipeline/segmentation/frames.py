@@ -660,15 +660,18 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             if sc > score:
                 best, score = e, sc
         if best[0] is not low:
+            colour = (frames_colour if frames_colour is not None or bars.fit is None
+                      else bar_colour(grad, bars.fit, span))
             best = _halves_at_place(grad, with_presence(grad, best, span, params), (low, high), width_px,
-                                    span, params)
+                                    span, colour, params)
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n
 
 
 def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tuple[EdgeLine, EdgeLine],
-                     width_px: float, span: slice, params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
+                     width_px: float, span: slice, colour: np.ndarray | None,
+                     params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """``bar``, the thin bar ``thin`` widened to ``width_px``, with its halves read again where it lies
     beside the thin one rather than over it (their centres more than half of ``width_px`` apart): on a bar of
     ``width_px`` whose far half, away from ``bar``, holds the thin one (its far edge the thin one's), each
@@ -676,10 +679,18 @@ def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tupl
     bar that is there beside a unit not installed (at most half the bar's width, as a thin line is) as an edge
     beside the bar: there the widened bar lies on that unit's box, and both its halves read the box. Read on
     the bar the thin half belongs to, the half toward the box is gone and the thin one is there. Centred on
-    the thin line instead, a bar of ``width_px`` has its half lines on the thin half's two edges."""
+    the thin line instead, a bar of ``width_px`` has its half lines on the thin half's two edges. Only where
+    the thin one shows the frames' ``colour`` or a clip (``_colour_shown``) over at least
+    ``continuation_presence`` of ``span``: a half of a frame is the frames' material, while a thin line
+    beside a bar may be the shadow it casts on the glass, whose bar-side half would read gone beside a
+    pane. As it is without ``colour``."""
     mid = thin[0].mid
     centre = 0.5 * float(thin[0].at(mid) + thin[1].at(mid))
-    if abs(0.5 * float(bar[0].at(mid) + bar[1].at(mid)) - centre) <= 0.5 * width_px:
+    if colour is None or abs(0.5 * float(bar[0].at(mid) + bar[1].at(mid)) - centre) <= 0.5 * width_px:
+        return bar
+    rows = np.zeros(grad.img.shape[0], bool)
+    rows[span] = True
+    if not float(np.nanmean(_colour_shown(grad, thin, colour, params)[rows])) >= params.continuation_presence:
         return bar
     below = 0.5 * float(bar[0].at(mid) + bar[1].at(mid)) < centre  # widened to the low side
     far, sign = (thin[1], -1.0) if below else (thin[0], 1.0)

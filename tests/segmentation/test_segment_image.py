@@ -1011,6 +1011,45 @@ def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_ont
     assert cells == {(1, 1), (1, 3)}  # the unit's (1, 2) is no pane
 
 
+def test_a_shadow_line_found_beside_a_mullion_and_widened_onto_it_keeps_the_pane_beyond():
+    """White frames 10 px wide, one row of three glazed cells. The right mullion casts a dark shadow 4.5 px
+    wide on the glass beside it, and the grid found the shadow for the bar; widened to the building's width
+    it lands on the white mullion beside it. Read on a bar whose far half is the shadow, the half toward
+    the mullion would not show the shadow's colour and the pane beyond would be taken for a unit not
+    installed; the shadow is not the frames' colour, so the bar is read as widened, and all three cells
+    are panes."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
+    from facade_pipeline.segmentation.grid import FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = 130, 190
+    img = np.full((H, W, 3), 0.45)
+    for x0 in (10, 60, 105, 160):
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in (20, 100):
+        img[y0 : y0 + 10] = 1.0
+    img[30:100, 115:119] = 0.12  # the right mullion's shadow on the glass beside it
+    img8 = np.rint(img * 255).astype(np.uint8)
+    grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
+
+    def found(grad: Gradients, span: slice, bars: tuple[tuple[float, float], ...]) -> list:
+        L = grad.img.shape[0]
+        line = lambda a: EdgeLine(a, 0.0, L / 2, np.ones(L))  # noqa: E731 - what the grid found
+        return [with_presence(grad, (line(lo), line(hi)), span, PARAMS) for lo, hi in bars]
+
+    mullions = found(grad_v, slice(25, 106), ((10.0, 20.0), (60.0, 70.0), (115.0, 119.5), (160.0, 170.0)))
+    widths = np.array([10.0, 10.0, 4.5, 10.0])
+    bars_v = Bars(mullions, FamilyFit(np.array([15.0, 65.0, 117.25, 165.0]), widths, 50.0, 1.0))
+    transoms = found(grad_h, slice(15, 166), ((20.0, 30.0), (100.0, 110.0)))
+    bars_h = Bars(transoms, FamilyFit(np.array([25.0, 105.0]), np.full(2, 10.0), 80.0, 1.0))
+    widened, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS)
+    assert n == 1 and abs(widened.edges[2][0].a - 105.0) < 0.5 and abs(widened.edges[2][1].a - 115.0) < 0.5
+    cells = {(p.row, p.col) for p in build_panels(widened, bars_h, W, H, PARAMS, 3.0) if p.complete}
+    assert cells == {(1, 1), (1, 2), (1, 3)}
+
+
 def test_the_buildings_frame_depth_and_bar_width_are_medians_over_the_views_per_family():
     """Each view's own parallax fit gives d = k D where it has one and D is known (a view not
     rectified has no D); widths are pooled over every bar. Mullions and transoms apart."""
