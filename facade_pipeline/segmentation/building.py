@@ -38,7 +38,11 @@ def building_frame_parallax_m(
     is left out. One facade's frames share it (mullion and transom profiles may differ), while a view's bar
     widths may not show it (side faces shaded like the glass on both sides of the camera's foot, as across a
     tight cylinder) or show it loosely. The views' exact fits (as many bars as unknowns: a few bars in a
-    small view) join the median where they agree with one another (``parallax.agreeing``). A family that
+    small view) join the median where they agree with one another (``parallax.agreeing``), and so does a
+    family's one view's fit where no other view's fit gives it: its standard error is its own few bars'
+    scatter, no more a building's figure than an exact fit's (three mullions widened alike by the glass
+    clipped white beside them, at a brighter exposure, give a slope several of their errors above 0, and
+    every view's corners would be moved by it). A family that
     no view's fit gives a depth for is fitted over the bars of every view at once
     (``parallax.pooled_depth_m``: close-ups of one unit show two bars a family each, too few for a view's
     own fit), within the largest slope a view's own fit accepts (``max_slope``). Returned with, for each
@@ -56,6 +60,8 @@ def building_frame_parallax_m(
             depths.setdefault(name, []).append(d)
         for name, d in ({} if f is None else f.frame_depths_m(unjudged=True)).items():
             exact.setdefault(name, []).append(d)
+    for name in [name for name, d in depths.items() if len(d) < 2]:
+        exact.setdefault(name, []).extend(depths.pop(name))
     for name, d in exact.items():
         if agreeing(d):
             depths.setdefault(name, []).extend(d)

@@ -616,9 +616,10 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     neither and the bar on the near side shows it (``_frame_on_near_side``): the line is then the frame's
     edge facing the glass (a transom clipped white with an empty unit's lit shelf above it, as wide as the
     side face by chance), found again as above, and the face beyond it is the glass.
-    ``frames_colour`` ([3], the other family's bars' colour, ``bar_colour``): a thin bar so widened records
-    where its centre line shows it (``EdgeLine.frames_colour``): the line it was found by may be an edge of
-    what lies beyond the frames (an empty unit's lit ceiling) over part of its length."""
+    ``frames_colour`` ([3], the other family's bars' colour, ``bar_colour``): a thin bar widened, joined to
+    a front face or found again at the width, records where its centre line shows it
+    (``EdgeLine.frames_colour``): the line it was found by may be an edge of what lies beyond the frames (an
+    empty unit's lit ceiling) over part of its length, whether the frames' depth is known or not."""
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
@@ -662,8 +663,8 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
         if best[0] is not low:
             colour = (frames_colour if frames_colour is not None or bars.fit is None
                       else bar_colour(grad, bars.fit, span))
-            best = _halves_at_place(grad, with_presence(grad, best, span, params), (low, high), width_px,
-                                    span, colour, params)
+            best = _with_frames_colour(grad, with_presence(grad, best, span, params), frames_colour, params)
+            best = _halves_at_place(grad, best, (low, high), width_px, span, colour, params)
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n
