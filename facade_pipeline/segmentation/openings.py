@@ -183,20 +183,9 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
         return _one_half(halves[side], halves[1 - side], params)
 
-    medianed = [(p, r) for p, r, _, _ in found]
-    if sides and whole:
-        read = _halves_on_frame(other, 0.5 * sum(halves_span or (lo, hi)), 0.5 * sum(inside))
-        for i, (e, (_, _, h, _)) in enumerate(zip(other.edges, found, strict=True)):
-            seen = None if e[0].present is None else ~np.isnan(e[0].present)
-            ratios = []
-            for line in e:
-                ref = _mean(line.strength, *inside, seen)
-                ratios.append(_mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-            if read[i] and any(split(h, 1 - s) and ratios[s] < params.continuation_ratio for s in (0, 1)):
-                medianed[i] = (0.0, 0.0)
-    presence = [p for p, _ in medianed if not np.isnan(p)]
+    presence = [p for p, _, _, _ in found if not np.isnan(p)]
     if whole and (presence and float(np.median(presence)) >= params.continuation_presence
-                  or found and float(np.median([r for _, r in medianed])) >= params.continuation_ratio):
+                  or found and float(np.median([r for _, r, _, _ in found])) >= params.continuation_ratio):
         gone = {(i, s) for i, (_, r, h, told) in enumerate(found) for s in (0, 1)
                 if split(h, 1 - s) and not shown(told) and r < params.continuation_ratio} if sides else set()
         if gone:
