@@ -255,7 +255,7 @@ def clipped_beyond(grad: Gradients, low: EdgeLine, high: EdgeLine) -> np.ndarray
     after = np.minimum.accumulate(np.where(clipped, N, cols)[:, ::-1], axis=1)[:, ::-1]
     rows = np.arange(L)
     width = hi - lo
-    beyond = clipped[rows, col] | (False & ((before[rows, col] + 1 <= lo - width) | (after[rows, col] >= hi + width)))
+    beyond = clipped[rows, col] & ((before[rows, col] + 1 <= lo - width) | (after[rows, col] >= hi + width))
     return beyond if beyond.any() else None
 
 
