@@ -247,14 +247,17 @@ def clipped_beyond(grad: Gradients, low: EdgeLine, high: EdgeLine) -> np.ndarray
     L, N = grad.img.shape[:2]
     t = np.arange(L) + 0.5
     lo, hi = low.at(t), high.at(t)
-    col = np.clip(np.floor(0.5 * (lo + hi)).astype(int), 0, N - 1)
-    clipped = (grad.img >= CLIPPED_LEVEL).all(axis=2) & grad.valid  # [L, N]
-    cols = np.arange(N)
-    # each row's last column at or before each column that is not clipped, and its first at or after
-    before = np.maximum.accumulate(np.where(clipped, -1, cols), axis=1)
-    after = np.minimum.accumulate(np.where(clipped, N, cols)[:, ::-1], axis=1)[:, ::-1]
-    rows = np.arange(L)
     width = hi - lo
+    # only the columns a bar's width either side of the bar: a run reaching the window's end reaches that
+    c0 = int(np.clip(np.floor((lo - width).min()) - 1, 0, N - 1))
+    c1 = int(np.clip(np.ceil((hi + width).max()) + 2, c0 + 1, N))
+    col = np.clip(np.floor(0.5 * (lo + hi)).astype(int), c0, c1 - 1) - c0
+    clipped = (grad.img[:, c0:c1] >= CLIPPED_LEVEL).all(axis=2) & grad.valid[:, c0:c1]  # [L, c1 - c0]
+    cols = np.arange(c0, c1)
+    # each row's last column at or before each column that is not clipped, and its first at or after
+    before = np.maximum.accumulate(np.where(clipped, c0 - 1, cols), axis=1)
+    after = np.minimum.accumulate(np.where(clipped, c1, cols)[:, ::-1], axis=1)[:, ::-1]
+    rows = np.arange(L)
     beyond = clipped[rows, col] & ((before[rows, col] + 1 <= lo - width) | (after[rows, col] >= hi + width))
     return beyond if beyond.any() else None
 
