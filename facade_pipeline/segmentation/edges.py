@@ -52,6 +52,12 @@ class EdgeLine:
     holds the thin one as its half away from the widened bar, read against the thin one's colour
     (``frames._halves_at_place``; None elsewhere). Beside a unit not installed the thin one is the half
     that is there and the widened bar lies on that unit's box."""
+    clip_beyond: np.ndarray | None = None
+    """[L] bool: where the bar's centre line is clipped white in every channel, in one clipped run with what
+    lies a bar's width beyond one of its edges (``clipped_beyond``). A frame clipped alone is bounded by
+    what lies beside it; in one run with it (glass mirroring a sky clipped, a fringe beside it) the centre
+    line's white tells nothing of the frame: where the bar's colour is clipped too it reads ``present``
+    there, as anything clipped would (None: nowhere, or not measured)."""
     frames_colour: np.ndarray | None = None
     """[L] float, 1 / 0 / NaN outside the view: where the centre line of a bar found thin and widened to the
     building's width (``frames.widen_narrow_bars``) shows the other family's colour, or is clipped white
@@ -237,6 +243,29 @@ def frame_presence(grad: Gradients, low: EdgeLine, high: EdgeLine, rows: slice, 
     short = ok & near & clipped & (ref_clipped & (colour < CLIPPED_LEVEL)).any(axis=1)
     return (np.where(ok, near.astype(float), np.nan), (unknown if unknown.any() else None),
             (short if short.any() else None))
+
+
+def clipped_beyond(grad: Gradients, low: EdgeLine, high: EdgeLine) -> np.ndarray | None:
+    """[L] bool: where the pixel on the centre line between ``low`` and ``high`` is clipped white in every
+    channel and the run of such pixels across the bar through it reaches the bar's width (its fitted
+    width in that row) beyond either edge (``EdgeLine.clip_beyond``); None where it is nowhere. A run cut
+    by the view's border short of that is not counted: what lies beyond is not seen."""
+    L, N = grad.img.shape[:2]
+    t = np.arange(L) + 0.5
+    lo, hi = low.at(t), high.at(t)
+    width = hi - lo
+    # only the columns a bar's width either side of the bar: a run reaching the window's end reaches that
+    c0 = int(np.clip(np.floor((lo - width).min()) - 1, 0, N - 1))
+    c1 = int(np.clip(np.ceil((hi + width).max()) + 2, c0 + 1, N))
+    col = np.clip(np.floor(0.5 * (lo + hi)).astype(int), c0, c1 - 1) - c0
+    clipped = (grad.img[:, c0:c1] >= CLIPPED_LEVEL).all(axis=2) & grad.valid[:, c0:c1]  # [L, c1 - c0]
+    cols = np.arange(c0, c1)
+    # each row's last column at or before each column that is not clipped, and its first at or after
+    before = np.maximum.accumulate(np.where(clipped, c0 - 1, cols), axis=1)
+    after = np.minimum.accumulate(np.where(clipped, c1, cols)[:, ::-1], axis=1)[:, ::-1]
+    rows = np.arange(L)
+    beyond = clipped[rows, col] & ((before[rows, col] + 1 <= lo - width) | (after[rows, col] >= hi + width))
+    return beyond if beyond.any() else None
 
 
 @dataclass(frozen=True)

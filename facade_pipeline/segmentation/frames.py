@@ -20,6 +20,7 @@ from facade_pipeline.segmentation.edges import (
     bar_colour_ref,
     bar_edges,
     centre_colour,
+    clipped_beyond,
     frame_presence,
 )
 from facade_pipeline.segmentation.evidence import (
@@ -265,13 +266,14 @@ def placed_bars(bars: Bars) -> set[int]:
 def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
                   params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
-    where that is unknown and where it is short (``frame_presence`` within ``frame_colour_tol``), set
-    on both; and each with where it is present on its own half of the bar (``EdgeLine.half_present``),
-    judged against its own median over ``span`` (one unit's frame may be lit or shaded unlike the other's)
-    where that is within the tolerance of the bar's colour on its centre line, else against the bar's
-    colour: there the half lies off the frame over the span (the bar shows only its other half, and its
-    fitted edge lies on the glass beside it), its median is the glass's, and the frame's colour beyond the
-    span would read as absent."""
+    where that is unknown and where it is short (``frame_presence`` within ``frame_colour_tol``) and
+    where it is clipped in one run with what lies beyond the bar (``clipped_beyond``), set on both; and
+    each with where it is present on its own half of the bar (``EdgeLine.half_present``), judged against
+    its own median over ``span`` (one unit's frame may be lit or shaded unlike the other's) where that is
+    within the tolerance of the bar's colour on its centre line, else against the bar's colour: there the
+    half lies off the frame over the span (the bar shows only its other half, and its fitted edge lies on
+    the glass beside it), its median is the glass's, and the frame's colour beyond the span would read as
+    absent."""
     tol = params.frame_colour_tol
     ref = bar_colour_ref(grad, bar[0], bar[1], span)
     present, unknown, short = frame_presence(grad, bar[0], bar[1], span, tol, ref)
@@ -284,7 +286,9 @@ def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
             own = np.where((np.linalg.norm(own - ref, axis=-1) <= tol)[..., None], own, ref)
         seen, _, clipped_short = frame_presence(grad, *half, span, tol, own)
         halves.append(seen if clipped_short is None else np.where(clipped_short, 0.0, seen))
-    low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short, half_present=h)
+    beyond = clipped_beyond(grad, bar[0], bar[1])
+    low, high = (dataclasses.replace(line, present=present, unknown=unknown, short=short, half_present=h,
+                                     clip_beyond=beyond)
                  for line, h in zip(bar, halves, strict=True))
     return low, high
 

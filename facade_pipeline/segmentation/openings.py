@@ -69,15 +69,18 @@ def _mean(a: np.ndarray, lo: float, hi: float, seen: np.ndarray | None) -> float
     return float(seg.mean()) if len(seg) else 0.0
 
 
-def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, hi: float) -> float:
+def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, hi: float,
+              untold: np.ndarray | None = None) -> float:
     """The fraction of [lo, hi) that shows the view where ``present`` [L] is 1, not counting ``short``
-    rows; NaN where unknown."""
+    rows, leaving out ``untold`` rows; NaN where unknown."""
     if present is None:
         return np.nan
     i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
     seg = present[i0:i1]
     if short is not None:
         seg = np.where(short[i0:i1], 0.0, seg)
+    if untold is not None:
+        seg = np.where(untold[i0:i1], np.nan, seg)
     seg = seg[~np.isnan(seg)]
     return float(seg.mean()) if len(seg) else np.nan
 
@@ -85,15 +88,19 @@ def _presence(present: np.ndarray | None, short: np.ndarray | None, lo: float, h
 def _bar_continues(
     bar: tuple[EdgeLine, EdgeLine], lo: float, hi: float, inside: tuple[float, float],
     halves_span: tuple[float, float] | None = None,
-) -> tuple[float, float, tuple[float, float]]:
+) -> tuple[float, float, tuple[float, float], float]:
     """How one bar of the other family continues over [lo, hi) along it: (the fraction of the strip's part
     that shows the view where its frame colour is present on its centre line, NaN where unknown; the
     larger ratio of its two edges' mean strength there to their mean strength over ``inside``; the same
     fraction on each half of the bar, low and high, ``EdgeLine.half_present``, over ``halves_span``, all of
-    the strip where None). A centre line below full
-    scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near a clipped frame
-    colour, anything bright enough (the lit box of an empty unit) is within the tolerance."""
+    the strip where None; the first fraction over the rows where the centre line tells the frame's colour,
+    not clipped in one run with what lies beyond the bar, ``EdgeLine.clip_beyond``). A centre line below
+    full scale where the frame's colour is clipped (``EdgeLine.short``) is not the frame: near a clipped
+    frame colour, anything bright enough (the lit box of an empty unit) is within the tolerance. One
+    clipped in every channel where that colour is clipped is within it whatever it shows; where the clip
+    runs on beyond the bar, it shows the frame no more than what lies beside it."""
     presence = _presence(bar[0].present, bar[0].short, lo, hi)
+    told = _presence(bar[0].present, bar[0].short, lo, hi, bar[0].clip_beyond)
     h0, h1 = (lo, hi) if halves_span is None else halves_span
     halves = (_presence(bar[0].half_present, None, h0, h1), _presence(bar[1].half_present, None, h0, h1))
     seen = None if bar[0].present is None else ~np.isnan(bar[0].present)
@@ -101,7 +108,7 @@ def _bar_continues(
     for line in bar:
         ref = _mean(line.strength, *inside, seen)
         ratio = max(ratio, _mean(line.strength, lo, hi, seen) / ref if ref > 0 else 0.0)
-    return presence, ratio, halves
+    return presence, ratio, halves, told
 
 
 def _one_half(kept: float, gone: float, params: SegmentParams) -> bool:
@@ -160,8 +167,12 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     and their corners, not a unit's frame, part the halves. Where the median carries the strip, a bar
     whose centre line, edges and half facing an opening all fail there stops that opening (beside a unit
     not installed, the median over its neighbours' bars carries the strip across it), where its halves
-    are read on its frame (``_halves_on_frame``); not ``sides`` (``frames._goes_on``: whether the facade
-    goes on across the whole strip, for the grid's next bar), the median alone answers."""
+    are read on its frame (``_halves_on_frame``); its centre line there is read only where it is not
+    clipped in one run with what lies beyond the bar (``EdgeLine.clip_beyond``: glass mirroring a sky
+    clipped beside a frame clipped, a fringe between them, read as the frame whatever the bar is, while
+    its half facing the opening shows the unit not installed's box); not ``sides``
+    (``frames._goes_on``: whether the facade goes on across the whole strip, for the grid's next bar), the
+    median alone answers."""
     if support < 0.5:
         return frozenset()
     found = [_bar_continues(e, lo, hi, inside, halves_span) for e in other.edges]
@@ -172,11 +183,11 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
     def split(halves: tuple[float, float], side: int) -> bool:  # this side's half there, the other's gone
         return _one_half(halves[side], halves[1 - side], params)
 
-    presence = [p for p, _, _ in found if not np.isnan(p)]
+    presence = [p for p, _, _, _ in found if not np.isnan(p)]
     if whole and (presence and float(np.median(presence)) >= params.continuation_presence
-                  or found and float(np.median([r for _, r, _ in found])) >= params.continuation_ratio):
-        gone = {(i, s) for i, (p, r, h) in enumerate(found) for s in (0, 1)
-                if split(h, 1 - s) and not shown(p) and r < params.continuation_ratio} if sides else set()
+                  or found and float(np.median([r for _, r, _, _ in found])) >= params.continuation_ratio):
+        gone = {(i, s) for i, (_, r, h, told) in enumerate(found) for s in (0, 1)
+                if split(h, 1 - s) and not shown(told) and r < params.continuation_ratio} if sides else set()
         if gone:
             read = _halves_on_frame(other, 0.5 * sum(halves_span or (lo, hi)), 0.5 * sum(inside))
             gone = {(i, s) for i, s in gone if read[i]}
@@ -185,7 +196,7 @@ def continues(other: Bars, lo: float, hi: float, inside: tuple[float, float], su
         return frozenset((i, side) for i in range(len(found)) for side in (0, 1)) - gone
 
     return frozenset(
-        (i, side) for i, (p, r, halves) in enumerate(found) for side in (0, 1)
+        (i, side) for i, (p, r, halves, _) in enumerate(found) for side in (0, 1)
         if split(halves, side)
         or ((shown(p) or r >= params.continuation_ratio) and not split(halves, 1 - side))
     )

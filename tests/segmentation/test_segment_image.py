@@ -638,6 +638,46 @@ def test_a_unit_not_installed_in_a_border_strip_the_median_carries_holds_no_pane
     assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0 and p.complete]) == 3 * 5
 
 
+def test_a_bars_centre_line_clipped_with_the_glass_beside_it_does_not_carry_a_unit_not_installed():
+    """As above, the third column's unit in the top strip not installed, but its grey ceiling begins one
+    pixel past the left mullion's centre line and ends at the right mullion, whole there: the left
+    mullion's centre line is a white fringe between its low half, clipped, and the ceiling, and the glass
+    beyond its low half mirrors the sky clipped white. Read as the frame, that white would carry the
+    ceiling's opening; clipped in one run with the glass a bar's width beyond the bar, it tells nothing of
+    the frame, and the mullion's half facing the ceiling is gone: the opening holds no panel."""
+    d = Drawing(W=150, H=90, y0=16.0 - 23.3, cols=5, rows=4, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    top_edge = int(d.y0 + d.pitch[1])
+    left = d.x0 + d.pitch[0] * np.arange(6)
+    img[:top_edge, int(np.ceil(left[1] + d.bar)) : int(left[2]) + 1] = 255  # the sky clipped in the glass
+    box = slice(int(np.floor(left[2] + d.bar / 2)) + 1, int(left[3]))
+    noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, box.stop - box.start, 3))
+    img[:top_edge, box] = np.clip(np.rint(np.array((133.0, 138.0, 148.0)) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    assert sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 3, 4]
+    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0 and p.complete]) == 3 * 5
+
+
+def test_a_centre_line_is_clipped_beyond_the_bar_only_in_one_run_with_what_lies_beside_it():
+    """``EdgeLine.clip_beyond``: a frame clipped white alone, its edges fitted 4 px off it toward the glass
+    (a clip ending short of the fitted edge), is bounded within its width: its centre line's white is the
+    frame. Where the glass beside it clips as well, the run reaches a bar's width beyond its edge."""
+    from facade_pipeline.segmentation.edges import EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import with_presence
+
+    H, W = 100, 60
+    img = np.full((H, W, 3), 0.45)
+    img[:, 20:30] = 1.0  # the frame clipped white
+    img[:40, :20] = 1.0  # over the first rows the sky clipped in the glass on its low side
+    grad = Gradients.of(np.rint(img * 255).astype(np.uint8), 0)
+    bar = (EdgeLine(24.0, 0.0, 50.0, np.ones(H)), EdgeLine(34.0, 0.0, 50.0, np.ones(H)))
+    low, high = with_presence(grad, bar, slice(0, H), PARAMS)
+    assert low.clip_beyond is not None and low.clip_beyond is high.clip_beyond
+    assert low.clip_beyond[:40].all() and not low.clip_beyond[40:].any()
+    assert np.all(low.present == 1.0)  # the colour alone reads the frame in both
+
+
 def test_a_bar_fitted_wider_than_its_family_keeps_the_opening_beside_its_half_read_off_the_frame():
     """A border strip the median carries, where one bar shows nothing of itself on its low side (its
     centre line and low half off the frame's colour, no edge). Fitted as wide as its family's bars, its
@@ -678,7 +718,7 @@ def test_a_bars_edges_carry_no_opening_on_the_side_of_its_half_that_is_gone():
     L = 100
 
     def bar(low_half: float, high_half: float) -> tuple:
-        line = dict(present=np.zeros(L), short=None, strength=np.ones(L))
+        line = dict(present=np.zeros(L), short=None, clip_beyond=None, strength=np.ones(L))
         return (SimpleNamespace(**line, half_present=np.full(L, low_half)),
                 SimpleNamespace(**line, half_present=np.full(L, high_half)))
 
@@ -721,7 +761,8 @@ def test_a_bars_centre_line_carries_no_opening_on_the_side_of_its_half_that_is_g
     L = 100
 
     def bar(low_half: float, high_half: float) -> tuple:
-        line = dict(present=np.ones(L), short=None, strength=np.r_[np.zeros(40), np.ones(L - 40)])
+        line = dict(present=np.ones(L), short=None, clip_beyond=None,
+                    strength=np.r_[np.zeros(40), np.ones(L - 40)])
         return (SimpleNamespace(**line, half_present=np.full(L, low_half)),
                 SimpleNamespace(**line, half_present=np.full(L, high_half)))
 
