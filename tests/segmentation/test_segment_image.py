@@ -1020,6 +1020,38 @@ def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(instal
     assert cells == (whole if installed else whole - {(2, 2)})
 
 
+def _row_with_a_thin_mullion_widened(img: np.ndarray, mullions: tuple[tuple[float, float], ...],
+                                     widths: tuple[float, ...]) -> tuple[set, tuple[float, float]]:
+    """A drawn row of cells between transoms at 20-30 and 100-110 px, its mullions as the grid found them
+    (edges, and their widths in the family's fit), the one found thinner than half the building's 10 px
+    widened (``frames.widen_narrow_bars``): the complete cells (row, col) built on them, and the widened
+    bar's edges."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
+    from facade_pipeline.segmentation.grid import FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = img.shape[:2]
+    img8 = np.rint(img * 255).astype(np.uint8)
+    grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
+
+    def found(grad: Gradients, span: slice, bars: tuple[tuple[float, float], ...]) -> list:
+        L = grad.img.shape[0]
+        line = lambda a: EdgeLine(a, 0.0, L / 2, np.ones(L))  # noqa: E731 - what the grid found
+        return [with_presence(grad, (line(lo), line(hi)), span, PARAMS) for lo, hi in bars]
+
+    centres = np.array([0.5 * (lo + hi) for lo, hi in mullions])
+    bars_v = Bars(found(grad_v, slice(25, 106), mullions), FamilyFit(centres, np.array(widths), 50.0, 1.0))
+    transoms = found(grad_h, slice(15, 166), ((20.0, 30.0), (100.0, 110.0)))
+    bars_h = Bars(transoms, FamilyFit(np.array([25.0, 105.0]), np.full(2, 10.0), 80.0, 1.0))
+    widened, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS)
+    assert n == 1
+    k = int(np.argmin(widths))
+    cells = {(p.row, p.col) for p in build_panels(widened, bars_h, W, H, PARAMS, 3.0) if p.complete}
+    return cells, (widened.edges[k][0].a, widened.edges[k][1].a)
+
+
 def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_onto_its_box_bounds_no_pane():
     """White frames 10 px wide; one row of cells between two transoms, the middle one a unit not installed:
     its box fills the cell and its own halves of the bars around it, the side wall beside the right mullion
@@ -1029,14 +1061,7 @@ def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_ont
     widened to the building's width onto the box's side wall, beside the half rather than over it. There its
     halves both read the side wall; read on the bar the half belongs to, the half toward the unit is gone:
     the cell is no pane. The glass cells either side of the unit are."""
-    from facade_pipeline.segmentation.edges import Bars, EdgeLine
-    from facade_pipeline.segmentation.evidence import Gradients
-    from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
-    from facade_pipeline.segmentation.grid import FamilyFit
-    from facade_pipeline.segmentation.openings import build_panels
-
-    H, W = 130, 190
-    img = np.full((H, W, 3), 0.45)
+    img = np.full((130, 190, 3), 0.45)
     img[25:105, 120:160] = 1.0  # the pane right of the unit, clipped
     for x0 in (10, 60, 110, 160):
         img[:, x0 : x0 + 10] = 1.0
@@ -1044,22 +1069,9 @@ def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_ont
         img[y0 : y0 + 10] = 1.0
     img[25:105, 65:105] = (0.62, 0.66, 0.68)  # the box's back wall, where the unit's frames were too
     img[25:105, 105:115] = (0.58, 0.62, 0.64)  # its side wall, over the right mullion's low half
-    img8 = np.rint(img * 255).astype(np.uint8)
-    grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
-
-    def found(grad: Gradients, span: slice, bars: tuple[tuple[float, float], ...]) -> list:
-        L = grad.img.shape[0]
-        line = lambda a: EdgeLine(a, 0.0, L / 2, np.ones(L))  # noqa: E731 - what the grid found
-        return [with_presence(grad, (line(lo), line(hi)), span, PARAMS) for lo, hi in bars]
-
-    mullions = found(grad_v, slice(25, 106), ((10.0, 20.0), (60.0, 65.0), (115.0, 119.5), (160.0, 170.0)))
-    bars_v = Bars(mullions, FamilyFit(np.array([15.0, 62.5, 117.25, 165.0]), np.array([10.0, 5.0, 4.5, 10.0]),
-                                      50.0, 1.0))
-    transoms = found(grad_h, slice(15, 166), ((20.0, 30.0), (100.0, 110.0)))
-    bars_h = Bars(transoms, FamilyFit(np.array([25.0, 105.0]), np.full(2, 10.0), 80.0, 1.0))
-    widened, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS)
-    assert n == 1 and abs(widened.edges[2][0].a - 105.0) < 0.5 and abs(widened.edges[2][1].a - 115.0) < 0.5
-    cells = {(p.row, p.col) for p in build_panels(widened, bars_h, W, H, PARAMS, 3.0) if p.complete}
+    cells, (low, high) = _row_with_a_thin_mullion_widened(
+        img, ((10.0, 20.0), (60.0, 65.0), (115.0, 119.5), (160.0, 170.0)), (10.0, 5.0, 4.5, 10.0))
+    assert abs(low - 105.0) < 0.5 and abs(high - 115.0) < 0.5
     assert cells == {(1, 1), (1, 3)}  # the unit's (1, 2) is no pane
 
 
@@ -1070,35 +1082,15 @@ def test_a_shadow_line_found_beside_a_mullion_and_widened_onto_it_keeps_the_pane
     the mullion would not show the shadow's colour and the pane beyond would be taken for a unit not
     installed; the shadow is not the frames' colour, so the bar is read as widened, and all three cells
     are panes."""
-    from facade_pipeline.segmentation.edges import Bars, EdgeLine
-    from facade_pipeline.segmentation.evidence import Gradients
-    from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
-    from facade_pipeline.segmentation.grid import FamilyFit
-    from facade_pipeline.segmentation.openings import build_panels
-
-    H, W = 130, 190
-    img = np.full((H, W, 3), 0.45)
+    img = np.full((130, 190, 3), 0.45)
     for x0 in (10, 60, 105, 160):
         img[:, x0 : x0 + 10] = 1.0
     for y0 in (20, 100):
         img[y0 : y0 + 10] = 1.0
     img[30:100, 115:119] = 0.12  # the right mullion's shadow on the glass beside it
-    img8 = np.rint(img * 255).astype(np.uint8)
-    grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
-
-    def found(grad: Gradients, span: slice, bars: tuple[tuple[float, float], ...]) -> list:
-        L = grad.img.shape[0]
-        line = lambda a: EdgeLine(a, 0.0, L / 2, np.ones(L))  # noqa: E731 - what the grid found
-        return [with_presence(grad, (line(lo), line(hi)), span, PARAMS) for lo, hi in bars]
-
-    mullions = found(grad_v, slice(25, 106), ((10.0, 20.0), (60.0, 70.0), (115.0, 119.5), (160.0, 170.0)))
-    widths = np.array([10.0, 10.0, 4.5, 10.0])
-    bars_v = Bars(mullions, FamilyFit(np.array([15.0, 65.0, 117.25, 165.0]), widths, 50.0, 1.0))
-    transoms = found(grad_h, slice(15, 166), ((20.0, 30.0), (100.0, 110.0)))
-    bars_h = Bars(transoms, FamilyFit(np.array([25.0, 105.0]), np.full(2, 10.0), 80.0, 1.0))
-    widened, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS)
-    assert n == 1 and abs(widened.edges[2][0].a - 105.0) < 0.5 and abs(widened.edges[2][1].a - 115.0) < 0.5
-    cells = {(p.row, p.col) for p in build_panels(widened, bars_h, W, H, PARAMS, 3.0) if p.complete}
+    cells, (low, high) = _row_with_a_thin_mullion_widened(
+        img, ((10.0, 20.0), (60.0, 70.0), (115.0, 119.5), (160.0, 170.0)), (10.0, 10.0, 4.5, 10.0))
+    assert abs(low - 105.0) < 0.5 and abs(high - 115.0) < 0.5
     assert cells == {(1, 1), (1, 2), (1, 3)}
 
 
