@@ -617,6 +617,25 @@ def test_a_bar_beside_a_unit_not_installed_carries_the_opening_on_its_own_side()
     assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0]) == 4 * 2
 
 
+def _assert_no_panel_over_the_top_strips_unit(clipped: tuple[int, ...], box_of) -> None:
+    """A drawn facade of 5 columns whose top border strip's third unit is not installed: the glass of the
+    top strip's ``clipped`` columns mirrors the sky clipped white, and the unit's grey ceiling (a little
+    noise) fills ``box_of(the mullions' left edges, the bar width)``. No panel over the ceiling's opening,
+    every other strip column's kept and the 3 x 5 complete panes below."""
+    d = Drawing(W=150, H=90, y0=16.0 - 23.3, cols=5, rows=4, frame_colour=(1.1, 1.1, 1.1))
+    img = d.render()
+    top_edge = int(d.y0 + d.pitch[1])  # the first transom in the view starts here
+    left = d.x0 + d.pitch[0] * np.arange(6)  # the mullions' left edges
+    for c in clipped:
+        img[:top_edge, int(np.ceil(left[c] + d.bar)) : int(left[c + 1]) + 1] = 255
+    box = box_of(left, d.bar)
+    noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, box.stop - box.start, 3))
+    img[:top_edge, box] = np.clip(np.rint(np.array((133.0, 138.0, 148.0)) + noise), 0, 255).astype(np.uint8)
+    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
+    assert sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 3, 4]
+    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0 and p.complete]) == 3 * 5
+
+
 def test_a_unit_not_installed_in_a_border_strip_the_median_carries_holds_no_panel():
     """Frames clipped white, a top strip lower than a pitch (the median over the mullions judges it). In
     the strip the third column's unit is not installed: its grey ceiling fills the opening and the
@@ -624,18 +643,8 @@ def test_a_unit_not_installed_in_a_border_strip_the_median_carries_holds_no_pane
     glass beside them mirrors the sky clipped white, so neither mullion keeps an edge there. The other
     four mullions carry the strip in the median; the two beside the ceiling show nothing of themselves
     on its side (centre line, edges, facing half), and its opening holds no panel."""
-    d = Drawing(W=150, H=90, y0=16.0 - 23.3, cols=5, rows=4, frame_colour=(1.1, 1.1, 1.1))
-    img = d.render()
-    top_edge = int(d.y0 + d.pitch[1])  # the first transom in the view starts here
-    left = d.x0 + d.pitch[0] * np.arange(6)  # the mullions' left edges
-    for c in (1, 3):  # the sky clipped white in the glass beside the empty unit
-        img[:top_edge, int(np.ceil(left[c] + d.bar)) : int(left[c + 1]) + 1] = 255
-    box = slice(int(np.floor(left[2] + d.bar / 2)), int(np.floor(left[3] + d.bar / 2)) + 1)
-    noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, box.stop - box.start, 3))
-    img[:top_edge, box] = np.clip(np.rint(np.array((133.0, 138.0, 148.0)) + noise), 0, 255).astype(np.uint8)
-    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
-    assert sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 3, 4]
-    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0 and p.complete]) == 3 * 5
+    _assert_no_panel_over_the_top_strips_unit(  # the ceiling over the unit's own halves of the bars
+        (1, 3), lambda x, b: slice(int(np.floor(x[2] + b / 2)), int(np.floor(x[3] + b / 2)) + 1))
 
 
 def test_a_bars_centre_line_clipped_with_the_glass_beside_it_does_not_carry_a_unit_not_installed():
@@ -645,17 +654,8 @@ def test_a_bars_centre_line_clipped_with_the_glass_beside_it_does_not_carry_a_un
     beyond its low half mirrors the sky clipped white. Read as the frame, that white would carry the
     ceiling's opening; clipped in one run with the glass a bar's width beyond the bar, it tells nothing of
     the frame, and the mullion's half facing the ceiling is gone: the opening holds no panel."""
-    d = Drawing(W=150, H=90, y0=16.0 - 23.3, cols=5, rows=4, frame_colour=(1.1, 1.1, 1.1))
-    img = d.render()
-    top_edge = int(d.y0 + d.pitch[1])
-    left = d.x0 + d.pitch[0] * np.arange(6)
-    img[:top_edge, int(np.ceil(left[1] + d.bar)) : int(left[2]) + 1] = 255  # the sky clipped in the glass
-    box = slice(int(np.floor(left[2] + d.bar / 2)) + 1, int(left[3]))
-    noise = np.random.default_rng(1).normal(0.0, 2.0, (top_edge, box.stop - box.start, 3))
-    img[:top_edge, box] = np.clip(np.rint(np.array((133.0, 138.0, 148.0)) + noise), 0, 255).astype(np.uint8)
-    seg = segment_image(img, PARAMS, M_PER_PX, PITCH_M)
-    assert sorted(p.col for p in seg.panels if p.corners[:, 1].min() < 1.0) == [0, 1, 3, 4]
-    assert len([p for p in seg.panels if p.corners[:, 1].min() >= 1.0 and p.complete]) == 3 * 5
+    _assert_no_panel_over_the_top_strips_unit(
+        (1,), lambda left, bar: slice(int(np.floor(left[2] + bar / 2)) + 1, int(left[3])))
 
 
 def test_a_centre_line_is_clipped_beyond_the_bar_only_in_one_run_with_what_lies_beside_it():
