@@ -693,9 +693,7 @@ def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tupl
     centre = 0.5 * float(thin[0].at(mid) + thin[1].at(mid))
     if colour is None or abs(0.5 * float(bar[0].at(mid) + bar[1].at(mid)) - centre) <= 0.5 * width_px:
         return bar
-    rows = np.zeros(grad.img.shape[0], bool)
-    rows[span] = True
-    if not float(np.nanmean(_colour_shown(grad, thin, colour, params)[rows])) >= params.continuation_presence:
+    if not _shows_colour(grad, thin, colour, span, params):
         return bar
     below = 0.5 * float(bar[0].at(mid) + bar[1].at(mid)) < centre  # widened to the low side
     far, sign = (thin[1], -1.0) if below else (thin[0], 1.0)
@@ -718,16 +716,19 @@ def _frame_on_near_side(grad: Gradients, front: tuple[EdgeLine, EdgeLine], c: fl
     that: the line is then the frame's edge facing the glass, not its side face (a transom clipped white
     with what lies beyond it shows no edge but that one), and the face beyond it is the glass. False
     without ``colour``, or where no bar is found at ``c``."""
-    if colour is None:
-        return False
-    rows = np.zeros(grad.img.shape[0], bool)
-    rows[span] = True
-    if float(np.nanmean(_colour_shown(grad, front, colour, params)[rows])) >= params.continuation_presence:
+    if colour is None or _shows_colour(grad, front, colour, span, params):
         return False
     e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
     if e is None or e[1].a - e[0].a < 0.5 * width_px:
         return False
-    return float(np.nanmean(_colour_shown(grad, e, colour, params)[rows])) >= params.continuation_presence
+    return _shows_colour(grad, e, colour, span, params)
+
+
+def _shows_colour(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray, span: slice,
+                  params: SegmentParams) -> bool:
+    """Whether the centre line of ``bar`` shows ``colour`` or a clip (``_colour_shown``) over at least
+    ``continuation_presence`` of ``span``'s rows that show the view."""
+    return float(np.nanmean(_colour_shown(grad, bar, colour, params)[span])) >= params.continuation_presence
 
 
 def _colour_shown(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray,
