@@ -578,10 +578,10 @@ def survey_frames(
                        support, planar, ranges)
 
 
-def _pitch_side(bars: Bars, k: int, pitch_px: float | None) -> float:
+def _pitch_side(bars: Bars, k: int, pitch_px: float | None, within: float | None = None) -> float:
     """On which side of bar ``k`` (-1: low, +1: high, 0: neither) the building's pitch ``pitch_px`` from
     the nearest other bar of ``bars`` puts its centre: 0 without a pitch or another bar, or where that
-    place lies within the bar as found."""
+    place lies within ``within`` px of its centre as found (half its width where None: within the bar)."""
     if pitch_px is None or pitch_px <= 0 or len(bars.edges) < 2:
         return 0.0
     centres = np.array([0.5 * (low.a + high.a) for low, high in bars.edges])
@@ -589,7 +589,7 @@ def _pitch_side(bars: Bars, k: int, pitch_px: float | None) -> float:
     others = np.delete(centres, k)
     near = others[np.argmin(np.abs(others - c))]
     place = near + np.rint((c - near) / pitch_px) * pitch_px
-    half = 0.5 * (bars.edges[k][1].a - bars.edges[k][0].a)
+    half = 0.5 * (bars.edges[k][1].a - bars.edges[k][0].a) if within is None else within
     return 0.0 if abs(place - c) <= half else float(np.sign(place - c))
 
 
@@ -627,6 +627,8 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
     size = grad.d.shape[1] + 1
     if not any(high.a - low.a >= 0.5 * width_px for low, high in bars.edges):
         return bars, 0
+    colour = (frames_colour if frames_colour is not None or bars.fit is None
+              else bar_colour(grad, bars.fit, span))
     edges, n = [], 0
     for k, (low, high) in enumerate(bars.edges):
         seen = None if side_face is None else side_face(low, high)
@@ -650,7 +652,15 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
                 n += 1
                 continue
         if width >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
-            edges.append((low, high))
+            # a bar found at the width of its one half (at least half the building's width, short of the
+            # three quarters where the whole bar's half beside it would begin beyond the line) is read on
+            # the bar of the building's width that holds it as its half away from the pitch's place, where
+            # the pitch puts the bar nearer that one's centre, (width_px - width) / 2 off, than the line's
+            toward = (_pitch_side(bars, k, pitch_px, 0.25 * (width_px - width))
+                      if 0.5 * width_px <= width < 0.75 * width_px and low.a >= width_px
+                      and high.a <= size - width_px else 0.0)
+            edges.append(_halves_at_place(grad, (low, high), (low, high), width_px, span, colour, params,
+                                          toward))
             continue
         # on the pitch's side a bar whose edge there is unknown (no strength) is still the bar's place
         best, score = (low, high), (0.0 if side == 0 else -1.0)
@@ -665,41 +675,40 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             if sc > score:
                 best, score = e, sc
         if best[0] is not low:
-            colour = (frames_colour if frames_colour is not None or bars.fit is None
-                      else bar_colour(grad, bars.fit, span))
             best = _with_frames_colour(grad, with_presence(grad, best, span, params), frames_colour, params)
-            best = _halves_at_place(grad, best, (low, high), width_px, span, colour, params)
+            # read where it lies beside the thin one rather than over it (their centres more than half of
+            # ``width_px`` apart)
+            mid = low.mid
+            off = 0.5 * float(best[0].at(mid) + best[1].at(mid) - low.at(mid) - high.at(mid))
+            best = _halves_at_place(grad, best, (low, high), width_px, span, colour, params,
+                                    float(np.sign(off)) if abs(off) > 0.5 * width_px else 0.0)
             n += 1
         edges.append(best)
     return Bars(edges, bars.fit), n
 
 
 def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tuple[EdgeLine, EdgeLine],
-                     width_px: float, span: slice, colour: np.ndarray | None,
-                     params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
-    """``bar``, the thin bar ``thin`` widened to ``width_px``, with its halves read again where it lies
-    beside the thin one rather than over it (their centres more than half of ``width_px`` apart): on a bar of
-    ``width_px`` whose far half, away from ``bar``, holds the thin one (its far edge the thin one's), each
-    against the thin one's colour (``EdgeLine.half_at_place``). A thin line is as often the one half of the
-    bar that is there beside a unit not installed (at most half the bar's width, as a thin line is) as an edge
-    beside the bar: there the widened bar lies on that unit's box, and both its halves read the box. Read on
-    the bar the thin half belongs to, the half toward the box is gone and the thin one is there. Centred on
-    the thin line instead, a bar of ``width_px`` has its half lines on the thin half's two edges. Only where
-    the thin one shows the frames' ``colour`` or a clip (``_colour_shown``) over at least
-    ``continuation_presence`` of ``span``: a half of a frame is the frames' material, while a thin line
-    beside a bar may be the shadow it casts on the glass, whose bar-side half would read gone beside a
+                     width_px: float, span: slice, colour: np.ndarray | None, params: SegmentParams,
+                     toward: float) -> tuple[EdgeLine, EdgeLine]:
+    """``bar`` (the thin bar ``thin`` widened to ``width_px``, or ``thin`` itself) with its halves read on
+    the bar of ``width_px`` that holds the thin one as its half away from ``toward`` (-1: its low side, +1:
+    its high side; 0: not read): the thin one's far edge its far edge, each half against the thin one's
+    colour (``EdgeLine.half_at_place``). A thin line is as often the one half of the bar that is there
+    beside a unit not installed as an edge beside the bar: widened beside it, the bar lies on that unit's
+    box, and both its halves read the box; found at the width of that half and kept, both its halves read
+    the half. Read on the bar the thin half belongs to, the half toward the box is gone and the thin one
+    is there. Centred on the thin line instead, a bar of ``width_px`` has its half lines on the thin half's
+    two edges. Only where the thin one shows the frames' ``colour`` or a clip (``_colour_shown``) over at
+    least ``continuation_presence`` of ``span``: a half of a frame is the frames' material, while a thin
+    line beside a bar may be the shadow it casts on the glass, whose bar-side half would read gone beside a
     pane. As it is without ``colour``."""
-    mid = thin[0].mid
-    centre = 0.5 * float(thin[0].at(mid) + thin[1].at(mid))
-    if colour is None or abs(0.5 * float(bar[0].at(mid) + bar[1].at(mid)) - centre) <= 0.5 * width_px:
+    if colour is None or not toward or not _shows_colour(grad, thin, colour, span, params):
         return bar
-    if not _shows_colour(grad, thin, colour, span, params):
-        return bar
-    below = 0.5 * float(bar[0].at(mid) + bar[1].at(mid)) < centre  # widened to the low side
+    below = toward < 0
     far, sign = (thin[1], -1.0) if below else (thin[0], 1.0)
     ref = bar_colour_ref(grad, *thin, span)
     reads = []
-    for q in (0.25, 0.75):  # the thin one's half, the half beyond it toward ``bar``
+    for q in (0.25, 0.75):  # the thin one's half, the half beyond it toward ``toward``
         line = dataclasses.replace(far, a=far.a + sign * q * width_px)
         seen, _, short = frame_presence(grad, line, line, span, params.frame_colour_tol, ref)
         reads.append(seen if short is None else np.where(short, 0.0, seen))

@@ -306,7 +306,8 @@ def _edge_found(line: EdgeLine, lo: float, hi: float) -> float:
 
 def _half(line: EdgeLine) -> np.ndarray | None:
     """Where the half of a bar on ``line``'s side is present: on the bar its thin half belongs to where it
-    was found thin and widened beside it (``EdgeLine.half_at_place``), else on the bar as fitted."""
+    was found thin and widened beside it, or found at one half's width with the building's pitch beside
+    it (``EdgeLine.half_at_place``), else on the bar as fitted."""
     return line.half_present if line.half_at_place is None else line.half_at_place
 
 
@@ -326,16 +327,16 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
     beside it shows its half away from the cell and not its half facing it (``EdgeLine.half_present``: at
     least ``continuation_presence`` of the cell's rows against no more than 1 - ``continuation_presence`` of
     them, ``clear`` px clear of the transoms at either end, where the two families' bars meet and their
-    corners, not a unit's frame, part the halves; a mullion found thin and widened onto what lies beside it
-    is read on the bar its thin half belongs to, ``EdgeLine.half_at_place``). A unitised facade's bar is the
-    frames of the two units beside it, and a pane's own unit frames it on every side: a mullion without the
-    cell's half is beside a unit not installed. A facade whose glass is missing but whose frames stand
-    (stick-built) keeps both halves and its cells. One mullion is enough: the other is as often found at
-    the width of the one half that is there, both its halves on that unit's frame. The transoms are not
-    read: on real photos their half facing a pane reads absent over most of the cell's width as well
-    (benchmarks/RESULTS.md). Nor is a cylinder's cell: there the bars turn away across the view and show
-    their side faces, shaded unlike their fronts, and a bar corrected for its parallax lies on the side face
-    it shows, the half facing a pane with it."""
+    corners, not a unit's frame, part the halves; a mullion found thin and widened onto what lies beside it,
+    or found at one half's width and kept, is read on the bar its thin half belongs to,
+    ``EdgeLine.half_at_place``). A unitised facade's bar is the frames of the two units beside it, and a
+    pane's own unit frames it on every side: a mullion without the cell's half is beside a unit not installed.
+    A facade whose glass is missing but whose frames stand (stick-built) keeps both halves and its cells. One
+    mullion is enough: the other is as often found at the width of the one half that is there, both its halves
+    on that unit's frame. The transoms are not read: on real photos their half facing a pane reads absent over
+    most of the cell's width as well (benchmarks/RESULTS.md). Nor is a cylinder's cell: there the bars turn
+    away across the view and show their side faces, shaded unlike their fronts, and a bar corrected for its
+    parallax lies on the side face it shows, the half facing a pane with it."""
     if far is not None:
         rows = (spans[0][0] + clear, spans[0][1] - clear)
         for near, away in zip(sides[0], far, strict=True):

@@ -429,6 +429,20 @@ def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_keeps_that_unit
         assert evaluate_building(BuildingLayout(data, "gcw_dev"), src)["img051"]["mask_iou"] >= 0.8, name
 
 
+def test_a_mullion_found_at_the_width_of_the_half_beside_a_unit_not_installed_keeps_it_out(gcw, exposed):
+    """img049's right mullion beside its unit not installed is found at the width of the half that is
+    there (7.6 working px, the building's 10.7), kept at that width, both its halves on that half. The
+    building's pitch puts the bar's centre beyond it on the unit's side: read on the bar of the building's
+    width that holds it as its half away from the unit, the half toward the unit is gone, and the unit's
+    cell is no pane (``frames._halves_at_place``), as taken and at every exposure (0.629 as taken with the
+    cell kept)."""
+    _, per_photo = gcw
+    assert per_photo["img049"]["mask_iou"] >= 0.75
+    for name in EXPOSURES:
+        src, data = exposed[name]
+        assert evaluate_building(BuildingLayout(data, "gcw_dev"), src)["img049"]["mask_iou"] >= 0.75, name
+
+
 def test_a_unit_not_installed_in_a_border_strip_the_median_carries_holds_no_glass(gcw):
     """img043's top strip runs over a unit not installed, its grey ceiling beside a mullion that shows
     only the glazed unit's half there; the strip's other mullions carry it in the median, the ceiling's

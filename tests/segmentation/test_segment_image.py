@@ -1021,11 +1021,12 @@ def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(instal
 
 
 def _row_with_a_thin_mullion_widened(img: np.ndarray, mullions: tuple[tuple[float, float], ...],
-                                     widths: tuple[float, ...]) -> tuple[set, tuple[float, float]]:
+                                     widths: tuple[float, ...], pitch_px: float | None = None,
+                                     widened: int = 1) -> tuple[set, tuple[float, float]]:
     """A drawn row of cells between transoms at 20-30 and 100-110 px, its mullions as the grid found them
-    (edges, and their widths in the family's fit), the one found thinner than half the building's 10 px
-    widened (``frames.widen_narrow_bars``): the complete cells (row, col) built on them, and the widened
-    bar's edges."""
+    (edges, and their widths in the family's fit), the ``widened`` found thinner than half the building's
+    10 px widened (``frames.widen_narrow_bars``, at the building's pitch ``pitch_px``): the complete cells
+    (row, col) built on them, and the thinnest bar's edges."""
     from facade_pipeline.segmentation.edges import Bars, EdgeLine
     from facade_pipeline.segmentation.evidence import Gradients
     from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
@@ -1045,11 +1046,11 @@ def _row_with_a_thin_mullion_widened(img: np.ndarray, mullions: tuple[tuple[floa
     bars_v = Bars(found(grad_v, slice(25, 106), mullions), FamilyFit(centres, np.array(widths), 50.0, 1.0))
     transoms = found(grad_h, slice(15, 166), ((20.0, 30.0), (100.0, 110.0)))
     bars_h = Bars(transoms, FamilyFit(np.array([25.0, 105.0]), np.full(2, 10.0), 80.0, 1.0))
-    widened, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS)
-    assert n == 1
+    bars, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS, pitch_px=pitch_px)
+    assert n == widened
     k = int(np.argmin(widths))
-    cells = {(p.row, p.col) for p in build_panels(widened, bars_h, W, H, PARAMS, 3.0) if p.complete}
-    return cells, (widened.edges[k][0].a, widened.edges[k][1].a)
+    cells = {(p.row, p.col) for p in build_panels(bars, bars_h, W, H, PARAMS, 3.0) if p.complete}
+    return cells, (bars.edges[k][0].a, bars.edges[k][1].a)
 
 
 def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_onto_its_box_bounds_no_pane():
@@ -1073,6 +1074,32 @@ def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_ont
         img, ((10.0, 20.0), (60.0, 65.0), (115.0, 119.5), (160.0, 170.0)), (10.0, 5.0, 4.5, 10.0))
     assert abs(low - 105.0) < 0.5 and abs(high - 115.0) < 0.5
     assert cells == {(1, 1), (1, 3)}  # the unit's (1, 2) is no pane
+
+
+@pytest.mark.parametrize("installed", [False, True])
+def test_a_mullion_found_at_the_width_of_the_half_beside_a_unit_not_installed_bounds_no_pane(installed):
+    """White frames 10 px wide at a pitch of 50 px; one row of three cells between two transoms, the
+    middle one a unit not installed (``installed`` False): its box fills the cell and its own halves of the
+    mullions beside it. The grid found both those mullions at the width of the half that is there, 5 px,
+    half the building's width: kept at that width, each shows both its halves on the half. The building's
+    pitch from the bars beyond puts each bar's centre on the unit's side of the line: read on the bar of
+    the building's width that holds the line as its half away from the unit, the half toward the unit is
+    gone, and the unit's cell is no pane; the glass cells either side, on the side of the half that is
+    there, are. Where the unit's frames stand without glass (stick-built, ``installed`` True), the mullions
+    found at the same 5 px show their other half beside them, and every cell is kept."""
+    img = np.full((130, 190, 3), 0.45)
+    for x0 in (10, 60, 110, 160):
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in (20, 100):
+        img[y0 : y0 + 10] = 1.0
+    box = (0.62, 0.66, 0.68)
+    if installed:
+        img[30:100, 70:110] = box
+    else:
+        img[25:105, 65:115] = box  # the unit's frames gone: half of each bar beside the cell
+    cells, _ = _row_with_a_thin_mullion_widened(
+        img, ((10.0, 20.0), (60.0, 65.0), (115.0, 120.0), (160.0, 170.0)), (10.0, 5.0, 5.0, 10.0), 50.0, 0)
+    assert cells == ({(1, 1), (1, 2), (1, 3)} if installed else {(1, 1), (1, 3)})
 
 
 def test_a_shadow_line_found_beside_a_mullion_and_widened_onto_it_keeps_the_pane_beyond():
