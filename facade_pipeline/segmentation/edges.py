@@ -49,11 +49,12 @@ class EdgeLine:
     half_at_place: np.ndarray | None = None
     """[L] float: as ``half_present``, for a bar found thin and widened (``frames.widen_narrow_bars``) to
     one beside the thin one rather than over it, or found at the width of one half of the building's bar
-    (from a half to three quarters of it) and kept where the building's pitch puts the bar beside it: the
-    same half of the bar of the building's width that holds the thin one as its half away from the widened
-    bar, or from the pitch's place, read against the thin one's colour (``frames._halves_at_place``; None
-    elsewhere). Beside a unit not installed the thin one is the half that is there, and the widened bar,
-    or the pitch's place, lies on that unit's box."""
+    (from a half to three quarters of it) and kept where the bar's place (where the view shows it whole
+    beyond the other family's bars, else the building's pitch's) lies beside it: the same half of the bar
+    of the building's width that holds the thin one as its half away from the widened bar, or from that
+    place, read against the thin one's colour (``frames._halves_at_place``; None elsewhere). Beside a unit
+    not installed the thin one is the half that is there, and the widened bar, or the bar's place, lies on
+    that unit's box."""
     clip_beyond: np.ndarray | None = None
     """[L] bool: where the bar's centre line is clipped white in every channel, in one clipped run with what
     lies a bar's width beyond one of its edges (``clipped_beyond``). A frame clipped alone is bounded by

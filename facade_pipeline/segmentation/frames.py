@@ -578,19 +578,52 @@ def survey_frames(
                        support, planar, ranges)
 
 
-def _pitch_side(bars: Bars, k: int, pitch_px: float | None, within: float | None = None) -> float:
-    """On which side of bar ``k`` (-1: low, +1: high, 0: neither) the building's pitch ``pitch_px`` from
-    the nearest other bar of ``bars`` puts its centre: 0 without a pitch or another bar, or where that
-    place lies within ``within`` px of its centre as found (half its width where None: within the bar)."""
-    if pitch_px is None or pitch_px <= 0 or len(bars.edges) < 2:
-        return 0.0
-    centres = np.array([0.5 * (low.a + high.a) for low, high in bars.edges])
-    c = centres[k]
-    others = np.delete(centres, k)
-    near = others[np.argmin(np.abs(others - c))]
-    place = near + np.rint((c - near) / pitch_px) * pitch_px
+def _pitch_side(bars: Bars, k: int, pitch_px: float | None, within: float | None = None,
+                place: float | None = None) -> float:
+    """On which side of bar ``k`` (-1: low, +1: high, 0: neither) the bar's centre lies: at ``place`` (px,
+    at the bar's centre lines' middles) where given, else where the building's pitch ``pitch_px`` from the
+    nearest other bar of ``bars`` puts it (0 without a pitch or another bar); 0 where it lies within
+    ``within`` px of its centre as found (half its width where None: within the bar)."""
+    c = 0.5 * (bars.edges[k][0].a + bars.edges[k][1].a)
+    if place is None:
+        if pitch_px is None or pitch_px <= 0 or len(bars.edges) < 2:
+            return 0.0
+        centres = np.array([0.5 * (low.a + high.a) for low, high in bars.edges])
+        others = np.delete(centres, k)
+        near = others[np.argmin(np.abs(others - c))]
+        place = near + np.rint((c - near) / pitch_px) * pitch_px
     half = 0.5 * (bars.edges[k][1].a - bars.edges[k][0].a) if within is None else within
     return 0.0 if abs(place - c) <= half else float(np.sign(place - c))
+
+
+def _place_beyond(grad: Gradients, thin: tuple[EdgeLine, EdgeLine], width_px: float,
+                  span: slice) -> float | None:
+    """The centre (px, at ``thin``'s lines' middles) of the bar of ``width_px`` that holds the line
+    ``thin`` as one of its halves, found beyond ``span`` (the other family's extent: the view's rows
+    beyond its outer bars), or None. A bar is straight through the view, and where the line is the one
+    half of a frame beside a unit not installed, the cells beyond that unit's row are as often glazed on
+    both sides, the bar whole there. Of the two bars of ``width_px`` sharing an edge with the line, on either
+    side of ``span``, the one whose weaker edge is strongest there (as ``widen_narrow_bars`` scores them),
+    found at least three quarters of ``width_px`` wide (a thinner one is the same half again) and with its
+    edges there at least as strong as the line's within ``span``: a line the grid took in the glass (an
+    edge reflected) has weak edges beyond as within, where the pitch tells more."""
+    low, high = thin
+    size = len(low.strength)
+    start, stop, _ = span.indices(size)
+    width = high.a - low.a
+    best, score = None, float(np.sqrt(low.strength[span].mean() * high.strength[span].mean()))
+    for rows in (slice(0, start), slice(stop, size)):
+        if rows.stop - rows.start < 2:  # no line is fitted through fewer rows
+            continue
+        for sign in (-1.0, 1.0):
+            e = bar_edges(grad, 0.5 * (low.a + high.a) + sign * 0.5 * (width_px - width), width_px, rows,
+                          EDGE_SEARCH_PX)
+            if e is None or e[1].a - e[0].a < 0.75 * width_px:
+                continue
+            sc = float(np.sqrt(e[0].strength[rows].mean() * e[1].strength[rows].mean()))
+            if sc > score:
+                best, score = 0.5 * float(e[0].at(low.mid) + e[1].at(high.mid)), sc
+    return best
 
 
 def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
@@ -654,9 +687,11 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
         if width >= 0.5 * width_px or low.a < width_px or high.a > size - width_px:
             # a bar found at the width of its one half (at least half the building's width, short of the
             # three quarters where the whole bar's half beside it would begin beyond the line) is read on
-            # the bar of the building's width that holds it as its half away from the pitch's place, where
-            # the pitch puts the bar nearer that one's centre, (width_px - width) / 2 off, than the line's
-            toward = (_pitch_side(bars, k, pitch_px, 0.25 * (width_px - width))
+            # the bar of the building's width that holds it as its half away from the bar's place (where
+            # it is found whole beyond the other family's bars, else the pitch's), where that place is
+            # nearer that one's centre, (width_px - width) / 2 off, than the line's
+            toward = (_pitch_side(bars, k, pitch_px, 0.25 * (width_px - width),
+                                  _place_beyond(grad, (low, high), width_px, span))
                       if 0.5 * width_px <= width < 0.75 * width_px and low.a >= width_px
                       and high.a <= size - width_px else 0.0)
             edges.append(_halves_at_place(grad, (low, high), (low, high), width_px, span, colour, params,

@@ -306,8 +306,8 @@ def _edge_found(line: EdgeLine, lo: float, hi: float) -> float:
 
 def _half(line: EdgeLine) -> np.ndarray | None:
     """Where the half of a bar on ``line``'s side is present: on the bar its thin half belongs to where it
-    was found thin and widened beside it, or found at one half's width with the building's pitch beside
-    it (``EdgeLine.half_at_place``), else on the bar as fitted."""
+    was found thin and widened beside it, or found at one half's width with the bar's place beside it
+    (``EdgeLine.half_at_place``), else on the bar as fitted."""
     return line.half_present if line.half_at_place is None else line.half_at_place
 
 

@@ -1022,28 +1022,32 @@ def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(instal
 
 def _row_with_a_thin_mullion_widened(img: np.ndarray, mullions: tuple[tuple[float, float], ...],
                                      widths: tuple[float, ...], pitch_px: float | None = None,
-                                     widened: int = 1) -> tuple[set, tuple[float, float]]:
+                                     widened: int = 1, fitted: bool = False
+                                     ) -> tuple[set, tuple[float, float]]:
     """A drawn row of cells between transoms at 20-30 and 100-110 px, its mullions as the grid found them
-    (edges, and their widths in the family's fit), the ``widened`` found thinner than half the building's
-    10 px widened (``frames.widen_narrow_bars``, at the building's pitch ``pitch_px``): the complete cells
-    (row, col) built on them, and the thinnest bar's edges."""
-    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    (edges, and their widths in the family's fit; ``fitted``: the edges fitted in the view between the
+    transoms, with their strengths, rather than straight lines of full strength), the ``widened`` found
+    thinner than half the building's 10 px widened (``frames.widen_narrow_bars``, at the building's pitch
+    ``pitch_px``): the complete cells (row, col) built on them, and the thinnest bar's edges."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine, bar_edges
     from facade_pipeline.segmentation.evidence import Gradients
     from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
-    from facade_pipeline.segmentation.grid import FamilyFit
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, FamilyFit
     from facade_pipeline.segmentation.openings import build_panels
 
     H, W = img.shape[:2]
     img8 = np.rint(img * 255).astype(np.uint8)
     grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
 
-    def found(grad: Gradients, span: slice, bars: tuple[tuple[float, float], ...]) -> list:
+    def found(grad: Gradients, span: slice, bars: tuple[tuple[float, float], ...], fit: bool = False) -> list:
         L = grad.img.shape[0]
         line = lambda a: EdgeLine(a, 0.0, L / 2, np.ones(L))  # noqa: E731 - what the grid found
-        return [with_presence(grad, (line(lo), line(hi)), span, PARAMS) for lo, hi in bars]
+        return [with_presence(grad, bar_edges(grad, 0.5 * (lo + hi), hi - lo, span, EDGE_SEARCH_PX) if fit
+                              else (line(lo), line(hi)), span, PARAMS) for lo, hi in bars]
 
     centres = np.array([0.5 * (lo + hi) for lo, hi in mullions])
-    bars_v = Bars(found(grad_v, slice(25, 106), mullions), FamilyFit(centres, np.array(widths), 50.0, 1.0))
+    bars_v = Bars(found(grad_v, slice(25, 106), mullions, fitted),
+                  FamilyFit(centres, np.array(widths), 50.0, 1.0))
     transoms = found(grad_h, slice(15, 166), ((20.0, 30.0), (100.0, 110.0)))
     bars_h = Bars(transoms, FamilyFit(np.array([25.0, 105.0]), np.full(2, 10.0), 80.0, 1.0))
     bars, n = widen_narrow_bars(bars_v, grad_v, slice(25, 106), 10.0, PARAMS, pitch_px=pitch_px)
@@ -1100,6 +1104,28 @@ def test_a_mullion_found_at_the_width_of_the_half_beside_a_unit_not_installed_bo
     cells, _ = _row_with_a_thin_mullion_widened(
         img, ((10.0, 20.0), (60.0, 65.0), (115.0, 120.0), (160.0, 170.0)), (10.0, 5.0, 5.0, 10.0), 50.0, 0)
     assert cells == ({(1, 1), (1, 2), (1, 3)} if installed else {(1, 1), (1, 3)})
+
+
+def test_a_mullion_found_at_the_width_of_the_half_is_read_where_the_view_shows_its_bar_whole():
+    """White frames 10 px wide at a pitch of 50 px; one row of two cells between two transoms, the left one
+    a unit not installed: its box fills the cell and its own halves of the mullions beside it between the
+    transoms, its side wall lit beside the right mullion (x 104-110). The grid found the left mullion at
+    the width of the half that is there, 6 px, and the right one over the side wall, 16 px: a bar of the
+    building's width may lie anywhere within it, and the building's pitch from it puts the left bar's centre
+    within a quarter of the missing half of the line's. Beyond the transoms both cells' neighbours are
+    glazed and the left bar is whole: there it lies on the unit's side of the line, and read on the bar
+    that holds the line as its half away from the unit, the half toward the unit is gone: the unit's cell is
+    no pane, the glass cell right of it is."""
+    img = np.full((130, 190, 3), 0.45)
+    for x0 in (60, 110, 160):
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in (20, 100):
+        img[y0 : y0 + 10] = 1.0
+    img[25:105, 66:115] = (0.62, 0.66, 0.68)  # the box, where the unit's frames were too
+    img[25:105, 104:110] = (0.85, 0.86, 0.88)  # its side wall, lit
+    cells, _ = _row_with_a_thin_mullion_widened(
+        img, ((60.0, 66.0), (104.0, 120.0), (160.0, 170.0)), (6.0, 16.0, 10.0), 50.0, 0, fitted=True)
+    assert cells == {(1, 2)}  # the unit's (1, 1) is no pane
 
 
 def test_a_shadow_line_found_beside_a_mullion_and_widened_onto_it_keeps_the_pane_beyond():
