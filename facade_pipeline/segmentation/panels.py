@@ -86,8 +86,9 @@ def segment_frames(
                                           faces("y", 1), pitch, colour)
         metrics[f"bars_widened_{name}"] = n
     if fits:
-        bars_v = correct_parallax(bars_v, fits["x"], found.parallax)
-        bars_h = correct_parallax(bars_h, fits["y"], found.parallax)
+        front = {name: width / m for name, width in (bar_width_m or {}).items()}
+        bars_v = correct_parallax(bars_v, fits["x"], found.parallax, front.get("x"))
+        bars_h = correct_parallax(bars_h, fits["y"], found.parallax, front.get("y"))
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
                            found.support, found.planar)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]

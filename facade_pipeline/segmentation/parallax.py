@@ -123,7 +123,10 @@ def fit_parallax(bars: Bars, field: ParallaxField, axis: int, min_bars: int, max
     has its bars' near edges displaced as well (a shaded side face looks like the glass, so the edge found
     is the front face's). No correction (k = 0) with fewer than ``min_bars`` usable bars, k outside
     (0, ``max_slope``], or k less than ``PARALLAX_MIN_T`` standard errors above 0; a fit through as many
-    bars as unknowns has no residual to judge it by: it is ``unjudged``, and corrects nothing on its own."""
+    bars as unknowns has no residual to judge it by: it is ``unjudged``, and corrects nothing on its own.
+    Such a fit with k outside that range measures neither side (its slopes NaN): it passes through every
+    width, so a side's bars found with and without their side faces (a slope below 0) say nothing of the
+    side's other bars."""
     lows = np.array([e[0].a for e in bars.edges])
     highs = np.array([e[1].a for e in bars.edges])
     p_low = np.array([_coord(field, axis, e[0]) for e in bars.edges])
@@ -143,6 +146,8 @@ def fit_parallax(bars: Bars, field: ParallaxField, axis: int, min_bars: int, max
         k = float(max(slopes.values()))
     measured = tuple(float(slopes.get(j, np.nan)) for j in (0, 1))
     if not 0.0 < k <= max_slope:
+        if len(s) <= A.shape[1]:  # exact
+            measured = (np.nan, np.nan)
         return Parallax(axis, min_width_px=min_width, slopes=measured)  # type: ignore[arg-type]
     error = _slope_error(A, w[ok] - A @ coef, sides, slopes)
     if not np.isfinite(error):
@@ -232,10 +237,13 @@ def faces_found(width_px: float, seen: tuple[int, float, float], front_px: float
     return widths[0][1] if widths[1][0] - widths[0][0] >= SIDE_FACE_MIN_PX else "unknown"
 
 
-def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField) -> Bars:
+def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField, front_px: float | None = None) -> Bars:
     """Bars whose front-face edges are moved by the parallax to where the glass meets the frame: each
     bar's edge on the far side from the camera's foot, both edges of a bar over it, and the near edges
-    on a side where they are displaced too (``par.near_displaced``)."""
+    on a side where they are displaced too (``par.near_displaced``). On a side no fit measured
+    (``par.slopes`` NaN there), a bar whose width is its front face's alone (``faces_found`` against
+    ``front_px``, the building's bar width in px) has its near edge moved as well: its side face was not
+    found with it."""
     if par.k <= 0.0:
         return bars
     k, axis = par.k, par.axis
@@ -247,9 +255,14 @@ def correct_parallax(bars: Bars, par: Parallax, field: ParallaxField) -> Bars:
         p_low, p_high = _coord(field, axis, low), _coord(field, axis, high)
         below, above = p_high <= 0.0, p_low >= 0.0  # the bar lies wholly on the low / high side
         new_low, new_high = low, high
-        if p_low < 0.0 or (above and par.near_displaced[1]):
+        near = list(par.near_displaced)
+        side = 1 if above else 0
+        if (above or below) and front_px is not None and not np.isfinite(par.slopes[side]):
+            seen = side_face(field, axis, low, high, k)
+            near[side] = seen is not None and faces_found(high.a - low.a, seen, front_px) == "front"
+        if p_low < 0.0 or (above and near[1]):
             new_low = _unparallax(low, field, axis, k)
-        if p_high > 0.0 or (below and par.near_displaced[0]):
+        if p_high > 0.0 or (below and near[0]):
             new_high = _unparallax(high, field, axis, k)
         edges.append((new_low, new_high))
     return Bars(edges, bars.fit)

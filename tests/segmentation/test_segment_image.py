@@ -276,6 +276,35 @@ def test_a_parallax_slope_counts_only_where_it_stands_clear_of_the_fits_own_scat
     assert not noisy.unjudged
 
 
+def test_an_exact_fit_out_of_range_leaves_each_bar_to_tell_its_own_near_edge():
+    """Three mullions 13 px wide at glass level, the building's slope k = 0.0125 about the camera's foot at
+    c = 300 (oblique's frontal_0000, a plane over part of a curved facade): the far one left of c found as
+    its front face alone (its side face, 3 px, lit apart), its near edge the front face's; the next found
+    with its side face (1.6 px), its near edge where the glass meets it; the third just right of c. Three
+    bars for three unknowns fit exactly, both side slopes below 0 (the two faces mixed on one side), so the
+    fit is out of range and its slopes measure no side: each bar's width against the building's bar width
+    (``faces_found``) tells whether its near edge is displaced, and every corrected edge lies on the
+    glass. Taking the exact fit's slopes for the sides moves the second bar's near edge 1.6 px off it."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, fit_parallax
+
+    c, k, front = 300.0, 0.0125, 13.0
+    field = ParallaxField.about((c, 50.0), 400, 200)
+    glass = [(30.0, 30.0 + front), (160.0, 160.0 + front), (302.0, 302.0 + front)]
+
+    def seen(u: float) -> float:  # a front-face edge over the glass edge u
+        return c + (u - c) * (1.0 + k)
+
+    found = [(seen(30.0), seen(43.0)), (seen(160.0), 173.0), (302.0, seen(315.0))]
+    line = lambda a: EdgeLine(a, 0.0, 100.0, np.ones(10))  # noqa: E731
+    bars = Bars([(line(lo), line(hi)) for lo, hi in found], None)
+    own = fit_parallax(bars, field, 0, 3, 0.05)
+    assert own.k == 0.0 and not np.isfinite(own.slopes).any()
+    fixed = correct_parallax(bars, own.with_slope(k), field, front)
+    edges = np.array([[lo.a, hi.a] for lo, hi in fixed.edges])
+    assert np.abs(edges - np.array(glass)).max() < 0.05
+
+
 def test_the_frame_depth_is_measured_from_the_frames_front_where_the_surface_is_fitted():
     """A close-up of a plane (real_like's: 4.2 m, 23.5 mm per px) whose surface, fitted to the coarse points,
     lies on the frames' front, the glass d = 0.12 m behind it: the glass edge and the front-face edge above
