@@ -1005,6 +1005,24 @@ def test_a_thin_line_widened_without_the_frames_colour_over_an_empty_unit_bounds
     assert {(1, 1), (2, 1)} <= {(p.row, p.col) for p in build_panels(bars_v, plain, W, H, PARAMS, 3.0)}
 
 
+def _unit_among_frames(shape: tuple[int, int], mullions: tuple[int, ...], transoms: tuple[int, ...],
+                       box: tuple[float, float, float], cell: tuple[tuple[int, int], tuple[int, int]],
+                       installed: bool) -> np.ndarray:
+    """A drawn view [H, W, 3] in [0, 1]: white frames 10 px wide (each bar's first pixel in ``mullions``,
+    ``transoms``) on glass at 0.45, and a unit's lit ``box`` in one cell (``cell``: its rows and columns
+    between the bars). ``installed`` False: the unit's frames are gone, and the box fills the halves of
+    the bars around the cell that were its own as well."""
+    img = np.full((*shape, 3), 0.45)
+    for x0 in mullions:
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in transoms:
+        img[y0 : y0 + 10] = 1.0
+    grow = 0 if installed else 5
+    (r0, r1), (c0, c1) = cell
+    img[r0 - grow : r1 + grow, c0 - grow : c1 + grow] = box
+    return img
+
+
 @pytest.mark.parametrize("installed", [False, True])
 def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(installed):
     """White frames 10 px wide around three rows of three cells, glass in all but the middle one. That
@@ -1022,16 +1040,7 @@ def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(instal
 
     H, W = 220, 150
     mullions, transoms = (10, 50, 90, 130), (10, 70, 130, 190)  # each bar's first pixel
-    img = np.full((H, W, 3), 0.45)
-    for x0 in mullions:
-        img[:, x0 : x0 + 10] = 1.0
-    for y0 in transoms:
-        img[y0 : y0 + 10] = 1.0
-    box = (0.78, 0.74, 0.70)
-    if installed:
-        img[80:130, 60:90] = box
-    else:
-        img[75:135, 55:95] = box  # the unit's frames gone: half of each bar around the cell
+    img = _unit_among_frames((H, W), mullions, transoms, (0.78, 0.74, 0.70), ((80, 130), (60, 90)), installed)
     img8 = np.rint(img * 255).astype(np.uint8)
 
     def bars(axis: int, starts: tuple[int, ...], span: slice) -> Bars:
@@ -1120,16 +1129,8 @@ def test_a_mullion_found_at_the_width_of_the_half_beside_a_unit_not_installed_bo
     gone, and the unit's cell is no pane; the glass cells either side, on the side of the half that is
     there, are. Where the unit's frames stand without glass (stick-built, ``installed`` True), the mullions
     found at the same 5 px show their other half beside them, and every cell is kept."""
-    img = np.full((130, 190, 3), 0.45)
-    for x0 in (10, 60, 110, 160):
-        img[:, x0 : x0 + 10] = 1.0
-    for y0 in (20, 100):
-        img[y0 : y0 + 10] = 1.0
-    box = (0.62, 0.66, 0.68)
-    if installed:
-        img[30:100, 70:110] = box
-    else:
-        img[25:105, 65:115] = box  # the unit's frames gone: half of each bar beside the cell
+    img = _unit_among_frames((130, 190), (10, 60, 110, 160), (20, 100), (0.62, 0.66, 0.68),
+                             ((30, 100), (70, 110)), installed)
     cells, _ = _row_with_a_thin_mullion_widened(
         img, ((10.0, 20.0), (60.0, 65.0), (115.0, 120.0), (160.0, 170.0)), (10.0, 5.0, 5.0, 10.0), 50.0, 0)
     assert cells == ({(1, 1), (1, 2), (1, 3)} if installed else {(1, 1), (1, 3)})
