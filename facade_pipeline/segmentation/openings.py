@@ -22,9 +22,9 @@ of the bar's median colour: a frame keeps its colour whatever the glass beside i
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
 side's length is kept, with ``complete = False``.
 A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor a
-clip, with no edge of the other family's bars facing it, is no panel; so is a cell on a plane that no border
-cuts beside a mullion that shows only its half away from the cell: the unit there is not installed
-(``_not_a_pane``)."""
+clip, with no edge of the other family's bars facing it, is no panel; so is a cell on a plane between two
+mullions beside one that shows only its half away from the cell, over the cell's rows in the view (a strip
+the border cuts too): the unit there is not installed (``_not_a_pane``)."""
 
 from __future__ import annotations
 
@@ -313,7 +313,8 @@ def _half(line: EdgeLine) -> np.ndarray | None:
 
 def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine]],
                 spans: tuple[tuple[float, float], tuple[float, float]], params: SegmentParams,
-                far: tuple[EdgeLine, EdgeLine] | None = None, clear: float = 0.0) -> bool:
+                far: tuple[EdgeLine | None, EdgeLine | None] | None = None,
+                clear: tuple[float, float] = (0.0, 0.0), pitch: float = 0.0) -> bool:
     """Whether a cell (``sides``: its mullions' lines, its transoms' lines; ``spans``: its rows, its
     columns) is no pane: a bar bounding it, found thin and widened, shows the frames' colour over less than
     ``continuation_presence`` of the cell's side (``EdgeLine.frames_colour``), and neither bar of the other
@@ -323,24 +324,31 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
     beside the cell shows glass against a frame: a clipped box beside the frames leaves their edges
     unknown, which is no sign of a pane either.
 
-    Or, for a cell on a plane that no border cuts (``far``: its mullions' edges away from it), a mullion
-    beside it shows its half away from the cell and not its half facing it (``EdgeLine.half_present``: at
-    least ``continuation_presence`` of the cell's rows against no more than 1 - ``continuation_presence`` of
-    them, ``clear`` px clear of the transoms at either end, where the two families' bars meet and their
-    corners, not a unit's frame, part the halves; a mullion found thin and widened onto what lies beside it,
-    or found at one half's width and kept, is read on the bar its thin half belongs to,
-    ``EdgeLine.half_at_place``). A unitised facade's bar is the frames of the two units beside it, and a
-    pane's own unit frames it on every side: a mullion without the cell's half is beside a unit not installed.
+    Or, for a cell on a plane between two mullions, no border cutting its columns (``far``: its mullions'
+    edges away from it, None for one whose halves are read neither on its frame, ``_halves_on_frame``, nor on
+    the bar its thin half belongs to), a mullion beside it shows its half away from the cell and not its half
+    facing it (``EdgeLine.half_present``: at least ``continuation_presence`` of the cell's rows against no
+    more than 1 - ``continuation_presence`` of them, ``clear`` px (top, bottom) clear of the transoms, where
+    the two families' bars meet and their corners, not a unit's frame, part the halves; a mullion found thin
+    and widened onto what lies beside it, or found at one half's width and kept, is read on the bar its thin
+    half belongs to, ``EdgeLine.half_at_place``). A cell whose rows the border cuts is read over its rows in
+    the view, where they are more than 1 - ``continuation_presence`` of the ``pitch``: a pane's own half may
+    be missing over that much of a whole cell (by a corner, a clip) without the rule firing, and a shorter
+    part may be no more than such a stretch. Nor is a column the border cuts: it may be a sliver beside its
+    one mullion, which reads its half facing the sliver absent beside glass there. A unitised facade's bar is
+    the frames of the two units beside it, and a pane's own unit frames it on every side: a mullion without
+    the cell's half is beside a unit not installed.
     A facade whose glass is missing but whose frames stand (stick-built) keeps both halves and its cells. One
     mullion is enough: the other is as often found at the width of the one half that is there, both its halves
     on that unit's frame. The transoms are not read: on real photos their half facing a pane reads absent over
     most of the cell's width as well (benchmarks/RESULTS.md). Nor is a cylinder's cell: there the bars turn
     away across the view and show their side faces, shaded unlike their fronts, and a bar corrected for its
     parallax lies on the side face it shows, the half facing a pane with it."""
-    if far is not None:
-        rows = (spans[0][0] + clear, spans[0][1] - clear)
+    rows = (spans[0][0] + clear[0], spans[0][1] - clear[1])
+    if far is not None and rows[1] - rows[0] > (1.0 - params.continuation_presence) * pitch:
         for near, away in zip(sides[0], far, strict=True):
-            if _one_half(_presence(_half(away), None, *rows), _presence(_half(near), None, *rows), params):
+            if away is not None and _one_half(_presence(_half(away), None, *rows),
+                                              _presence(_half(near), None, *rows), params):
                 return True
     for k in (0, 1):
         shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
@@ -360,6 +368,7 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
     cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support, grid_ends)
     rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support, grid_ends)  # top down
     clear = float(np.median(bars_h.fit.widths))
+    along = (bars_h.fit.centres[0], bars_h.fit.centres[-1])
     panels = []
     for i, row in enumerate(rows):
         top, bottom, cut_r = row.low, row.high, row.cut
@@ -378,9 +387,13 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            far = (None if cut_r or cut_c or not grid_ends
-                   else (bars_v.edges[col.bounds[0]][0], bars_v.edges[col.bounds[1]][1]))
-            if _not_a_pane(((left, right), (top, bottom)), ((y0, y1), (x0, x1)), params, far, clear):
+            read = _halves_on_frame(bars_v, 0.5 * (y0 + y1), 0.5 * sum(along))
+            far = (None if cut_c or not grid_ends
+                   else tuple(None if not read[k] and bars_v.edges[k][side].half_at_place is None
+                              else bars_v.edges[k][side] for side, k in enumerate(col.bounds)))
+            ends = tuple(0.0 if k is None else clear for k in row.bounds)
+            if _not_a_pane(((left, right), (top, bottom)), ((y0, y1), (x0, x1)), params, far, ends,
+                           bars_h.fit.pitch):
                 continue
             support = min(
                 _supported(left, y0, y1),

@@ -435,12 +435,16 @@ def test_a_mullion_found_at_the_width_of_the_half_beside_a_unit_not_installed_ke
     building's pitch puts the bar's centre beyond it on the unit's side: read on the bar of the building's
     width that holds it as its half away from the unit, the half toward the unit is gone, and the unit's
     cell is no pane (``frames._halves_at_place``), as taken and at every exposure (0.629 as taken with the
-    cell kept)."""
+    cell kept). The same bar bounds the strip the top border cuts above it, over the unit above, not
+    installed either: read so over the strip's rows in the view, it is no pane either (0.773 as taken with
+    the strip kept, 0.858 without; ``openings._not_a_pane``), nor is img051's strip over its unit beside a
+    mullion read so (0.824 as taken with it kept, 0.882 without)."""
     _, per_photo = gcw
-    assert per_photo["img049"]["mask_iou"] >= 0.75
+    assert per_photo["img049"]["mask_iou"] >= 0.83
+    assert per_photo["img051"]["mask_iou"] >= 0.86
     for name in EXPOSURES:
         src, data = exposed[name]
-        assert evaluate_building(BuildingLayout(data, "gcw_dev"), src)["img049"]["mask_iou"] >= 0.75, name
+        assert evaluate_building(BuildingLayout(data, "gcw_dev"), src)["img049"]["mask_iou"] >= 0.83, name
 
 
 def test_a_mullion_found_at_the_width_of_the_half_is_read_where_the_view_shows_its_bar_whole(gcw, exposed):

@@ -1058,6 +1058,56 @@ def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(instal
     assert cells == (whole if installed else whole - {(2, 2)})
 
 
+@pytest.mark.parametrize("case", ["unit", "installed", "wide"])
+def test_a_border_strip_beside_a_mullion_without_its_half_is_a_unit_not_installed(case):
+    """White frames 10 px wide on grey glass, the top transom 45 px below the view's top border: the strip
+    above it is cut by the border, three quarters of the 60 px pitch in the view. Over the strip's middle
+    opening a unit not installed (``unit``): its box fills the opening and its own halves of the bars around
+    it, up to the mullions' centre lines, which show the frame's colour over the strip as the other bars' do,
+    so the strip goes on across the whole view. Its left mullion shows its half away from the opening and
+    not its half facing it: the cut cell is no pane, as a whole one would be; the strip's glass cells either
+    side, and every cell below, are. Where the unit's frames stand without glass (``installed``) both halves
+    are there and the cell is kept. All glass, with the third mullion fitted 16 px wide, its low edge 6 px
+    on the glass (``wide``): its low half is read on the glass, not on its frame (``_halves_on_frame``), and
+    the cells beside it are kept."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import with_presence
+    from facade_pipeline.segmentation.grid import FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = 200, 150
+    mullions, transoms = (10, 50, 90, 130), (45, 105, 165)  # each bar's first pixel
+    img = np.full((H, W, 3), 0.45)
+    for x0 in mullions:
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in transoms:
+        img[y0 : y0 + 10] = 1.0
+    box = (0.78, 0.74, 0.70)
+    if case == "installed":
+        img[0:45, 60:90] = box
+    elif case == "unit":
+        img[0:50, 56:94] = box  # the unit's frames gone, the bars' centre lines left
+    img8 = np.rint(img * 255).astype(np.uint8)
+
+    def bars(axis: int, starts: tuple[int, ...], span: slice, widths: tuple[int, ...]) -> Bars:
+        grad, length = Gradients.of(img8, axis), img8.shape[axis]
+        edges = [with_presence(grad, (EdgeLine(s, 0.0, length / 2, np.ones(length)),
+                                      EdgeLine(s + w, 0.0, length / 2, np.ones(length))), span, PARAMS)
+                 for s, w in zip(starts, widths, strict=True)]
+        centres = np.array([s + w / 2 for s, w in zip(starts, widths, strict=True)])
+        return Bars(edges, FamilyFit(centres, np.array(widths, float), 40.0 if axis == 0 else 60.0, 1.0))
+
+    fitted = ((10, 50, 84, 130), (10, 10, 16, 10)) if case == "wide" else (mullions, (10, 10, 10, 10))
+    bars_v = bars(0, fitted[0], slice(50, 171), fitted[1])
+    bars_h = bars(1, transoms, slice(15, 136), (10, 10, 10))
+    cells = {(p.row, p.col) for p in build_panels(bars_v, bars_h, W, H, PARAMS, 3.0)}
+    # rows from the bottom: 0 the strip below the bottom transom, 1-2 between the transoms, 3 the top strip
+    every = {(r, c) for r in range(4) for c in (1, 2, 3)}
+    assert cells >= (every if case != "unit" else every - {(3, 2)})
+    assert case != "unit" or (3, 2) not in cells
+
+
 def _row_with_a_thin_mullion_widened(img: np.ndarray, mullions: tuple[tuple[float, float], ...],
                                      widths: tuple[float, ...], pitch_px: float | None = None,
                                      widened: int = 1, fitted: bool = False
