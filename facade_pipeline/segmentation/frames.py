@@ -596,6 +596,12 @@ def _pitch_side(bars: Bars, k: int, pitch_px: float | None, within: float | None
     return 0.0 if abs(place - c) <= half else float(np.sign(place - c))
 
 
+def _bar_score(bar: tuple[EdgeLine, EdgeLine], rows: slice = slice(None)) -> float:
+    """How strongly a bar's weaker edge is found over ``rows``: the geometric mean of its two edges' mean
+    strengths there, as the bar evidence of ``grid``."""
+    return float(np.sqrt(bar[0].strength[rows].mean() * bar[1].strength[rows].mean()))
+
+
 def _place_beyond(grad: Gradients, thin: tuple[EdgeLine, EdgeLine], width_px: float,
                   span: slice) -> float | None:
     """The centre (px, at ``thin``'s lines' middles) of the bar of ``width_px`` that holds the line
@@ -611,7 +617,7 @@ def _place_beyond(grad: Gradients, thin: tuple[EdgeLine, EdgeLine], width_px: fl
     size = len(low.strength)
     start, stop, _ = span.indices(size)
     width = high.a - low.a
-    best, score = None, float(np.sqrt(low.strength[span].mean() * high.strength[span].mean()))
+    best, score = None, _bar_score(thin, span)
     for rows in (slice(0, start), slice(stop, size)):
         if rows.stop - rows.start < 2:  # no line is fitted through fewer rows
             continue
@@ -620,7 +626,7 @@ def _place_beyond(grad: Gradients, thin: tuple[EdgeLine, EdgeLine], width_px: fl
                           EDGE_SEARCH_PX)
             if e is None or e[1].a - e[0].a < 0.75 * width_px:
                 continue
-            sc = float(np.sqrt(e[0].strength[rows].mean() * e[1].strength[rows].mean()))
+            sc = _bar_score(e, rows)
             if sc > score:
                 best, score = 0.5 * float(e[0].at(low.mid) + e[1].at(high.mid)), sc
     return best
@@ -706,7 +712,7 @@ def widen_narrow_bars(bars: Bars, grad: Gradients, span: slice, width_px: float,
             e = bar_edges(grad, c, width_px, span, EDGE_SEARCH_PX)
             if e is None or e[1].a - e[0].a < 0.5 * width_px:
                 continue
-            sc = float(np.sqrt(e[0].strength.mean() * e[1].strength.mean()))
+            sc = _bar_score(e)
             if sc > score:
                 best, score = e, sc
         if best[0] is not low:

@@ -368,7 +368,7 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
     cols = openings(bars_v, bars_h, width, height, params, min_partial_px, 0, support, grid_ends)
     rows = openings(bars_h, bars_v, height, width, params, min_partial_px, 1, support, grid_ends)  # top down
     clear = float(np.median(bars_h.fit.widths))
-    along = (bars_h.fit.centres[0], bars_h.fit.centres[-1])
+    inside = 0.5 * (bars_h.fit.centres[0] + bars_h.fit.centres[-1])  # between the transoms
     panels = []
     for i, row in enumerate(rows):
         top, bottom, cut_r = row.low, row.high, row.cut
@@ -387,7 +387,7 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            read = _halves_on_frame(bars_v, 0.5 * (y0 + y1), 0.5 * sum(along))
+            read = _halves_on_frame(bars_v, 0.5 * (y0 + y1), inside)
             far = (None if cut_c or not grid_ends
                    else tuple(None if not read[k] and bars_v.edges[k][side].half_at_place is None
                               else bars_v.edges[k][side] for side, k in enumerate(col.bounds)))

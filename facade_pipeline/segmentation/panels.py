@@ -44,7 +44,9 @@ def segment_frames(
     (``widen_narrow_bars``). A family with its sides' depths
     in ``frame_sides_m`` (m, P < 0 and P > 0, the building's where no view measured its own) whose fit
     measured neither side takes them: which side's near edges are displaced. ``pitch_m``: the building's
-    panel pitch (m) per family, which side of a thin bar it is widened to (``widen_narrow_bars``)."""
+    panel pitch (m) per family, which side of a thin bar it is widened to (``widen_narrow_bars``). On a side
+    no parallax fit measured, a bar as wide as ``bar_width_m`` alone is its front face, its near edge moved
+    too (``correct_parallax``)."""
     metrics = dict(found.metrics)
     bars_v, bars_h, m = found.bars_v, found.bars_h, found.metres_per_px
     if bars_v is None or bars_h is None:
@@ -72,23 +74,23 @@ def segment_frames(
             return None
         return lambda low, high: side_face(found.parallax, axis, low, high, fits[name].k)
 
-    for name, width in (bar_width_m or {}).items():
+    width_px = {name: width / m for name, width in (bar_width_m or {}).items()}  # the building's bars
+    for name, width in width_px.items():
         pitch = (pitch_m or {}).get(name)
         pitch = None if pitch is None else pitch / m
         if name == "x":
-            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width / m, params,
+            bars_v, n = widen_narrow_bars(bars_v, found.grads[0], extent(bars_h.fit, Hw), width, params,
                                           faces("x", 0), pitch)
         else:
             # frames are one material, the mullions the reference (``frames.find_bars``' colour prior)
             colour = (bar_colour(found.grads[0], bars_v.fit, extent(bars_h.fit, Hw)) if found.planar
                       else None)
-            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width / m, params,
+            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width, params,
                                           faces("y", 1), pitch, colour)
         metrics[f"bars_widened_{name}"] = n
     if fits:
-        front = {name: width / m for name, width in (bar_width_m or {}).items()}
-        bars_v = correct_parallax(bars_v, fits["x"], found.parallax, front.get("x"))
-        bars_h = correct_parallax(bars_h, fits["y"], found.parallax, front.get("y"))
+        bars_v = correct_parallax(bars_v, fits["x"], found.parallax, width_px.get("x"))
+        bars_h = correct_parallax(bars_h, fits["y"], found.parallax, width_px.get("y"))
     panels = build_panels(bars_v, bars_h, Ww, Hw, params, params.min_partial * found.unit_m / m,
                            found.support, found.planar)
     panels = [dataclasses.replace(p, corners=p.corners / [qx, qy]) for p in panels]
