@@ -23,8 +23,8 @@ front of it does not), or show their edge facing the panel, over less than ``MIN
 side's length is kept, with ``complete = False``.
 A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor a
 clip, with no edge of the other family's bars facing it, is no panel; so is a cell on a plane between two
-mullions beside one that shows only its half away from the cell, over the cell's rows in the view (a strip
-the border cuts too): the unit there is not installed (``_not_a_pane``)."""
+mullions beside one that shows only its half away from the cell, over the cell's rows in the view where it
+shows either half (a strip the border cuts too): the unit there is not installed (``_not_a_pane``)."""
 
 from __future__ import annotations
 
