@@ -23,8 +23,8 @@ front of it does not), or show their edge facing the panel, over less than ``MIN
 side's length is kept, with ``complete = False``.
 A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor a
 clip, with no edge of the other family's bars facing it, is no panel; so is a cell on a plane between two
-mullions beside one that shows only its half away from the cell, over the cell's rows in the view (a strip
-the border cuts too): the unit there is not installed (``_not_a_pane``)."""
+mullions beside one that shows only its half away from the cell, over the cell's rows in the view where it
+shows either half (a strip the border cuts too): the unit there is not installed (``_not_a_pane``)."""
 
 from __future__ import annotations
 
@@ -311,6 +311,23 @@ def _half(line: EdgeLine) -> np.ndarray | None:
     return line.half_present if line.half_at_place is None else line.half_at_place
 
 
+def _halves_told(kept: np.ndarray | None, gone: np.ndarray | None, lo: float,
+                 hi: float) -> tuple[float, float, int]:
+    """The fractions of the rows [lo, hi) where a bar shows either of its halves (``kept`` [L], ``gone``
+    [L], ``EdgeLine.half_present``) that show each, and how many rows those are (NaN, NaN, 0 where there
+    are none). Where it shows neither, neither unit beside it is there (the row above a unit's top, not
+    installed on either side) or what lies in front hides both: that tells nothing of which side of the
+    bar a unit stands."""
+    if kept is None or gone is None:
+        return np.nan, np.nan, 0
+    i0, i1 = int(max(0, np.ceil(lo))), int(max(0, np.floor(hi)))
+    a, b = kept[i0:i1], gone[i0:i1]
+    told = ~np.isnan(a) & ~np.isnan(b) & ((a > 0) | (b > 0))
+    if not told.any():
+        return np.nan, np.nan, 0
+    return float(a[told].mean()), float(b[told].mean()), int(told.sum())
+
+
 def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine]],
                 spans: tuple[tuple[float, float], tuple[float, float]], params: SegmentParams,
                 far: tuple[EdgeLine | None, EdgeLine | None] | None = None,
@@ -327,14 +344,17 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
     Or, for a cell on a plane between two mullions, no border cutting its columns (``far``: its mullions'
     edges away from it, None for one whose halves are read neither on its frame, ``_halves_on_frame``, nor on
     the bar its thin half belongs to), a mullion beside it shows its half away from the cell and not its half
-    facing it (``EdgeLine.half_present``: at least ``continuation_presence`` of the cell's rows against no
-    more than 1 - ``continuation_presence`` of them, ``clear`` px (top, bottom) clear of the transoms, where
-    the two families' bars meet and their corners, not a unit's frame, part the halves; a mullion found thin
-    and widened onto what lies beside it, or found at one half's width and kept, is read on the bar its thin
-    half belongs to, ``EdgeLine.half_at_place``). A cell whose rows the border cuts is read over its rows in
-    the view, where they are more than 1 - ``continuation_presence`` of the ``pitch``: a pane's own half may
-    be missing over that much of a whole cell (by a corner, a clip) without the rule firing, and a shorter
-    part may be no more than such a stretch. Nor is a column the border cuts: it may be a sliver beside its
+    facing it (``EdgeLine.half_present``: at least ``continuation_presence`` of the cell's rows where it
+    shows either half against no more than 1 - ``continuation_presence`` of them, ``_halves_told``,
+    ``clear`` px (top, bottom) clear of the transoms, where the two families' bars meet and their corners,
+    not a unit's frame, part the halves; a mullion found thin and widened onto what lies beside it, or found
+    at one half's width and kept, is read on the bar its thin half belongs to, ``EdgeLine.half_at_place``).
+    A cell is read over its rows in the view where the mullion shows either half, where they are more than
+    1 - ``continuation_presence`` of the ``pitch``: a pane's own half may be missing over that much of a
+    whole cell (by a corner, a clip) without the rule firing, and a shorter part may be no more than such a
+    stretch. Where it shows neither it tells nothing of the sides: a strip the border cuts beyond the top
+    of its row's units, whose row above is not installed on either side of the bar, shows the bar over its
+    units' rows alone. Nor is a column the border cuts: it may be a sliver beside its
     one mullion, which reads its half facing the sliver absent beside glass there. A unitised facade's bar is
     the frames of the two units beside it, and a pane's own unit frames it on every side: a mullion without
     the cell's half is beside a unit not installed.
@@ -345,11 +365,12 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
     away across the view and show their side faces, shaded unlike their fronts, and a bar corrected for its
     parallax lies on the side face it shows, the half facing a pane with it."""
     rows = (spans[0][0] + clear[0], spans[0][1] - clear[1])
-    if far is not None and rows[1] - rows[0] > (1.0 - params.continuation_presence) * pitch:
-        for near, away in zip(sides[0], far, strict=True):
-            if away is not None and _one_half(_presence(_half(away), None, *rows),
-                                              _presence(_half(near), None, *rows), params):
-                return True
+    for near, away in zip(sides[0] if far is not None else (), far or (), strict=True):
+        if away is None:
+            continue
+        kept, gone, told = _halves_told(_half(away), _half(near), *rows)
+        if told > (1.0 - params.continuation_presence) * pitch and _one_half(kept, gone, params):
+            return True
     for k in (0, 1):
         shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
         if all(np.isnan(p) or p >= params.continuation_presence for p in shown):

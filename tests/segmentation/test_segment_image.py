@@ -1058,8 +1058,9 @@ def test_a_cell_beside_a_mullion_without_its_half_is_a_unit_not_installed(instal
     assert cells == (whole if installed else whole - {(2, 2)})
 
 
+@pytest.mark.parametrize("above", [False, True])
 @pytest.mark.parametrize("case", ["unit", "installed", "wide"])
-def test_a_border_strip_beside_a_mullion_without_its_half_is_a_unit_not_installed(case):
+def test_a_border_strip_beside_a_mullion_without_its_half_is_a_unit_not_installed(case, above):
     """White frames 10 px wide on grey glass, the top transom 45 px below the view's top border: the strip
     above it is cut by the border, three quarters of the 60 px pitch in the view. Over the strip's middle
     opening a unit not installed (``unit``): its box fills the opening and its own halves of the bars around
@@ -1069,7 +1070,10 @@ def test_a_border_strip_beside_a_mullion_without_its_half_is_a_unit_not_installe
     side, and every cell below, are. Where the unit's frames stand without glass (``installed``) both halves
     are there and the cell is kept. All glass, with the third mullion fitted 16 px wide, its low edge 6 px
     on the glass (``wide``): its low half is read on the glass, not on its frame (``_halves_on_frame``), and
-    the cells beside it are kept."""
+    the cells beside it are kept. With the row above not installed anywhere (``above``), its box over the
+    strip's top 20 px across the view: there the bars show nothing of themselves, neither half, which
+    tells nothing of the sides; the halves are read over the rows where the bars show either, the strip's
+    units' own."""
     from facade_pipeline.segmentation.edges import Bars, EdgeLine
     from facade_pipeline.segmentation.evidence import Gradients
     from facade_pipeline.segmentation.frames import with_presence
@@ -1088,6 +1092,8 @@ def test_a_border_strip_beside_a_mullion_without_its_half_is_a_unit_not_installe
         img[0:45, 60:90] = box
     elif case == "unit":
         img[0:50, 56:94] = box  # the unit's frames gone, the bars' centre lines left
+    if above:
+        img[0:20] = box
     img8 = np.rint(img * 255).astype(np.uint8)
 
     def bars(axis: int, starts: tuple[int, ...], span: slice, widths: tuple[int, ...]) -> Bars:
