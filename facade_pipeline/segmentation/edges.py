@@ -63,8 +63,9 @@ class EdgeLine:
     there, as anything clipped would (None: nowhere, or not measured)."""
     frames_colour: np.ndarray | None = None
     """[L] float, 1 / 0 / NaN outside the view: where the centre line of a bar found thin and widened to the
-    building's width (``frames.widen_narrow_bars``) shows the other family's colour, or is clipped white
-    (unknown, not absent), 0 where it shows another colour (None: a bar found at its width)."""
+    building's width (``frames.widen_narrow_bars``), or the middle of this edge's half of it, shows the
+    other family's colour, or is clipped white (unknown, not absent), 0 where neither does (None: a bar
+    found at its width)."""
 
     def at(self, t: np.ndarray | float) -> np.ndarray:
         return self.a + self.b * (np.asarray(t, dtype=np.float64) - self.mid)

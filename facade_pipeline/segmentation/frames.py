@@ -793,11 +793,16 @@ def _colour_shown(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.nd
 
 def _with_frames_colour(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour: np.ndarray | None,
                         params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
-    """``bar`` with where its centre line is within ``frame_colour_tol`` of ``colour`` or clipped white
-    (unknown, not absent) set on both edges (``EdgeLine.frames_colour``, ``_colour_shown``); as it is
-    without ``colour``."""
+    """``bar`` with where its centre line or the middle of the edge's own half of the bar is within
+    ``frame_colour_tol`` of ``colour`` or clipped white (unknown, not absent) set on each edge
+    (``EdgeLine.frames_colour``, ``_colour_shown``); as it is without ``colour``. Beside a unit not
+    installed only the installed unit's half of the bar is there, and the centre line, the halves'
+    meeting, runs along the end of that half: the half facing the other unit's cell shows the frame."""
     if colour is None:
         return bar
     shown = _colour_shown(grad, bar, colour, params)
-    low, high = (dataclasses.replace(e, frames_colour=shown) for e in bar)
+    centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
+                                 b=0.5 * (bar[0].b + bar[1].b))
+    low, high = (dataclasses.replace(e, frames_colour=np.fmax(shown, _colour_shown(grad, h, colour, params)))
+                 for e, h in zip(bar, ((bar[0], centre), (centre, bar[1])), strict=True))
     return low, high

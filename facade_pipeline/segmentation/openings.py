@@ -21,10 +21,11 @@ Partly occluded panels: a panel whose frame bars are present (their centre line 
 of the bar's median colour: a frame keeps its colour whatever the glass beside it reflects, an object in
 front of it does not), or show their edge facing the panel, over less than ``MIN_EDGE_SUPPORT`` of any
 side's length is kept, with ``complete = False``.
-A cell beside a bar found thin and widened whose centre line there shows neither the frames' colour nor a
-clip, with no edge of the other family's bars facing it, is no panel; so is a cell on a plane between two
-mullions beside one that shows only its half away from the cell, over the cell's rows in the view where it
-shows either half (a strip the border cuts too): the unit there is not installed (``_not_a_pane``)."""
+A cell beside a bar found thin and widened whose centre line and half facing the cell there show neither
+the frames' colour nor a clip, with no edge of the other family's bars facing it, is no panel; so is a cell
+on a plane between two mullions beside one that shows only its half away from the cell, over the cell's
+rows in the view where it shows either half (a strip the border cuts too): the unit there is not installed
+(``_not_a_pane``)."""
 
 from __future__ import annotations
 

@@ -1005,6 +1005,46 @@ def test_a_thin_line_widened_without_the_frames_colour_over_an_empty_unit_bounds
     assert {(1, 1), (2, 1)} <= {(p.row, p.col) for p in build_panels(bars_v, plain, W, H, PARAMS, 3.0)}
 
 
+
+def test_a_transom_widened_beside_a_unit_not_installed_bounds_the_pane_below_it():
+    """White frames 8 px wide on glass; the unit above the transom in the left column (rows 0-22) is not
+    installed: its lit box, pink, fills the cell and the halves of the bars around it that were its own
+    frames, and a row beyond (rows 0-26), so that the transom there shows only the rows 27-29 of the
+    installed unit's half below it. The grid took that for the transom, found thin and widened over the
+    whole width to the bar (rows 22-29) the right column shows whole; the mullions were fitted over the
+    box's rows, where each shows its one half, so that neither shows its edge facing the cell below. The
+    widened transom's centre line there lies on the box's floor; the half facing the cell below shows the
+    frames' white: that cell is a pane."""
+    from facade_pipeline.segmentation.edges import Bars, bar_edges
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import widen_narrow_bars, with_presence
+    from facade_pipeline.segmentation.grid import EDGE_SEARCH_PX, FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = 90, 90
+    white, pink = (1.0, 1.0, 1.0), (0.96, 0.80, 0.80)
+    img = np.full((H, W, 3), 0.45)
+    for x0 in (10, 40, 70):
+        img[:, x0 : x0 + 8] = white  # the mullions
+    img[22:30] = white  # the transom
+    img[58:66] = white  # a whole transom
+    img[0:27, 14:44] = pink  # the box of the unit not installed
+    img8 = np.rint(img * 255).astype(np.uint8)
+    grad_v, grad_h = Gradients.of(img8, 0), Gradients.of(img8, 1)
+    rows = slice(0, 22)
+    mullions = [with_presence(grad_v, bar_edges(grad_v, c, w, rows, EDGE_SEARCH_PX), rows, PARAMS)
+                for c, w in ((12.0, 4.0), (46.0, 4.0), (74.0, 8.0))]
+    assert abs(mullions[0][1].a - 14.0) < 0.3 and abs(mullions[1][0].a - 44.0) < 0.3  # their box's halves
+    transoms = [bar_edges(grad_h, c, w, slice(0, W), EDGE_SEARCH_PX) for c, w in ((28.5, 3.0), (62.0, 8.0))]
+    assert abs(transoms[0][0].a - 27.0) < 0.5 and abs(transoms[0][1].a - 30.0) < 0.3  # what the grid found
+    bars_v = Bars(mullions, FamilyFit(np.array([12.0, 46.0, 74.0]), np.array([4.0, 4.0, 8.0]), 30.0, 1.0))
+    bars_h = Bars(transoms, FamilyFit(np.array([28.5, 62.0]), np.array([3.0, 8.0]), 33.5, 1.0))
+    out, n = widen_narrow_bars(bars_h, grad_h, slice(0, W), 8.0, PARAMS, None, None, np.array(white))
+    assert n == 1 and abs(out.edges[0][0].a - 22.0) < 0.3 and abs(out.edges[0][1].a - 30.0) < 0.3
+    cells = {(p.row, p.col) for p in build_panels(bars_v, out, W, H, PARAMS, 3.0)}
+    # rows from the bottom: 0 below the whole transom, 1 between the transoms; column 1 the box's
+    assert {(1, 1), (1, 2), (0, 1)} <= cells
+
 def _unit_among_frames(shape: tuple[int, int], mullions: tuple[int, ...], transoms: tuple[int, ...],
                        box: tuple[float, float, float], cell: tuple[tuple[int, int], tuple[int, int]],
                        installed: bool) -> np.ndarray:
