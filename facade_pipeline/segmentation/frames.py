@@ -230,6 +230,10 @@ def extent(fit: FamilyFit | None, size: int) -> slice:
     return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
 
 
+def _across(fit: FamilyFit | None, size: int, predicted: bool) -> slice:
+    return slice(0, size) if predicted and fit is not None and len(fit.centres) == 2 else extent(fit, size)
+
+
 def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> Bars | None:
     """The edges of each bar of ``fit``; a bar placed by the grid (``FamilyFit.placed``) whose edges are
     not both found keeps the straight edges of its place: it clips with the glass beside it, and the one
@@ -368,7 +372,7 @@ def find_bars(
             colour_h = None
             if v is not None and params.grid.frame_colour_scale > 0 and planar:
                 colour_h = bar_colour(gv, v, extent(rows, H))
-            h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
+            h = _family(gh, hseg, 1, _across(v, W, predicted), params, sizes_h, colour_h, pool, support_h)
             if again or colour_h is None or h is None or not _runs_beyond(h, extent(h_first, H)):
                 break
             rows = h
@@ -391,13 +395,13 @@ def find_bars(
         # the facade goes on beyond the run there. Where an empty unit's lit box fills the strip, the
         # mullions do not go on across it in the median, and no transom makes its cell a pane
         v = with_clipped_ends(v, gv, extent(h, H), support)
-        cut = with_clipped_ends(h, gh, extent(v, W), support_h, cut=True)
-        edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
+        cut = with_clipped_ends(h, gh, _across(v, W, predicted), support_h, cut=True)
+        edges_h = pool.submit(_edges, h, gh, _across(v, W, predicted), params)
         bars_v = _edges(v, gv, extent(h, H), params)
         bars_h = edges_h.result()
         if cut is not h and _goes_on(bars_v, bars_h, h, cut, H, support, params):
             h = cut
-            edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
+            edges_h = pool.submit(_edges, h, gh, _across(v, W, predicted), params)
             bars_v = _edges(v, gv, extent(h, H), params)
             bars_h = edges_h.result()
         metrics["bars_placed_x"] = len(v.placed)
