@@ -230,7 +230,12 @@ def extent(fit: FamilyFit | None, size: int) -> slice:
     return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
 
 
-def _across(fit: FamilyFit | None, size: int, predicted: bool) -> slice:
+def across(fit: FamilyFit | None, size: int, predicted: bool) -> slice:
+    """Along-bar range the transoms are sought, fitted and widened over (``fit``: the mullions): their
+    extent (``extent``), but the whole width where two mullions found at the building's pitch
+    (``find_bars``' ``predicted``) bound one column: that column may be a unit not installed, whose box
+    shows a bar of the frames' colour off the facade's transoms and only the installed unit's half of the
+    transom it meets."""
     return slice(0, size) if predicted and fit is not None and len(fit.centres) == 2 else extent(fit, size)
 
 
@@ -372,7 +377,7 @@ def find_bars(
             colour_h = None
             if v is not None and params.grid.frame_colour_scale > 0 and planar:
                 colour_h = bar_colour(gv, v, extent(rows, H))
-            h = _family(gh, hseg, 1, _across(v, W, predicted), params, sizes_h, colour_h, pool, support_h)
+            h = _family(gh, hseg, 1, across(v, W, predicted), params, sizes_h, colour_h, pool, support_h)
             if again or colour_h is None or h is None or not _runs_beyond(h, extent(h_first, H)):
                 break
             rows = h
@@ -395,13 +400,13 @@ def find_bars(
         # the facade goes on beyond the run there. Where an empty unit's lit box fills the strip, the
         # mullions do not go on across it in the median, and no transom makes its cell a pane
         v = with_clipped_ends(v, gv, extent(h, H), support)
-        cut = with_clipped_ends(h, gh, _across(v, W, predicted), support_h, cut=True)
-        edges_h = pool.submit(_edges, h, gh, _across(v, W, predicted), params)
+        cut = with_clipped_ends(h, gh, across(v, W, predicted), support_h, cut=True)
+        edges_h = pool.submit(_edges, h, gh, across(v, W, predicted), params)
         bars_v = _edges(v, gv, extent(h, H), params)
         bars_h = edges_h.result()
         if cut is not h and _goes_on(bars_v, bars_h, h, cut, H, support, params):
             h = cut
-            edges_h = pool.submit(_edges, h, gh, _across(v, W, predicted), params)
+            edges_h = pool.submit(_edges, h, gh, across(v, W, predicted), params)
             bars_v = _edges(v, gv, extent(h, H), params)
             bars_h = edges_h.result()
         metrics["bars_placed_x"] = len(v.placed)
@@ -443,6 +448,9 @@ class FrameBars:
     """The building's pitch (m) the bars were sought at: the unit of the params' lengths."""
     planar: bool = True
     """Whether the surface is a plane (``find_bars``)."""
+    predicted: bool = False
+    """Whether the mullions were sought at the building's pitch (``find_bars``' ``predicted``): the
+    transoms' along-bar range (``across``)."""
 
     def bar_widths_m(self) -> dict[str, list[float]]:
         """The widths (m) of the bars found, per family ("x": mullions, "y": transoms), but for the bars the
@@ -536,12 +544,12 @@ def find_frames(
         for axis, (name, z) in enumerate(zip(("x", "y"), family_sizes, strict=True))
     )
     image = normalise_exposure(image, valid)
+    predicted = predicted and "x" in (pitch_m or {})
     bars_v, bars_h, metrics, fits, grads = find_bars(
-        image, params, family_sizes, valid, parallax, planar, support,
-        predicted and "x" in (pitch_m or {}))
+        image, params, family_sizes, valid, parallax, planar, support, predicted)
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m,
-                     planar)
+                     planar, predicted)
 
 
 #: the survey, which measures the building's pitch before any length is known, seeks each family's pitch
