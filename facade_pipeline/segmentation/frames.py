@@ -755,14 +755,19 @@ def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tupl
     least ``continuation_presence`` of ``span``: a half of a frame is the frames' material, while a thin
     line beside a bar may be the shadow it casts on the glass, whose bar-side half would read gone beside a
     pane. As it is without ``colour``."""
-    if colour is None or not toward or not _shows_colour(grad, thin, colour, span, params):
+    if colour is None or not toward:
         return bar
     below = toward < 0
     far, sign = (thin[1], -1.0) if below else (thin[0], 1.0)
-    ref = bar_colour_ref(grad, *thin, span)
+    short_of = max(0.0, 0.5 * width_px - float(thin[1].a - thin[0].a))  # a thin one narrower than a half
+    half = dataclasses.replace(far, a=far.a + sign * (0.25 * width_px - short_of))
+    own = thin if not short_of else (half, half)
+    if not _shows_colour(grad, own, colour, span, params):
+        return bar
+    ref = bar_colour_ref(grad, *own, span)
     reads = []
     for q in (0.25, 0.75):  # the thin one's half, the half beyond it toward ``toward``
-        line = dataclasses.replace(far, a=far.a + sign * q * width_px)
+        line = dataclasses.replace(far, a=far.a + sign * (q * width_px - short_of))
         seen, _, short = frame_presence(grad, line, line, span, params.frame_colour_tol, ref)
         reads.append(seen if short is None else np.where(short, 0.0, seen))
     halves = reads[::-1] if below else reads

@@ -1214,6 +1214,27 @@ def test_a_mullion_found_as_the_half_beside_a_unit_not_installed_and_widened_ont
     assert cells == {(1, 1), (1, 3)}  # the unit's (1, 2) is no pane
 
 
+def test_a_mullion_found_as_a_line_where_its_halves_meet_beside_a_unit_not_installed_bounds_no_pane():
+    """As above, the right mullion found as a line 0.5 px wide where the box's side wall meets the half that
+    is there, which is clipped white with the pane beyond it (its edge there unknown), and widened onto the
+    side wall. A line narrower than a half is a part of the half that is there: its edge toward the box is
+    where the halves meet. Read on the bar of the building's width whose halves meet there, the half toward
+    the unit is gone and the unit's cell is no pane; read on the bar whose far edge is the line's, both
+    halves lie on the side wall and tell nothing."""
+    img = np.full((130, 190, 3), 0.45)
+    img[25:105, 120:160] = 1.0  # the pane right of the unit, clipped
+    for x0 in (10, 60, 110, 160):
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in (20, 100):
+        img[y0 : y0 + 10] = 1.0
+    img[25:105, 65:105] = (0.62, 0.66, 0.68)  # the box's back wall, where the unit's frames were too
+    img[25:105, 105:115] = (0.58, 0.62, 0.64)  # its side wall, over the right mullion's low half
+    cells, (low, high) = _row_with_a_thin_mullion_widened(
+        img, ((10.0, 20.0), (60.0, 65.0), (115.0, 115.5), (160.0, 170.0)), (10.0, 5.0, 0.5, 10.0))
+    assert high - low > 5.0  # widened
+    assert cells == {(1, 1), (1, 3)}  # the unit's (1, 2) is no pane
+
+
 @pytest.mark.parametrize("installed", [False, True])
 def test_a_mullion_found_at_the_width_of_the_half_beside_a_unit_not_installed_bounds_no_pane(installed):
     """White frames 10 px wide at a pitch of 50 px; one row of three cells between two transoms, the
