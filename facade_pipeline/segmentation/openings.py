@@ -372,8 +372,6 @@ def _not_a_pane(sides: tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine
         kept, gone, told = _halves_told(_half(away), _half(near), *rows)
         if told > (1.0 - params.continuation_presence) * pitch and _one_half(kept, gone, params):
             return True
-        if not told and _presence(near.present, near.short, *rows) == 0.0:
-            return True
     for k in (0, 1):
         shown = [_presence(line.frames_colour, None, *spans[1 - k]) for line in sides[1 - k]]
         if all(np.isnan(p) or p >= params.continuation_presence for p in shown):
