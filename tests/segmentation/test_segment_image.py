@@ -1154,6 +1154,48 @@ def test_a_border_strip_beside_a_mullion_without_its_half_is_a_unit_not_installe
     assert case != "unit" or (3, 2) not in cells
 
 
+def test_a_border_strip_beyond_a_transom_that_shows_none_of_itself_holds_no_pane():
+    """White frames 10 px wide on grey glass, the top transom 45 px below the view's top border. The row
+    above is not installed anywhere: its box fills the strip above the transom across the view, and there
+    the mullions show nothing of themselves, which tells nothing of the sides. Below the strip's middle
+    opening a unit not installed too: its box fills its cell and the transom over it, which shows neither
+    of its halves over that opening. Neither unit beside the transom is there: the strip's middle cell is no
+    pane, as the unit's cell below it is; the strip's cells either side, over a transom that shows its
+    lower half, and every glazed cell below, are kept."""
+    from facade_pipeline.segmentation.edges import Bars, EdgeLine
+    from facade_pipeline.segmentation.evidence import Gradients
+    from facade_pipeline.segmentation.frames import with_presence
+    from facade_pipeline.segmentation.grid import FamilyFit
+    from facade_pipeline.segmentation.openings import build_panels
+
+    H, W = 200, 150
+    mullions, transoms = (10, 50, 90, 130), (45, 105, 165)  # each bar's first pixel
+    box = (0.78, 0.74, 0.70)
+    img = np.full((H, W, 3), 0.45)
+    for x0 in mullions:
+        img[:, x0 : x0 + 10] = 1.0
+    for y0 in transoms:
+        img[y0 : y0 + 10] = 1.0
+    img[0:45] = box  # the row above, not installed
+    img[0:110, 56:94] = box  # the unit below the strip's middle opening, not installed, and its transom
+    img8 = np.rint(img * 255).astype(np.uint8)
+
+    def bars(axis: int, starts: tuple[int, ...], span: slice) -> Bars:
+        grad, length = Gradients.of(img8, axis), img8.shape[axis]
+        edges = [with_presence(grad, (EdgeLine(s, 0.0, length / 2, np.ones(length)),
+                                      EdgeLine(s + 10.0, 0.0, length / 2, np.ones(length))), span, PARAMS)
+                 for s in starts]
+        centres = np.array(starts, float) + 5.0
+        return Bars(edges, FamilyFit(centres, np.full(len(starts), 10.0), 40.0 if axis == 0 else 60.0, 1.0))
+
+    bars_v, bars_h = bars(0, mullions, slice(50, 171)), bars(1, transoms, slice(15, 136))
+    cells = {(p.row, p.col) for p in build_panels(bars_v, bars_h, W, H, PARAMS, 3.0)}
+    # rows from the bottom: 0 the strip below the bottom transom, 1-2 between the transoms, 3 the top strip
+    every = {(r, c) for r in range(4) for c in (1, 2, 3)}
+    assert cells >= every - {(3, 2), (2, 2)}
+    assert (3, 2) not in cells and (2, 2) not in cells
+
+
 def _row_with_a_thin_mullion_widened(img: np.ndarray, mullions: tuple[tuple[float, float], ...],
                                      widths: tuple[float, ...], pitch_px: float | None = None,
                                      widened: int = 1, fitted: bool = False
