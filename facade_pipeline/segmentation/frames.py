@@ -751,10 +751,13 @@ def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tupl
     box, and both its halves read the box; found at the width of that half and kept, both its halves read
     the half. Read on the bar the thin half belongs to, the half toward the box is gone and the thin one
     is there. Centred on the thin line instead, a bar of ``width_px`` has its half lines on the thin half's
-    two edges. Only where the thin one shows the frames' ``colour`` or a clip (``_colour_shown``) over at
-    least ``continuation_presence`` of ``span``: a half of a frame is the frames' material, while a thin
-    line beside a bar may be the shadow it casts on the glass, whose bar-side half would read gone beside a
-    pane. As it is without ``colour``."""
+    two edges. A thin one narrower than a half is a part of it, its edge toward the box where the halves
+    meet (the half's other edge, clipped with the glass beyond it, is not found): the bar's centre is that
+    edge, and the thin one's half is read on its own line rather than the thin one's centre line, which for
+    a line found at an edge's width is that edge's mixed pixel. Only where the thin one's half shows the
+    frames' ``colour`` or a clip (``_colour_shown``) over at least ``continuation_presence`` of ``span``: a
+    half of a frame is the frames' material, while a thin line beside a bar may be the shadow it casts on
+    the glass, whose bar-side half would read gone beside a pane. As it is without ``colour``."""
     if colour is None or not toward:
         return bar
     below = toward < 0
