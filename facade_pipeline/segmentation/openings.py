@@ -411,7 +411,8 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
                 continue
             if cut_r and not cut_c and grid_ends:
                 # a strip the border cuts beyond a transom that shows neither of its halves nor its colour
-                # over the strip's width: neither unit beside that transom is there, so the strip is no unit
+                # over the strip's width: neither unit beside it is there, the strip's no more than the one
+                # below it
                 low, high = bars_h.edges[next(k for k in row.bounds if k is not None)]
                 if (not _halves_told(low.half_present, high.half_present, x0, x1)[2]
                         and _presence(low.present, low.short, x0, x1) == 0.0):
