@@ -230,15 +230,6 @@ def extent(fit: FamilyFit | None, size: int) -> slice:
     return slice(int(max(0, np.floor(fit.centres[0]))), int(min(size, np.ceil(fit.centres[-1]) + 1)))
 
 
-def across(fit: FamilyFit | None, size: int, predicted: bool) -> slice:
-    """Along-bar range the transoms are sought, fitted and widened over (``fit``: the mullions): their
-    extent (``extent``), but the whole width where two mullions found at the building's pitch
-    (``find_bars``' ``predicted``) bound one column: that column may be a unit not installed, whose box
-    shows a bar of the frames' colour off the facade's transoms and only the installed unit's half of the
-    transom it meets."""
-    return slice(0, size) if predicted and fit is not None and len(fit.centres) == 2 else extent(fit, size)
-
-
 def _edges(fit: FamilyFit, grad: Gradients, span: slice, params: SegmentParams) -> Bars | None:
     """The edges of each bar of ``fit``; a bar placed by the grid (``FamilyFit.placed``) whose edges are
     not both found keeps the straight edges of its place: it clips with the glass beside it, and the one
@@ -377,7 +368,7 @@ def find_bars(
             colour_h = None
             if v is not None and params.grid.frame_colour_scale > 0 and planar:
                 colour_h = bar_colour(gv, v, extent(rows, H))
-            h = _family(gh, hseg, 1, across(v, W, predicted), params, sizes_h, colour_h, pool, support_h)
+            h = _family(gh, hseg, 1, extent(v, W), params, sizes_h, colour_h, pool, support_h)
             if again or colour_h is None or h is None or not _runs_beyond(h, extent(h_first, H)):
                 break
             rows = h
@@ -400,13 +391,13 @@ def find_bars(
         # the facade goes on beyond the run there. Where an empty unit's lit box fills the strip, the
         # mullions do not go on across it in the median, and no transom makes its cell a pane
         v = with_clipped_ends(v, gv, extent(h, H), support)
-        cut = with_clipped_ends(h, gh, across(v, W, predicted), support_h, cut=True)
-        edges_h = pool.submit(_edges, h, gh, across(v, W, predicted), params)
+        cut = with_clipped_ends(h, gh, extent(v, W), support_h, cut=True)
+        edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
         bars_v = _edges(v, gv, extent(h, H), params)
         bars_h = edges_h.result()
         if cut is not h and _goes_on(bars_v, bars_h, h, cut, H, support, params):
             h = cut
-            edges_h = pool.submit(_edges, h, gh, across(v, W, predicted), params)
+            edges_h = pool.submit(_edges, h, gh, extent(v, W), params)
             bars_v = _edges(v, gv, extent(h, H), params)
             bars_h = edges_h.result()
         metrics["bars_placed_x"] = len(v.placed)
@@ -448,9 +439,6 @@ class FrameBars:
     """The building's pitch (m) the bars were sought at: the unit of the params' lengths."""
     planar: bool = True
     """Whether the surface is a plane (``find_bars``)."""
-    predicted: bool = False
-    """Whether the mullions were sought at the building's pitch (``find_bars``' ``predicted``): the
-    transoms' along-bar range (``across``)."""
 
     def bar_widths_m(self) -> dict[str, list[float]]:
         """The widths (m) of the bars found, per family ("x": mullions, "y": transoms), but for the bars the
@@ -544,12 +532,12 @@ def find_frames(
         for axis, (name, z) in enumerate(zip(("x", "y"), family_sizes, strict=True))
     )
     image = normalise_exposure(image, valid)
-    predicted = predicted and "x" in (pitch_m or {})
     bars_v, bars_h, metrics, fits, grads = find_bars(
-        image, params, family_sizes, valid, parallax, planar, support, predicted)
+        image, params, family_sizes, valid, parallax, planar, support,
+        predicted and "x" in (pitch_m or {}))
     metrics.update({"working_scale": round(float(np.sqrt(qx * qy)), 4), "working_metres_per_px": m})
     return FrameBars(bars_v, bars_h, fits, parallax, (Ww, Hw), (qx, qy), m, support, metrics, grads, unit_m,
-                     planar, predicted)
+                     planar)
 
 
 #: the survey, which measures the building's pitch before any length is known, seeks each family's pitch
@@ -751,26 +739,18 @@ def _halves_at_place(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], thin: tupl
     box, and both its halves read the box; found at the width of that half and kept, both its halves read
     the half. Read on the bar the thin half belongs to, the half toward the box is gone and the thin one
     is there. Centred on the thin line instead, a bar of ``width_px`` has its half lines on the thin half's
-    two edges. A thin one narrower than a half is a part of it, its edge toward the box where the halves
-    meet (the half's other edge, clipped with the glass beyond it, is not found): the bar's centre is that
-    edge, and the thin one's half is read on its own line rather than the thin one's centre line, which for
-    a line found at an edge's width is that edge's mixed pixel. Only where the thin one's half shows the
-    frames' ``colour`` or a clip (``_colour_shown``) over at least ``continuation_presence`` of ``span``: a
-    half of a frame is the frames' material, while a thin line beside a bar may be the shadow it casts on
-    the glass, whose bar-side half would read gone beside a pane. As it is without ``colour``."""
-    if colour is None or not toward:
+    two edges. Only where the thin one shows the frames' ``colour`` or a clip (``_colour_shown``) over at
+    least ``continuation_presence`` of ``span``: a half of a frame is the frames' material, while a thin
+    line beside a bar may be the shadow it casts on the glass, whose bar-side half would read gone beside a
+    pane. As it is without ``colour``."""
+    if colour is None or not toward or not _shows_colour(grad, thin, colour, span, params):
         return bar
     below = toward < 0
     far, sign = (thin[1], -1.0) if below else (thin[0], 1.0)
-    short_of = max(0.0, 0.5 * width_px - float(thin[1].a - thin[0].a))  # a thin one narrower than a half
-    half = dataclasses.replace(far, a=far.a + sign * (0.25 * width_px - short_of))
-    own = thin if not short_of else (half, half)
-    if not _shows_colour(grad, own, colour, span, params):
-        return bar
-    ref = bar_colour_ref(grad, *own, span)
+    ref = bar_colour_ref(grad, *thin, span)
     reads = []
     for q in (0.25, 0.75):  # the thin one's half, the half beyond it toward ``toward``
-        line = dataclasses.replace(far, a=far.a + sign * (q * width_px - short_of))
+        line = dataclasses.replace(far, a=far.a + sign * q * width_px)
         seen, _, short = frame_presence(grad, line, line, span, params.frame_colour_tol, ref)
         reads.append(seen if short is None else np.where(short, 0.0, seen))
     halves = reads[::-1] if below else reads

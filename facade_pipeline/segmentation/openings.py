@@ -409,14 +409,6 @@ def build_panels(bars_v: Bars, bars_h: Bars, width: int, height: int, params: Se
             x0, x1, y0, y1 = c[:, 0].min(), c[:, 0].max(), c[:, 1].min(), c[:, 1].max()
             if x1 - x0 < 1 or y1 - y0 < 1:
                 continue
-            if cut_r and not cut_c and grid_ends:
-                # a strip the border cuts beyond a transom that shows neither of its halves nor its colour
-                # over the strip's width: neither unit beside it is there, the strip's no more than the one
-                # below it
-                low, high = bars_h.edges[next(k for k in row.bounds if k is not None)]
-                if (not _halves_told(low.half_present, high.half_present, x0, x1)[2]
-                        and _presence(low.present, low.short, x0, x1) == 0.0):
-                    continue
             read = _halves_on_frame(bars_v, 0.5 * (y0 + y1), inside)
             far = (None if cut_c or not grid_ends
                    else tuple(None if not read[k] and bars_v.edges[k][side].half_at_place is None

@@ -11,14 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facade_pipeline.segmentation.frames import (
-    FrameBars,
-    across,
-    bar_colour,
-    extent,
-    find_frames,
-    widen_narrow_bars,
-)
+from facade_pipeline.segmentation.frames import FrameBars, bar_colour, extent, find_frames, widen_narrow_bars
 from facade_pipeline.segmentation.openings import Panel, build_panels
 from facade_pipeline.segmentation.parallax import ParallaxField, correct_parallax, side_face, slope_of
 from facade_pipeline.segmentation.params import SegmentParams
@@ -92,8 +85,8 @@ def segment_frames(
             # frames are one material, the mullions the reference (``frames.find_bars``' colour prior)
             colour = (bar_colour(found.grads[0], bars_v.fit, extent(bars_h.fit, Hw)) if found.planar
                       else None)
-            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], across(bars_v.fit, Ww, found.predicted),
-                                          width, params, faces("y", 1), pitch, colour)
+            bars_h, n = widen_narrow_bars(bars_h, found.grads[1], extent(bars_v.fit, Ww), width, params,
+                                          faces("y", 1), pitch, colour)
         metrics[f"bars_widened_{name}"] = n
     if fits:
         bars_v = correct_parallax(bars_v, fits["x"], found.parallax, width_px.get("x"))
