@@ -263,6 +263,14 @@ def placed_bars(bars: Bars) -> set[int]:
     return {int(np.argmin(np.abs(centres - bars.fit.centres[k]))) for k in bars.fit.placed}
 
 
+def _halves(bar: tuple[EdgeLine, EdgeLine]) -> tuple[tuple[EdgeLine, EdgeLine], tuple[EdgeLine, EdgeLine]]:
+    """The two halves of ``bar`` as bars of their own, each from one of its edges to its centre line (the
+    line halfway between the edges): a unitised facade's bar is the frames of the two units beside it."""
+    centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
+                                 b=0.5 * (bar[0].b + bar[1].b))
+    return (bar[0], centre), (centre, bar[1])
+
+
 def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
                   params: SegmentParams) -> tuple[EdgeLine, EdgeLine]:
     """The two edges of ``bar`` with where its frame colour is present on its centre line over ``span``,
@@ -277,10 +285,8 @@ def with_presence(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], span: slice,
     tol = params.frame_colour_tol
     ref = bar_colour_ref(grad, bar[0], bar[1], span)
     present, unknown, short = frame_presence(grad, bar[0], bar[1], span, tol, ref)
-    centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
-                                 b=0.5 * (bar[0].b + bar[1].b))
     halves = []
-    for half in ((bar[0], centre), (centre, bar[1])):
+    for half in _halves(bar):
         own = bar_colour_ref(grad, *half, span)
         if own is not None and ref is not None:
             own = np.where((np.linalg.norm(own - ref, axis=-1) <= tol)[..., None], own, ref)
@@ -801,8 +807,6 @@ def _with_frames_colour(grad: Gradients, bar: tuple[EdgeLine, EdgeLine], colour:
     if colour is None:
         return bar
     shown = _colour_shown(grad, bar, colour, params)
-    centre = dataclasses.replace(bar[0], a=0.5 * (bar[0].a + float(bar[1].at(bar[0].mid))),
-                                 b=0.5 * (bar[0].b + bar[1].b))
     low, high = (dataclasses.replace(e, frames_colour=np.fmax(shown, _colour_shown(grad, h, colour, params)))
-                 for e, h in zip(bar, ((bar[0], centre), (centre, bar[1])), strict=True))
+                 for e, h in zip(bar, _halves(bar), strict=True))
     return low, high
