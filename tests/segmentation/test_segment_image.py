@@ -1005,7 +1005,6 @@ def test_a_thin_line_widened_without_the_frames_colour_over_an_empty_unit_bounds
     assert {(1, 1), (2, 1)} <= {(p.row, p.col) for p in build_panels(bars_v, plain, W, H, PARAMS, 3.0)}
 
 
-
 def test_a_transom_widened_beside_a_unit_not_installed_bounds_the_pane_below_it():
     """White frames 8 px wide on glass; the unit above the transom in the left column (rows 0-22) is not
     installed: its lit box, pink, fills the cell and the halves of the bars around it that were its own
@@ -1044,6 +1043,7 @@ def test_a_transom_widened_beside_a_unit_not_installed_bounds_the_pane_below_it(
     cells = {(p.row, p.col) for p in build_panels(bars_v, out, W, H, PARAMS, 3.0)}
     # rows from the bottom: 0 below the whole transom, 1 between the transoms; column 1 the box's
     assert {(1, 1), (1, 2), (0, 1)} <= cells
+
 
 def _unit_among_frames(shape: tuple[int, int], mullions: tuple[int, ...], transoms: tuple[int, ...],
                        box: tuple[float, float, float], cell: tuple[tuple[int, int], tuple[int, int]],
