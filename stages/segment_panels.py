@@ -39,6 +39,7 @@ if TYPE_CHECKING:  # names for annotations only: the functions that use them imp
     from facade_pipeline.rectification.surface_map import ViewRectification
     from facade_pipeline.segmentation.frames import FrameBars
     from facade_pipeline.segmentation.openings import Panel
+    from facade_pipeline.segmentation.panels import Segmentation
     from facade_pipeline.segmentation.parallax import ParallaxField
     from facade_pipeline.segmentation.result import SegmentedPanel
 
@@ -57,7 +58,7 @@ def inputs(layout: BuildingLayout, params: Params) -> list[Path]:
     and no image), the frontal views and scene.json."""
     written = set(read_manifest(layout, "rectify").outputs)
     scene = ImportedScene.load(layout)
-    files = [layout.import_scene, layout.import_coarse_mesh]
+    files = [layout.import_scene, layout.import_coarse_mesh, layout.import_coarse_points]
     for v in scene.frontal_views:
         mapping = layout.path("rectify_mapping", stem=v.stem)
         image = layout.path("rectify_image", stem=v.stem)
@@ -242,33 +243,51 @@ def with_building_grid(
 
 
 def segment_one(
-    layout: BuildingLayout,
-    view: View,
-    rect: ViewRectification,
     found: FrameBars | None,
     params: Params,
     frame_depth_m: dict[str, float],
     bar_width_m: dict[str, float],
-    overlay_scale: float,
     frame_sides_m: dict[str, tuple[float, float]] | None = None,
     pitch_m: dict[str, float] | None = None,
+) -> Segmentation | None:
+    """The panels of one view from its frame bars (``find_one``; None for a view rectify skipped) with the
+    building's frame depth (and its sides' where the views' bars were pooled for it:
+    ``building_frame_parallax_m``), bar widths and pitches."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.segmentation.panels import segment_frames
+
+    if found is None:
+        return None
+    return segment_frames(found, params, frame_depth_m, bar_width_m, frame_sides_m, pitch_m)
+
+
+def write_one(
+    layout: BuildingLayout,
+    view: View,
+    rect: ViewRectification,
+    seg: Segmentation | None,
+    overlay_scale: float,
+    not_mirrored: np.ndarray | None = None,
 ) -> tuple[list[Path], dict]:
-    """Segment one view from its frame bars (``find_one``) with the building's frame depth (and its sides'
-    where the views' bars were pooled for it: ``building_frame_parallax_m``), bar widths and pitches and
-    write its three outputs; returns them and the view's metrics."""
+    """Write one view's three outputs from its segmentation (``segment_one``), without the panels of units
+    no pane mirrors (``not_mirrored``, per panel: ``mirror_openings``); returns them and the view's
+    metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image, write_image
-    from facade_pipeline.segmentation.panels import segment_frames
     from facade_pipeline.segmentation.result import ViewSegmentation, panel_labels
 
     t0 = time.perf_counter()
     W, H = view.camera.width, view.camera.height
     panels, ok, metrics, reason = [], False, {}, rect.reason if rect.kind == "skipped" else ""
-    if found is not None:
-        seg = segment_frames(found, params, frame_depth_m, bar_width_m, frame_sides_m, pitch_m)
-        labels = panel_labels([p.corners for p in seg.panels], rect, W, H)
+    dropped = 0
+    if seg is not None:
+        kept = list(seg.panels)
+        if not_mirrored is not None and not_mirrored.any():
+            kept = [p for p, off in zip(seg.panels, not_mirrored, strict=True) if not off]
+            dropped = len(seg.panels) - len(kept)
+        labels = panel_labels([p.corners for p in kept], rect, W, H)
         ok = seg.facade_found and bool((labels >= 0).any())
-        panels, metrics = (seg.panels if ok else []), seg.metrics
+        panels, metrics = (kept if ok else []), seg.metrics
         reason = "" if ok else (seg.reason or "no panel inside the view")
     result = ViewSegmentation(
         view.stem,
@@ -290,11 +309,51 @@ def segment_one(
         "n_panels": len(panels),
         "n_complete": sum(p.complete for p in panels),
         "n_occluded": sum(p.reason == "occluded" for p in panels),
+        "n_not_mirrored": dropped,
         "rectified": rect.rectified,
         **{k: round(v, 5) if isinstance(v, float) else v for k, v in metrics.items()},
         "seconds": round(time.perf_counter() - t0, 3),
     }
     return out, metrics
+
+
+def not_mirrored(
+    layout: BuildingLayout,
+    views: list[View],
+    found: list[tuple[ViewRectification, FrameBars | None, float]],
+    segs: list[Segmentation | None],
+    params: Params,
+    pitch_m: dict[str, float],
+) -> tuple[list[np.ndarray | None], dict]:
+    """Per view, which of its panels belong to a unit the other views' panes do not mirror
+    (``mirror.mirror_openings``; None for a view that takes no part: not rectified onto a plane, or
+    without panels), and the figures behind it. Off where fewer than ``mirror.MIN_VIEWS`` planar views
+    have panels, or the building's pitch is not known in both families."""
+    # imported here, not at the top: doit loads every stage module to build its task list
+    from facade_pipeline.io.images import read_image
+    from facade_pipeline.io.meshes import read_points
+    from facade_pipeline.segmentation.mirror import MIN_VIEWS, MirrorView, mirror_openings
+
+    taking = [i for i, ((rect, _, _), seg) in enumerate(zip(found, segs, strict=True))
+              if seg is not None and seg.facade_found and seg.panels and rect.chart is not None
+              and rect.chart.curvature_per_m == 0.0]
+    out: list[np.ndarray | None] = [None] * len(found)
+    if len(taking) < MIN_VIEWS or not {"x", "y"} <= set(pitch_m):
+        return out, {}
+    mirrors, complete = [], []
+    for i in taking:
+        stem = views[i].stem
+        image = read_image(layout.path("rectify_image", stem=stem))
+        mirrors.append(MirrorView(stem, found[i][0], image, [p.corners for p in segs[i].panels]))
+        complete.append(np.array([p.complete for p in segs[i].panels]))
+    points = np.asarray(read_points(layout.import_coarse_points).points)
+    # the facade's foot: the lowest of the coarse points along the views' up (a few stray ones below)
+    ground = float(np.percentile(points @ mirrors[0].rect.chart.up, 1))
+    flags, judged = mirror_openings(mirrors, complete, (pitch_m["x"], pitch_m["y"]), ground,
+                                    params.mirror_max_score)
+    for i, f in zip(taking, flags, strict=True):
+        out[i] = f
+    return out, judged
 
 
 def _coarse_raycaster(mesh_path: Path) -> MeshRaycaster:
@@ -361,9 +420,10 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
                           else with_building_grid(layout, views, found, params, mesh, width, unit, bar_max,
                                                  side_depth))
     pitch = building_pitch_m([f for _, f, _ in found])
-    for view, (rect, frames, seconds) in zip(views, found, strict=True):
-        outs, per_view[view.stem] = segment_one(layout, view, rect, frames, params, depth, width,
-                                                settings.overlay_scale, sides, pitch)
+    segs = [segment_one(frames, params, depth, width, sides, pitch) for _, frames, _ in found]
+    off, judged = not_mirrored(layout, views, found, segs, params, pitch)
+    for view, (rect, _, seconds), seg, o in zip(views, found, segs, off, strict=True):
+        outs, per_view[view.stem] = write_one(layout, view, rect, seg, settings.overlay_scale, o)
         if unit is None and rect.kind != "skipped":
             per_view[view.stem]["reason"] = "the survey found no regular frame grid in any view at any pitch"
         per_view[view.stem]["seconds"] = round(per_view[view.stem]["seconds"] + seconds, 3)
@@ -383,6 +443,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "bar_width_m": {name: round(w, 4) for name, w in width.items()},
             "surveyed_bar_max_m": {name: round(w, 4) for name, w in bar_max.items()},
             "views_off_the_building_grid": disagreeing,
+            "mirror": judged,
             "seconds_per_view": round(sum(m["seconds"] for m in per_view.values()) / max(1, len(views)), 3),
             "views": per_view,
         },

@@ -238,8 +238,8 @@ def test_run_settings_are_their_own_table(cfg_dir):
 #: the most keys a real building's config may have (default.toml's leaves; synthetic.toml's are not seen):
 #: a config a user can read through (two pixel budgets, of the trained views and of the alignment's fit;
 #: the processes a stage's per-view loop may use; whether train_gs compiles its step on a GPU; the weight of
-#: the facade's pull toward opaque)
-KEY_BUDGET = 125
+#: the facade's pull toward opaque; the score above which a unit is no pane, ``mirror_max_score``)
+KEY_BUDGET = 126
 
 
 def _leaf_keys(table: dict) -> int:

@@ -33,5 +33,8 @@ class SegmentParams:
     panel."""
     frame_colour_tol: NonNeg
     """A frame bar is present where its centre line is within this RGB distance (0-1) of its median colour."""
+    mirror_max_score: Positive
+    """A unit whose median score over its views (summed absolute log colour ratio to what the other views'
+    panes mirror along the same reflected rays) is above this is no pane (``segmentation.mirror``) (-)."""
     parallax_max_slope: NonNeg
     """Largest frame parallax d / Z accepted (frames d proud of glass, their front Z away); 0: none."""
