@@ -437,6 +437,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
             "n_panels": sum(m["n_panels"] for m in per_view.values()),
             "n_complete_panels": sum(m["n_complete"] for m in per_view.values()),
             "pitch_unit_m": unit,
+            "pitch_m": {name: round(p, 5) for name, p in pitch.items()},
             "frame_depth_m": {name: round(d, 4) for name, d in depth.items()},
             "frame_side_depths_m": {name: [round(d, 4) if np.isfinite(d) else None for d in s]
                                     for name, s in sides.items()},

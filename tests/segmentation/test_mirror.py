@@ -7,11 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from facade_pipeline.config import default_params
 from facade_pipeline.geometry.camera import PinholeCamera
 from facade_pipeline.rectification.surface_map import Chart, ViewRectification
 from facade_pipeline.segmentation.mirror import MirrorView, mirror_openings
+from facade_pipeline.segmentation.params import SegmentParams
 
-MAX_SCORE = 0.75
+MAX_SCORE = default_params("segment_panels", SegmentParams).mirror_max_score  # the shipped default
 PITCH, PANE = 1.0, 0.8  # m: a 4 x 3 grid of units, frames 0.2 m wide
 COLS, ROWS = 4, 3
 GROUND = -3.0  # m: the facade's foot, along up
