@@ -69,13 +69,6 @@ class MirrorView:
         clipped = image.max(axis=2) >= CLIPPED
         self.bad = cv2.dilate(clipped.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         self.bad |= image.max(axis=2) == 0
-        # the frames' colour, around the panels, as the view's white
-        ys, xs = np.mgrid[0:image.shape[0], 0:image.shape[1]] + 0.5
-        inside = inside_quads(self.quads, xs, ys) >= 0 if self.quads else np.zeros(image.shape[:2], bool)
-        ring = cv2.dilate(inside.astype(np.uint8), np.ones((13, 13), np.uint8)).astype(bool)
-        ring &= ~inside & ~self.bad
-        pool = f[ring] if ring.sum() > 50 else f[~self.bad]
-        self.white = (np.median(pool, axis=0) if len(pool) else np.full(3, 255.0)) + 1.0
         cam = rect.camera.center
         self.mirror_camera = cam - 2 * ((cam - c.origin) @ c.normal) * c.normal
         u = (np.arange(SAMPLES) + 0.5) / SAMPLES * (1 - 2 * SHRINK) + SHRINK
@@ -98,7 +91,7 @@ class MirrorView:
                                         np.array([rect.h0_m - centre[1] * m]))[0])
 
     def lookup(self, E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Colour [n, 3] over the view's white, usable [n] and panel index [n] of what this view's panes
+        """Colour [n, 3] (8-bit scale, blurred), usable [n] and panel index [n] of what this view's panes
         mirror toward the points E [n, 3]."""
         c = self.rect.chart
         d = E - self.mirror_camera
@@ -113,7 +106,7 @@ class MirrorView:
         ok &= ~self.bad[yi, xi]
         k = inside_quads(self.quads, x, y) if self.quads else np.full(len(x), -1)
         ok &= k >= 0
-        return self.blur[yi, xi] / self.white, ok, k
+        return self.blur[yi, xi], ok, k
 
 
 def _environment(P: np.ndarray, r: np.ndarray, centre: np.ndarray, radius: float, ground: float,
@@ -155,7 +148,7 @@ def panel_scores(views: list[MirrorView], pitch_m: tuple[float, float], ground: 
                 seen &= ok
                 if not seen.any():
                     continue
-                th = np.where(seen[:, None], _log(colour * w.white), np.nan)
+                th = np.where(seen[:, None], _log(colour), np.nan)
                 got.append((b, th))
                 pair.setdefault((a, b), []).append(own[seen] - th[seen])
             per_panel.append(got)
