@@ -36,7 +36,7 @@ from facade_pipeline.io.meshes import read_points  # noqa: E402
 from facade_pipeline.layout import BuildingLayout  # noqa: E402
 from facade_pipeline.manifest import read_manifest  # noqa: E402
 from facade_pipeline.rectification.surface_map import ViewRectification  # noqa: E402
-from facade_pipeline.segmentation.mirror import MIN_VIEWS, MirrorView, panel_scores, units  # noqa: E402
+from facade_pipeline.segmentation.mirror import MirrorView, facade_foot, unit_medians  # noqa: E402
 from facade_pipeline.segmentation.params import SegmentParams  # noqa: E402
 from facade_pipeline.segmentation.real_truth import EXPOSURES, exposed_copy, quad_mask  # noqa: E402
 
@@ -73,8 +73,8 @@ def segment(building: str, data_root: Path, env: dict) -> None:
 
 
 def unit_scores(layout: BuildingLayout, src: Path | None) -> tuple[np.ndarray, np.ndarray]:
-    """Each unit's median score over the views that score it (those scored in at least ``MIN_VIEWS``)
-    and its label: 1 without glass, 0 glazed, -1 mixed."""
+    """Each unit's median score over the views that score it (``mirror.unit_medians``) and its label: 1
+    without glass, 0 glazed, -1 mixed."""
     pitch = read_manifest(layout, "segment_panels").metrics["pitch_m"]
     pitch_m = (pitch["x"], pitch["y"])
     views, complete, opening = [], [], []
@@ -88,18 +88,13 @@ def unit_scores(layout: BuildingLayout, src: Path | None) -> tuple[np.ndarray, n
         H, W = mask.shape
         quads = [quad_mask(p.corners_px, W, H) for p in seg.panels]
         opening.append(np.array([not q.any() or mask[q].mean() < 0.5 for q in quads]))
-    ups = np.asarray(read_points(layout.import_coarse_points).points) @ views[0].rect.chart.up
-    scores = np.concatenate(panel_scores(views, pitch_m, float(np.percentile(ups, 1))))
-    unit = np.concatenate(units(views, complete, pitch_m))
-    stems = np.concatenate([[v.stem] * len(v.quads) for v in views])
-    label = np.concatenate(opening)
+    ground = facade_foot(read_points(layout.import_coarse_points).points, views[0].rect.chart.up)
+    unit, medians = unit_medians(views, complete, pitch_m, ground)
+    unit, label = np.concatenate(unit), np.concatenate(opening)
     out, lab = [], []
-    for u in np.unique(unit):
-        ok = (unit == u) & np.isfinite(scores)
-        if len(set(stems[ok])) < MIN_VIEWS:
-            continue
-        out.append(float(np.median(scores[ok])))
+    for u, (median, _) in medians.items():
         mine = label[unit == u]
+        out.append(median)
         lab.append(1 if mine.all() else 0 if not mine.any() else -1)
     return np.array(out), np.array(lab)
 

@@ -242,25 +242,6 @@ def with_building_grid(
     return out, why
 
 
-def segment_one(
-    found: FrameBars | None,
-    params: Params,
-    frame_depth_m: dict[str, float],
-    bar_width_m: dict[str, float],
-    frame_sides_m: dict[str, tuple[float, float]] | None = None,
-    pitch_m: dict[str, float] | None = None,
-) -> Segmentation | None:
-    """The panels of one view from its frame bars (``find_one``; None for a view rectify skipped) with the
-    building's frame depth (and its sides' where the views' bars were pooled for it:
-    ``building_frame_parallax_m``), bar widths and pitches."""
-    # imported here, not at the top: doit loads every stage module to build its task list
-    from facade_pipeline.segmentation.panels import segment_frames
-
-    if found is None:
-        return None
-    return segment_frames(found, params, frame_depth_m, bar_width_m, frame_sides_m, pitch_m)
-
-
 def write_one(
     layout: BuildingLayout,
     view: View,
@@ -269,7 +250,8 @@ def write_one(
     overlay_scale: float,
     not_mirrored: np.ndarray | None = None,
 ) -> tuple[list[Path], dict]:
-    """Write one view's three outputs from its segmentation (``segment_one``), without the panels of units
+    """Write one view's three outputs from its segmentation (``panels.segment_frames``; None for a view
+    rectify skipped), without the panels of units
     no pane mirrors (``not_mirrored``, per panel: ``mirror_openings``); returns them and the view's
     metrics."""
     # imported here, not at the top: doit loads every stage module to build its task list
@@ -332,7 +314,7 @@ def not_mirrored(
     # imported here, not at the top: doit loads every stage module to build its task list
     from facade_pipeline.io.images import read_image
     from facade_pipeline.io.meshes import read_points
-    from facade_pipeline.segmentation.mirror import MIN_VIEWS, MirrorView, mirror_openings
+    from facade_pipeline.segmentation.mirror import MIN_VIEWS, MirrorView, facade_foot, mirror_openings
 
     taking = [i for i, ((rect, _, _), seg) in enumerate(zip(found, segs, strict=True))
               if seg is not None and seg.facade_found and seg.panels and rect.chart is not None
@@ -346,9 +328,7 @@ def not_mirrored(
         image = read_image(layout.path("rectify_image", stem=stem))
         mirrors.append(MirrorView(stem, found[i][0], image, [p.corners for p in segs[i].panels]))
         complete.append(np.array([p.complete for p in segs[i].panels]))
-    points = np.asarray(read_points(layout.import_coarse_points).points)
-    # the facade's foot: the lowest of the coarse points along the views' up (a few stray ones below)
-    ground = float(np.percentile(points @ mirrors[0].rect.chart.up, 1))
+    ground = facade_foot(read_points(layout.import_coarse_points).points, mirrors[0].rect.chart.up)
     flags, judged = mirror_openings(mirrors, complete, (pitch_m["x"], pitch_m["y"]), ground,
                                     params.mirror_max_score)
     for i, f in zip(taking, flags, strict=True):
@@ -388,6 +368,7 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
         survey_unit_m,
         surveyed_bar_max_m,
     )
+    from facade_pipeline.segmentation.panels import segment_frames
 
     views = ImportedScene.load(layout).frontal_views
     outputs: list[Path] = []
@@ -421,9 +402,9 @@ def run(layout: BuildingLayout, params: Params, settings: RunSettings) -> StageR
                                                  side_depth))
     pitch = building_pitch_m([f for _, f, _ in found])
     segs, spent = [], []
-    for _, frames, _ in found:
+    for _, frames, _ in found:  # every view's panels first: the mirror pass below judges them together
         t0 = time.perf_counter()
-        segs.append(segment_one(frames, params, depth, width, sides, pitch))
+        segs.append(None if frames is None else segment_frames(frames, params, depth, width, sides, pitch))
         spent.append(time.perf_counter() - t0)
     t0 = time.perf_counter()
     off, judged = not_mirrored(layout, views, found, segs, params, pitch)

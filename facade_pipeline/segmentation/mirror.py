@@ -90,9 +90,9 @@ class MirrorView:
             self.centres.append(c.point(np.array([rect.s0_m + centre[0] * m]),
                                         np.array([rect.h0_m - centre[1] * m]))[0])
 
-    def lookup(self, E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Colour [n, 3] (8-bit scale, blurred), usable [n] and panel index [n] of what this view's panes
-        mirror toward the points E [n, 3]."""
+    def lookup(self, E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Colour [n, 3] (8-bit scale, blurred) and usable [n] (inside a panel, not clipped) of what this
+        view's panes mirror toward the points E [n, 3]."""
         c = self.rect.chart
         d = E - self.mirror_camera
         den = d @ c.normal
@@ -104,9 +104,17 @@ class MirrorView:
         ok = (lam > 0) & (x >= 0) & (y >= 0) & (x < W - 1) & (y < H - 1)
         xi, yi = np.clip(x, 0, W - 1).astype(int), np.clip(y, 0, H - 1).astype(int)
         ok &= ~self.bad[yi, xi]
-        k = inside_quads(self.quads, x, y) if self.quads else np.full(len(x), -1)
-        ok &= k >= 0
-        return self.blur[yi, xi], ok, k
+        if self.quads:
+            ok &= inside_quads(self.quads, x, y) >= 0
+        else:
+            ok[:] = False
+        return self.blur[yi, xi], ok
+
+
+def facade_foot(points: np.ndarray, up: np.ndarray) -> float:
+    """The height of the facade's foot along ``up``: the lowest of the coarse points [n, 3], a few stray
+    ones below it (their 1st percentile)."""
+    return float(np.percentile(np.asarray(points) @ up, 1))
 
 
 def _environment(P: np.ndarray, r: np.ndarray, centre: np.ndarray, radius: float, ground: float,
@@ -144,7 +152,7 @@ def panel_scores(views: list[MirrorView], pitch_m: tuple[float, float], ground: 
             for b, w in enumerate(views):
                 if b == a:
                     continue
-                colour, seen, _ = w.lookup(E)
+                colour, seen = w.lookup(E)
                 seen &= ok
                 if not seen.any():
                     continue
@@ -197,28 +205,31 @@ def units(views: list[MirrorView], complete: list[np.ndarray],
     return out
 
 
+def unit_medians(views: list[MirrorView], complete: list[np.ndarray], pitch_m: tuple[float, float],
+                 ground: float) -> tuple[list[np.ndarray], dict[int, tuple[float, list[str]]]]:
+    """Per view, the unit [panels] of each panel (``units``), and per unit scored in at least
+    ``MIN_VIEWS`` views its median score over its panels (``panel_scores``) and those views."""
+    scores = np.concatenate(panel_scores(views, pitch_m, ground)) if views else np.zeros(0)
+    unit = units(views, complete, pitch_m)
+    lab = np.concatenate(unit) if unit else np.zeros(0, int)
+    stem = np.concatenate([[v.stem] * len(v.quads) for v in views]) if views else np.zeros(0, str)
+    medians = {}
+    for u in np.unique(lab):
+        ok = (lab == u) & np.isfinite(scores)
+        if len(set(stem[ok])) >= MIN_VIEWS:
+            medians[int(u)] = (float(np.median(scores[ok])), sorted(set(stem[ok].tolist())))
+    return unit, medians
+
+
 def mirror_openings(views: list[MirrorView], complete: list[np.ndarray], pitch_m: tuple[float, float],
                     ground: float, max_score: float) -> tuple[list[np.ndarray], dict]:
     """Per view, which of its panels [panels] (bool) belong to a unit the other views' panes do not mirror
     (module docstring), and the figures behind it: the units scored, the highest median score of a unit
     kept, and per unit judged no pane its median score and the views that scored it."""
-    scores = panel_scores(views, pitch_m, ground)
-    unit = units(views, complete, pitch_m)
-    lab = np.concatenate(unit) if unit else np.zeros(0, int)
-    s = np.concatenate(scores) if scores else np.zeros(0)
-    stem = np.concatenate([[v.stem] * len(v.quads) for v in views]) if views else np.zeros(0, str)
-    judged: dict[str, dict] = {}
-    kept: list[float] = []
-    for u in np.unique(lab):
-        ok = (lab == u) & np.isfinite(s)
-        if len(set(stem[ok])) < MIN_VIEWS:
-            continue
-        median = float(np.median(s[ok]))
-        if median > max_score:
-            judged[str(int(u))] = {"score": round(median, 4), "views": sorted(set(stem[ok].tolist()))}
-        else:
-            kept.append(median)
-    flagged = [int(u) for u in judged]
-    figures = {"units_scored": len(kept) + len(judged),
-               "highest_kept_score": round(max(kept), 4) if kept else None, "not_mirrored": judged}
-    return [np.isin(u, flagged) for u in unit], figures
+    unit, medians = unit_medians(views, complete, pitch_m, ground)
+    judged = {str(u): {"score": round(m, 4), "views": stems} for u, (m, stems) in medians.items()
+              if m > max_score}
+    kept = [m for m, _ in medians.values() if m <= max_score]
+    figures = {"units_scored": len(medians), "highest_kept_score": round(max(kept), 4) if kept else None,
+               "not_mirrored": judged}
+    return [np.isin(u, [int(k) for k in judged]) for u in unit], figures
